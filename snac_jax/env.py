@@ -1,0 +1,137 @@
+"""`SNACEnv`: the SNAC tasks as one gymnax environment class, configured by an `EnvConfig`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnax.environments import environment, spaces
+
+from snac_jax import metrics, observation
+from snac_jax.config import EnvConfig
+from snac_jax.state import EnvParams, EnvState
+from snac_jax.transition import PADDING, is_stuck, transition
+
+
+def draw_stride(key: jax.Array, stride_probs: jax.Array) -> jax.Array:
+    """d in {1, 2, 3} with probabilities `stride_probs` (one uniform draw, two compares)."""
+    u = jax.random.uniform(key)
+    cumulative = jnp.cumsum(stride_probs)
+    return (1 + (u >= cumulative[0]) + (u >= cumulative[1])).astype(jnp.int32)
+
+
+class SNACEnv(environment.Environment[EnvState, EnvParams]):
+    """One SNAC task. Build it with `snac_jax.make(task_id, **overrides)`.
+
+    Equal configurations hash equal, so gymnax's jitted `step`/`reset` (static on `self`)
+    compile once per configuration, not once per instance.
+    """
+
+    def __init__(self, config: EnvConfig, default_params: EnvParams):
+        super().__init__()
+        self.config = config
+        self._default_params = default_params
+
+    def __hash__(self) -> int:
+        return hash(self.config)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, SNACEnv) and other.config == self.config
+
+    def __repr__(self) -> str:
+        return f"SNACEnv({self.config.task_id!r})"
+
+    @property
+    def name(self) -> str:
+        return self.config.task_id
+
+    @property
+    def default_params(self) -> EnvParams:
+        return self._default_params
+
+    @property
+    def num_actions(self) -> int:
+        return self.config.num_actions
+
+    # --- reset ---------------------------------------------------------------------------------
+
+    def _empty_grid(self) -> np.ndarray:
+        (pr, pc), (h, w) = self.config.pad, self.config.plan_shape
+        grid = np.full(self.config.grid_shape, PADDING, dtype=self.config.grid_dtype)
+        grid[pr : pr + h, pc : pc + w] = 0
+        return grid
+
+    def _place_landmarks(self, key: jax.Array, design: jax.Array) -> jax.Array:
+        """K distinct landmark cells, uniform over the plan cells outside the design."""
+        scores = jax.random.gumbel(key, design.shape)
+        scores = jnp.where(design > 0, -jnp.inf, scores).reshape(-1)
+        _, chosen = jax.lax.top_k(scores, self.config.num_landmarks)
+        plan_mask = jnp.zeros(design.size, dtype=bool).at[chosen].set(True).reshape(design.shape)
+        (pr, pc) = self.config.pad
+        return jnp.pad(plan_mask, ((pr, pr), (pc, pc)))
+
+    def reset_to_design(self, key: jax.Array, params: EnvParams, design_index: jax.Array) -> tuple[jax.Array, EnvState]:
+        """Reset onto `params.designs[design_index]` (the evaluator pins test designs this way)."""
+        design = params.designs[design_index]
+        landmarks = None
+        if self.config.num_landmarks:
+            landmarks = self._place_landmarks(key, design)
+        state = EnvState(
+            grid=jnp.asarray(self._empty_grid()),
+            position=jnp.zeros(2, dtype=jnp.int32),
+            design=design,
+            max_bricks=params.design_max_bricks[design_index],
+            bricks_used=jnp.zeros((), jnp.int32),
+            time=jnp.zeros((), jnp.int32),
+            overlap=jnp.zeros((), jnp.int32),
+            union=params.design_volume[design_index],
+            landmarks=landmarks,
+        )
+        return self.get_obs(state, params), state
+
+    def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        num_designs = params.designs.shape[0]
+        key_design, key_landmarks = jax.random.split(key)
+        index = jax.random.randint(key_design, (), 0, num_designs) if num_designs > 1 else 0
+        return self.reset_to_design(key_landmarks, params, index)
+
+    # --- step ----------------------------------------------------------------------------------
+
+    def step_env(
+        self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
+        stride = draw_stride(key, params.stride_probs)
+        obs, state, reward, terminated, info = self.step_with_stride(state, action, stride, params)
+        return obs, state, reward, terminated, info
+
+    def step_with_stride(
+        self, state: EnvState, action: int | jax.Array, stride: int | jax.Array, params: EnvParams
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
+        """The deterministic step for a given stride, without auto-reset (replays use it).
+
+        `info["final_iou"]` is the IoU after this step: the episode's final IoU on the step
+        that ends it (terminated or truncated).
+        """
+        state, reward, terminated = transition(self.config, state, jnp.asarray(action), jnp.asarray(stride))
+        info = {"final_iou": metrics.iou(state), "stride": jnp.asarray(stride, jnp.int32)}
+        return self.get_obs(state, params), state, reward, terminated, info
+
+    def get_obs(self, state: EnvState, params: EnvParams | None = None, key: jax.Array | None = None) -> jax.Array:
+        return observation.observe(self.config, state)
+
+    def is_terminated(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """Out of bricks, or (with obstacles) stuck: the conditions `transition` ends on."""
+        return (state.bricks_used >= state.max_bricks) | is_stuck(self.config, state)
+
+    # --- spaces --------------------------------------------------------------------------------
+
+    def action_space(self, params: EnvParams | None = None) -> spaces.Discrete:
+        return spaces.Discrete(self.config.num_actions)
+
+    def observation_space(self, params: EnvParams | None = None) -> spaces.Box:
+        params = params or self.default_params
+        # Counters and cell heights never exceed the brick budget or the step limit.
+        high = float(max(int(np.max(params.design_max_bricks)), int(params.max_steps_in_episode)))
+        return spaces.Box(-2.0, high, (self.config.obs_size,), jnp.float32)

@@ -1,0 +1,40 @@
+"""State and parameters of a SNAC environment (`flax.struct` pytrees, gymnax-compatible)."""
+
+from __future__ import annotations
+
+import jax
+from flax import struct
+
+
+@struct.dataclass
+class EnvState:
+    """One world. Coordinates are plan coordinates (row, col); 1D uses row 0.
+
+    `overlap` and `union` are the running sums of min(G, D) and max(G, D) over the design area
+    (SPEC §8), updated at the one cell a drop changes, so the IoU costs nothing per step.
+    """
+
+    grid: jax.Array  # padded world (SPEC §2): -1 padding, brick counts (0/1 in 2D)
+    position: jax.Array  # int32 (2,), plan coordinates
+    design: jax.Array  # int16 plan-shaped design of this episode
+    max_bricks: jax.Array  # int32, the brick budget of this design
+    bricks_used: jax.Array  # int32, N_b
+    time: jax.Array  # int32, N_s (gymnax's name: `is_truncated` reads it)
+    overlap: jax.Array  # int32, sum of min(G, D)
+    union: jax.Array  # int32, sum of max(G, D)
+    landmarks: jax.Array | None = None  # bool padded mask, only with the landmarks switch
+
+
+@struct.dataclass
+class EnvParams:
+    """Values the step reads but that never change shapes: vmap or replace them freely.
+
+    `designs` holds the designs a reset draws from: one for a static task or a pinned test
+    design, a bank of sampled training designs for a dynamic task (see `snac_jax.designs`).
+    """
+
+    designs: jax.Array  # int16 (K, *plan_shape)
+    design_max_bricks: jax.Array  # int32 (K,)
+    design_volume: jax.Array  # int32 (K,), sum of each design: the union of an empty grid
+    stride_probs: jax.Array  # float32 (3,), P(d = 1, 2, 3)
+    max_steps_in_episode: int = struct.field(pytree_node=True, default=600)

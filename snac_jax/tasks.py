@@ -1,0 +1,180 @@
+"""The task registry and `make`: task ids, defaults (SPEC §1) and the switches (SPEC §9).
+
+All input checking happens here, in Python, before anything is traced: a bad task id or
+override raises `ValueError` naming what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from snac_jax import designs
+from snac_jax.config import REWARD_SCHEMES, EnvConfig
+from snac_jax.env import SNACEnv
+from snac_jax.state import EnvParams
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    dim: int
+    dynamic: bool
+    design: str  # the designs.json variant (static) or the density of the triangles / "sine"
+    max_steps: int
+
+    @property
+    def half_window(self) -> int:
+        return 2 if self.dim == 1 else 3
+
+
+_MAX_STEPS = {1: 750, 2: 600, 3: 1300}
+_SPECS: dict[str, TaskSpec] = {
+    **{f"1d-static-{s}": TaskSpec(1, False, f"1d-static-{s}", 750) for s in ("sin", "gauss", "step")},
+    "1d-dynamic": TaskSpec(1, True, "sine", 750),
+}
+for _dim in (2, 3):
+    for _density in ("dense", "sparse"):
+        _SPECS[f"{_dim}d-static-{_density}"] = TaskSpec(_dim, False, f"{_dim}d-static-{_density}", _MAX_STEPS[_dim])
+    for _density in ("dense", "sparse"):
+        _SPECS[f"{_dim}d-dynamic-{_density}"] = TaskSpec(_dim, True, _density, 600 if _dim == 2 else 1000)
+
+TASKS: tuple[str, ...] = tuple(_SPECS)
+"""Every task id (SPEC §1)."""
+
+DEFAULT_STRIDE_PROBS = (1 / 3, 1 / 3, 1 / 3)
+DEFAULT_DESIGN_BANK_SIZE = 16384
+DEFAULT_NUM_LANDMARKS = 8
+
+OVERRIDES = {
+    "gps": "bool: append the true plan position to the observation",
+    "stride_probs": "three probabilities for strides 1, 2, 3 ((1, 0, 0) is the paper's -Uncertainty)",
+    "obstacles": "bool: the 3D action set and obstacle rule (default: on in 3D, off in 2D; 1D has none)",
+    "landmarks": f"int K >= 0 landmark cells outside the design (2D/3D; True means {DEFAULT_NUM_LANDMARKS})",
+    "reward_scheme": f"one of {REWARD_SCHEMES} (default: 'binary' in 2D, 'height' in 1D/3D)",
+    "max_steps": "int >= 1, the step limit (truncation)",
+    "test_design": "int 0..9: pin a dynamic task to one of its ten test designs",
+    "design_bank_size": f"int >= 1, training designs drawn at make time (dynamic tasks; default {DEFAULT_DESIGN_BANK_SIZE})",
+    "design_seed": "int, the seed of the design bank (dynamic tasks; default 0)",
+}
+
+
+def task_spec(task_id: str) -> TaskSpec:
+    if task_id not in _SPECS:
+        raise ValueError(f"unknown task id {task_id!r}; allowed task ids: {', '.join(TASKS)}")
+    return _SPECS[task_id]
+
+
+def test_design_names(task_id: str) -> list[str]:
+    """The designs.json keys of a dynamic task's ten test designs."""
+    spec = task_spec(task_id)
+    if not spec.dynamic:
+        raise ValueError(f"{task_id!r} is a static task and has no test designs; dynamic tasks: "
+                         f"{', '.join(t for t in TASKS if _SPECS[t].dynamic)}")
+    return [f"{task_id}-test{i}" for i in range(designs.NUM_TEST_DESIGNS)]
+
+
+def _require_bool(name: str, value: Any) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def _require_int(name: str, value: Any, low: int, high: int | None = None) -> int:
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    if not ok or value < low or (high is not None and value > high):
+        allowed = f"an int >= {low}" if high is None else f"an int in {low}..{high}"
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return int(value)
+
+
+def _stride_probs(value: Any) -> tuple[float, float, float]:
+    try:
+        probs = tuple(float(p) for p in value)
+    except TypeError:
+        probs = ()
+    if len(probs) != 3 or any(not math.isfinite(p) or p < 0 for p in probs) or abs(sum(probs) - 1) > 1e-6:
+        raise ValueError(
+            f"stride_probs must be three non-negative probabilities for strides 1, 2, 3 summing to 1, "
+            f"got {value!r}"
+        )
+    return probs
+
+
+def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
+    """Build a task: `env, params = make("2d-static-dense", gps=True)`.
+
+    Returns a gymnax `Environment` and its default `EnvParams`. See `OVERRIDES` for the
+    switches; anything else raises `ValueError`.
+    """
+    spec = task_spec(task_id)
+    unknown = sorted(set(overrides) - set(OVERRIDES))
+    if unknown:
+        allowed = "; ".join(f"{k}: {v}" for k, v in OVERRIDES.items())
+        raise ValueError(f"unknown override(s) {unknown} for make({task_id!r}); allowed overrides: {allowed}")
+
+    gps = _require_bool("gps", overrides.get("gps", False))
+    stride_probs = _stride_probs(overrides.get("stride_probs", DEFAULT_STRIDE_PROBS))
+    obstacles = _require_bool("obstacles", overrides.get("obstacles", spec.dim == 3))
+    if obstacles and spec.dim == 1:
+        raise ValueError("obstacles=True needs a 2D or 3D task; 1D has no obstacle rule")
+    landmarks = overrides.get("landmarks", 0)
+    if isinstance(landmarks, bool):
+        landmarks = DEFAULT_NUM_LANDMARKS if landmarks else 0
+    landmarks = _require_int("landmarks", landmarks, 0)
+    if landmarks and spec.dim == 1:
+        raise ValueError("landmarks need a 2D or 3D task; every 1D column belongs to the design")
+    reward_scheme = overrides.get("reward_scheme", "binary" if spec.dim == 2 else "height")
+    if reward_scheme not in REWARD_SCHEMES:
+        raise ValueError(f"reward_scheme must be one of {REWARD_SCHEMES}, got {reward_scheme!r}")
+    max_steps = _require_int("max_steps", overrides.get("max_steps", spec.max_steps), 1)
+
+    for name in ("test_design", "design_bank_size", "design_seed"):
+        if name in overrides and not spec.dynamic:
+            raise ValueError(f"{name} applies to dynamic tasks only; {task_id!r} is static")
+    if spec.dynamic and "test_design" in overrides:
+        index = _require_int("test_design", overrides["test_design"], 0, designs.NUM_TEST_DESIGNS - 1)
+        if "design_bank_size" in overrides or "design_seed" in overrides:
+            raise ValueError("test_design pins one design: it cannot be combined with design_bank_size or design_seed")
+        design_stack = designs.fixed_design(test_design_names(task_id)[index])[None]
+    elif spec.dynamic:
+        size = _require_int("design_bank_size", overrides.get("design_bank_size", DEFAULT_DESIGN_BANK_SIZE), 1)
+        seed = _require_int("design_seed", overrides.get("design_seed", 0), 0)
+        density = None if spec.dim == 1 else spec.design
+        design_stack = designs.design_bank(spec.dim, density, size, seed)
+    else:
+        design_stack = designs.fixed_design(spec.design)[None]
+
+    if landmarks:
+        free_cells = int(np.min(np.sum(design_stack == 0, axis=(1, 2))))
+        if landmarks > free_cells:
+            raise ValueError(f"landmarks must be at most {free_cells} (the free cells of the design), got {landmarks}")
+
+    config = EnvConfig(
+        task_id=task_id,
+        dim=spec.dim,
+        dynamic=spec.dynamic,
+        half_window=spec.half_window,
+        obstacles=obstacles,
+        binary_grid=spec.dim == 2,
+        reward_scheme=reward_scheme,
+        gps=gps,
+        num_landmarks=landmarks,
+    )
+    params = make_params(design_stack, spec.dim, stride_probs, max_steps)
+    return SNACEnv(config, params), params
+
+
+def make_params(design_stack: np.ndarray, dim: int, stride_probs=DEFAULT_STRIDE_PROBS, max_steps: int = 600) -> EnvParams:
+    """`EnvParams` whose resets draw from `design_stack` (K, *plan_shape)."""
+    design_stack = np.asarray(design_stack, dtype=np.int16)
+    return EnvParams(
+        designs=jnp.asarray(design_stack),
+        design_max_bricks=jnp.asarray(designs.max_bricks_for(design_stack, dim)),
+        design_volume=jnp.asarray(design_stack.reshape(len(design_stack), -1).sum(axis=1), dtype=jnp.int32),
+        stride_probs=jnp.asarray(stride_probs, dtype=jnp.float32),
+        max_steps_in_episode=jnp.asarray(max_steps, dtype=jnp.int32),
+    )

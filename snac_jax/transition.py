@@ -1,0 +1,113 @@
+"""The deterministic part of one step (SPEC §3-5), shared by 1D, 2D and 3D.
+
+The stride is an argument: `SNACEnv.step_env` draws it, and replaying a recorded episode passes
+the recorded one. Nothing here branches in Python on traced values; the configuration (static)
+selects the action table, the obstacle rule, the binary clip and the reward scheme.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from snac_jax.config import MAX_STRIDE, EnvConfig
+from snac_jax.state import EnvState
+
+PADDING = -1
+
+
+def drop_reward(config: EnvConfig, height: jax.Array, design_height: jax.Array) -> jax.Array:
+    """Reward for a brick that lands and brings its cell to `height` where the design wants
+    `design_height` (SPEC §5). The one definition of the reward: hindsight relabelling reuses it."""
+    if config.reward_scheme == "height":
+        return jnp.where(height > design_height, -1.0, jnp.where(height == design_height, 10.0, 1.0))
+    return jnp.where(height <= design_height, 5.0, 0.0)
+
+
+def neighbours_block_moving(grid: jax.Array, padded_position: jax.Array) -> jax.Array:
+    """bool (4,): for left, right, row+1, row-1, whether the neighbour blocks a move (not 0)."""
+    offsets = jnp.asarray([(0, -1), (0, 1), (1, 0), (-1, 0)])
+    cells = grid[padded_position[0] + offsets[:, 0], padded_position[1] + offsets[:, 1]]
+    return cells != 0
+
+
+def is_stuck(config: EnvConfig, state: EnvState) -> jax.Array:
+    """SPEC §4: with obstacles, the robot is stuck when no neighbour is free to move to."""
+    if not config.obstacles:
+        return jnp.asarray(False)
+    padded = state.position + jnp.asarray(config.pad)
+    return jnp.all(neighbours_block_moving(state.grid, padded))
+
+
+def _move(config: EnvConfig, state: EnvState, padded: jax.Array, direction: jax.Array, stride: jax.Array):
+    """New plan position after a move of `stride` cells in `direction`."""
+    if not config.obstacles:
+        upper = jnp.asarray(config.plan_shape) - 1
+        return jnp.clip(state.position + stride * direction, 0, upper)
+    # Obstacle rule: advance cell by cell while the next cell is empty (0). The padding is
+    # >= MAX_STRIDE wide, so every probed index stays inside the grid.
+    steps = jnp.arange(1, MAX_STRIDE + 1)
+    probed = padded[None, :] + steps[:, None] * direction[None, :]
+    free = state.grid[probed[:, 0], probed[:, 1]] == 0
+    advanced = jnp.sum(jnp.cumprod(free) * (steps <= stride))
+    return state.position + advanced * direction
+
+
+def transition(
+    config: EnvConfig, state: EnvState, action: jax.Array, stride: jax.Array
+) -> tuple[EnvState, jax.Array, jax.Array]:
+    """Apply `action` with stride `stride` (1..3). Returns (state, reward, terminated).
+
+    Truncation by the step limit is not decided here: `state.time` counts the steps and the
+    gymnax `step` compares it with `params.max_steps_in_episode`.
+    """
+    table = jnp.asarray(np.asarray(config.actions, dtype=np.int32))
+    is_drop = table[action, 0] == 1
+    direction = table[action, 1:]
+    offset = jnp.asarray(config.pad)
+    padded = state.position + offset
+    stuck = is_stuck(config, state)  # judged before the action
+
+    # Moves (a drop leaves the position unchanged).
+    moved = _move(config, state, padded, direction, stride)
+    position = jnp.where(is_drop, state.position, moved)
+
+    # Drops: onto the own cell, or onto a neighbour with the neighbour-drop action table.
+    target = padded + direction
+    target_value = state.grid[target[0], target[1]]
+    counted = is_drop & (target_value != PADDING)  # a drop toward padding spends nothing
+    on_landmark = (
+        state.landmarks[target[0], target[1]] if state.landmarks is not None else jnp.asarray(False)
+    )
+    placed = counted & ~on_landmark
+    height = target_value.astype(jnp.int32) + 1
+    new_value = jnp.minimum(height, 1) if config.binary_grid else height
+    plan_target = jnp.clip(target - offset, 0, jnp.asarray(config.plan_shape) - 1)
+    design_height = state.design[plan_target[0], plan_target[1]].astype(jnp.int32)
+    old_value = jnp.maximum(target_value.astype(jnp.int32), 0)
+    grid = state.grid.at[target[0], target[1]].set(
+        jnp.where(placed, new_value, target_value).astype(state.grid.dtype)
+    )
+    overlap = state.overlap + jnp.where(
+        placed, jnp.minimum(new_value, design_height) - jnp.minimum(old_value, design_height), 0
+    )
+    union = state.union + jnp.where(
+        placed, jnp.maximum(new_value, design_height) - jnp.maximum(old_value, design_height), 0
+    )
+    bricks_used = state.bricks_used + counted.astype(jnp.int32)
+
+    out_of_bricks = counted & (bricks_used >= state.max_bricks)
+    terminated = out_of_bricks | stuck
+    reward = jnp.where(placed & ~terminated, drop_reward(config, height, design_height), 0.0)
+
+    new_state = state.replace(
+        grid=grid,
+        position=position,
+        bricks_used=bricks_used,
+        time=state.time + 1,
+        overlap=overlap,
+        union=union,
+    )
+    return new_state, reward.astype(jnp.float32), terminated
+
