@@ -1,0 +1,23 @@
+"""Argument types shared by the subcommands: they reject bad input before JAX is touched."""
+
+from __future__ import annotations
+
+import argparse
+
+from snac_jax.tasks import TASKS
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an int >= 1, got {text!r}")
+    return value
+
+
+def task_id(text: str) -> str:
+    if text not in TASKS:
+        raise argparse.ArgumentTypeError(f"unknown task {text!r}; allowed: {', '.join(TASKS)}")
+    return text
