@@ -69,15 +69,20 @@ def max_bricks_for(design_stack: np.ndarray, dim: int) -> np.ndarray:
 # --- generators ------------------------------------------------------------------------------
 
 
+def sine_curve(amplitude, frequency, phase) -> jax.Array:
+    """round(k1 * sin(2*pi/30 * (k2 * x + phi)) + 20) over x = 0..29, shape (1, 30), int16."""
+    x = jnp.arange(PLAN_SIZE_1D)
+    curve = amplitude * jnp.sin(2 * jnp.pi / PLAN_SIZE_1D * (frequency * x + phase)) + 20
+    return jnp.round(curve).astype(jnp.int16)[None, :]
+
+
 def sample_sine(key: jax.Array) -> jax.Array:
-    """A 1D dynamic design: round(k1 * sin(2*pi/30 * (k2 * x + phi)) + 20), shape (1, 30)."""
+    """A 1D dynamic design: k1 ~ U(3, 12), k2 uniform in {1, 2, 3}, phi ~ U(-pi, pi)."""
     k_amp, k_freq, k_phase = jax.random.split(key, 3)
     amplitude = jax.random.uniform(k_amp, minval=SINE_AMPLITUDE_RANGE[0], maxval=SINE_AMPLITUDE_RANGE[1])
     frequency = jax.random.choice(k_freq, jnp.asarray(SINE_FREQUENCIES))
     phase = jax.random.uniform(k_phase, minval=-jnp.pi, maxval=jnp.pi)
-    x = jnp.arange(PLAN_SIZE_1D)
-    curve = amplitude * jnp.sin(2 * jnp.pi / PLAN_SIZE_1D * (frequency * x + phase)) + 20
-    return jnp.round(curve).astype(jnp.int16)[None, :]
+    return sine_curve(amplitude, frequency, phase)
 
 
 def rasterise_triangle(vertices: jax.Array, filled: bool) -> jax.Array:

@@ -77,6 +77,9 @@ def test_design_names(task_id: str) -> list[str]:
     return [f"{task_id}-test{i}" for i in range(designs.NUM_TEST_DESIGNS)]
 
 
+test_design_names.__test__ = False  # a library function, not a pytest test
+
+
 def _require_bool(name: str, value: Any) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name} must be True or False, got {value!r}")
