@@ -1,0 +1,144 @@
+"""Run directories: atomic text writes, orbax checkpoints of the runner state, and loading a
+trained policy back from a run directory (`snac eval --checkpoint DIR`).
+
+A run directory holds `config.json`, `metrics.jsonl`, `checkpoints/<chunk>/` (orbax, written to
+a temporary folder and renamed when complete, so a crash never leaves a half checkpoint),
+`curve.png` and `eval.json`.
+
+Typed PRNG keys do not serialise: they are stored as their raw `key_data` and wrapped again on
+restore, guided by the structure of a freshly initialised state.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_DIR = "checkpoints"
+
+
+def atomic_replace(path: str | Path, write) -> None:
+    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it over `path`:
+    a crash leaves the old file (or none), never half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    atomic_replace(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def _is_key(x: Any) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def to_storable(tree: Any) -> Any:
+    """Replace typed keys by their uint32 key data."""
+    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
+
+
+def from_storable(tree: Any, like: Any) -> Any:
+    """Wrap the key data in `tree` back into typed keys wherever `like` holds one."""
+    return jax.tree.map(lambda x, ref: jax.random.wrap_key_data(x) if _is_key(ref) else x, tree, like)
+
+
+def _manager(directory: Path):
+    import orbax.checkpoint as ocp
+
+    return ocp.CheckpointManager(
+        Path(directory).absolute() / CHECKPOINT_DIR,
+        options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False),
+    )
+
+
+def save_state(directory: str | Path, chunk: int, state: Any) -> None:
+    """Checkpoint `state` as chunk number `chunk` (orbax writes a temporary folder, then renames)."""
+    import orbax.checkpoint as ocp
+
+    manager = _manager(Path(directory))
+    manager.save(chunk, args=ocp.args.StandardSave(to_storable(state)), force=True)
+    manager.wait_until_finished()
+    manager.close()
+
+
+def latest_chunk(directory: str | Path) -> int | None:
+    path = Path(directory) / CHECKPOINT_DIR
+    if not path.is_dir():
+        return None
+    manager = _manager(Path(directory))
+    step = manager.latest_step()
+    manager.close()
+    return step
+
+
+def restore_state(directory: str | Path, like: Any, chunk: int | None = None) -> tuple[int, Any]:
+    """The latest (or given) checkpoint, shaped, typed and sharded like `like`."""
+    import orbax.checkpoint as ocp
+
+    manager = _manager(Path(directory))
+    chunk = manager.latest_step() if chunk is None else chunk
+    if chunk is None:
+        manager.close()
+        raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ to resume from")
+
+    def abstract(x):
+        sharding = getattr(x, "sharding", None)
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+
+    target = jax.tree.map(abstract, to_storable(like))
+    restored = manager.restore(chunk, args=ocp.args.StandardRestore(target))
+    manager.close()
+    return chunk, from_storable(restored, like)
+
+
+def read_config(directory: str | Path):
+    from agents.config import config_from_json
+
+    path = Path(directory) / CONFIG_FILE
+    if not path.is_file():
+        raise ValueError(f"{directory} is not a training run directory: {CONFIG_FILE} is missing")
+    return config_from_json(json.loads(path.read_text()))
+
+
+def load_trained(directory: str | Path):
+    """`(algorithm object, runner state with a leading seed axis, chunk)` of a run directory."""
+    from agents.driver import build_algorithm, initial_state
+
+    config = read_config(directory)
+    algorithm = build_algorithm(config)
+    like = initial_state(algorithm)
+    chunk, state = restore_state(directory, like)
+    return algorithm, state, chunk
+
+
+def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
+    """Policy builder for the evaluator: the greedy policy of run `checkpoint`, seed `seed_index`.
+
+    `env` must be the task the run trained on (the evaluator passes each environment task)."""
+    algorithm, state, _ = load_trained(checkpoint)
+    if env.config.task_id != algorithm.config.task:
+        raise ValueError(
+            f"checkpoint {checkpoint} was trained on {algorithm.config.task!r}, cannot evaluate it on {env.config.task_id!r}"
+        )
+    seeds = algorithm.config.seeds
+    if not 0 <= seed_index < seeds:
+        raise ValueError(f"seed_index must be in 0..{seeds - 1} for {checkpoint}, got {seed_index}")
+    params = jax.tree.map(lambda x: x[seed_index], state.params)
+    return algorithm.policy(params)

@@ -1,0 +1,186 @@
+"""The training driver every algorithm shares: runs the jitted training in chunks, vmapped over
+seeds and sharded over devices, with a progress bar, `metrics.jsonl`, a checkpoint after each
+chunk, resume, the learning curve and the final evaluation.
+
+An algorithm object (e.g. `agents.ppo.PPO`) provides, as pure functions:
+`init(key) -> state` (state has `params` and a per-world `worlds` field), `train_chunk(state,
+env_params, n) -> (state, metrics)` (metrics stacked over the n iterations, with `episodes`,
+`iou_sum`, `return_sum` and losses), `policy(params) -> Policy`, plus `env_params`,
+`num_updates` and `steps_per_update` (env steps per iteration per seed).
+
+Resuming restores the state (PRNG keys included) of the last completed chunk and runs the
+remaining chunks with the same compiled function, so the result equals an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agents import checkpoint
+from agents.config import TrainConfig, save_config
+from agents.sharding import check_divisible, state_shardings, world_mesh
+
+ALGORITHM_CLASSES = {"ppo": "agents.ppo:PPO"}
+"""Algorithm name (a key of `agents.config.ALGORITHMS`) -> "module:class" built from its config."""
+
+
+def build_algorithm(config: TrainConfig):
+    module, name = ALGORITHM_CLASSES[config.algorithm].split(":")
+    return getattr(importlib.import_module(module), name)(config)
+
+
+def seed_keys(config: TrainConfig) -> jax.Array:
+    base = jax.random.key(config.seed)
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(config.seeds))
+
+
+def initial_state(algorithm, mesh=None) -> Any:
+    """The seed-batched initial state, its worlds split over `mesh` (default: all devices)."""
+    mesh = world_mesh() if mesh is None else mesh
+    check_divisible(algorithm.config.num_envs, mesh)
+    init = jax.vmap(algorithm.init)
+    shardings = state_shardings(jax.eval_shape(init, seed_keys(algorithm.config)), mesh)
+    return jax.jit(init, out_shardings=shardings)(seed_keys(algorithm.config))
+
+
+def chunk_sizes(num_updates: int, chunks: int) -> list[int]:
+    """Updates per chunk: equal chunks (at most two distinct sizes, so at most two compiles)."""
+    chunks = min(chunks, num_updates)
+    per_chunk = math.ceil(num_updates / chunks)
+    sizes = [per_chunk] * (num_updates // per_chunk)
+    if num_updates % per_chunk:
+        sizes.append(num_updates % per_chunk)
+    return sizes
+
+
+def summarize_chunk(metrics: dict[str, np.ndarray]) -> dict[str, list[float]]:
+    """Per-seed summary of a chunk's stacked metrics (seeds, updates)."""
+    episodes = metrics["episodes"].sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(episodes > 0, metrics["iou_sum"].sum(axis=1) / episodes, np.nan)
+        ret = np.where(episodes > 0, metrics["return_sum"].sum(axis=1) / episodes, np.nan)
+    summary = {"episodes": episodes.tolist(), "iou": iou.tolist(), "return": ret.tolist()}
+    for name, values in metrics.items():
+        if name not in ("episodes", "iou_sum", "return_sum"):
+            summary[name] = values[:, -1].tolist()  # the chunk's last update
+    return summary
+
+
+def _read_metrics(path: Path, up_to_chunk: int) -> list[dict]:
+    if not path.is_file():
+        return []
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in records if r["chunk"] <= up_to_chunk]
+
+
+def train(
+    config: TrainConfig,
+    out_dir: str | Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    stop_after_chunks: int | None = None,
+    mesh=None,
+) -> tuple[Any, Any]:
+    """Train `config` into `out_dir` (or continue the run there with `resume=True`).
+
+    Returns `(algorithm, state)`. `stop_after_chunks` ends early after that many chunks of
+    this call (the tests' stand-in for a killed run).
+    """
+    out_dir = Path(out_dir)
+    metrics_path = out_dir / checkpoint.METRICS_FILE
+    if resume:
+        config = checkpoint.read_config(out_dir)
+    else:
+        config.validate()
+        if (out_dir / checkpoint.CHECKPOINT_DIR).exists():
+            raise ValueError(f"{out_dir} already holds a run; pass resume=True (--resume) or choose another directory")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        save_config(config, out_dir / checkpoint.CONFIG_FILE)
+    algorithm = build_algorithm(config)
+    mesh = world_mesh() if mesh is None else mesh
+    state = initial_state(algorithm, mesh)
+    shardings = jax.tree.map(lambda x: x.sharding, state)
+
+    done_chunks, history = 0, []
+    if resume:
+        last = checkpoint.latest_chunk(out_dir)
+        if last is None:
+            raise ValueError(f"{out_dir}: no checkpoint to resume from")
+        _, state = checkpoint.restore_state(out_dir, state)
+        done_chunks = last + 1
+        history = _read_metrics(metrics_path, last)
+        checkpoint.atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
+
+    sizes = chunk_sizes(algorithm.num_updates, config.chunks)
+    compiled: dict[int, Callable] = {}
+
+    def run_chunk(n: int) -> Callable:
+        """The compiled chunk of n updates (compiled ahead, so chunk timings exclude compiling)."""
+        if n not in compiled:
+            fn = jax.vmap(lambda s, p: algorithm.train_chunk(s, p, n), in_axes=(0, None))
+            start = time.perf_counter()
+            jitted = jax.jit(fn, out_shardings=(shardings, None), donate_argnums=0)
+            compiled[n] = jitted.lower(state, algorithm.env_params).compile()
+            bar.write(f"compiled a chunk of {n} updates in {time.perf_counter() - start:.1f} s")
+        return compiled[n]
+
+    steps_per_update = algorithm.steps_per_update
+    total_steps = sum(sizes) * steps_per_update
+    done_steps = sum(sizes[:done_chunks]) * steps_per_update
+    wall = history[-1]["wall_s"] if history else 0.0
+    bar = _progress_bar(total_steps * config.seeds, done_steps * config.seeds, config, progress)
+    try:
+        for index in range(done_chunks, len(sizes)):
+            if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
+                break
+            chunk_fn = run_chunk(sizes[index])
+            start = time.perf_counter()
+            state, metrics = chunk_fn(state, algorithm.env_params)
+            metrics = jax.device_get(metrics)
+            elapsed = time.perf_counter() - start
+            wall += elapsed
+            done_steps += sizes[index] * steps_per_update
+            record = {
+                "chunk": index,
+                "updates": int(sum(sizes[: index + 1])),
+                "env_steps": done_steps,
+                "wall_s": round(wall, 3),
+                "steps_per_s": sizes[index] * steps_per_update * config.seeds / elapsed,
+                **summarize_chunk(metrics),
+            }
+            # Metrics first, checkpoint second: a resume trims lines past the last checkpoint.
+            with metrics_path.open("a") as f:
+                f.write(json.dumps(record) + "\n")
+            checkpoint.save_state(out_dir, index, state)
+            bar.update(sizes[index] * steps_per_update * config.seeds)
+            bar.set_postfix(
+                {"steps/s": f"{record['steps_per_s']:,.0f}", "IoU": f"{np.nanmean(record['iou']):.3f}",
+                 "return": f"{np.nanmean(record['return']):.1f}"}
+            )
+    finally:
+        bar.close()
+    return algorithm, state
+
+
+def _progress_bar(total: int, initial: int, config: TrainConfig, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
+        desc=f"{config.algorithm} {config.task}", dynamic_ncols=True,
+    )
+
+
+def read_metrics(out_dir: str | Path) -> list[dict]:
+    path = Path(out_dir) / checkpoint.METRICS_FILE
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]

@@ -1,0 +1,193 @@
+"""Network pieces shared by every learner: observation layout and scaling, the design encoder,
+a GRU scanned over time with resets at episode boundaries, and the actor-critic heads.
+
+Every network takes time-major inputs `(T, B, obs_size)` with `resets (T, B)` (True where the
+observation starts a new episode) and a carry `(B, carry_size)`, and returns the new carry.
+Feed-forward networks ignore the carry (a `(B, 1)` placeholder), so one training loop serves both.
+
+Observation scaling lives here, not in the environment: raw counters reach 1300 and heights 57.
+
+Initialisers are variance-scaling ones, never orthogonal: orthogonal init inside a jit vmapped
+over seeds deadlocked on 2 CPU cores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from snac_jax.env import SNACEnv
+from snac_jax.state import EnvParams
+
+
+def scaled_init(gain: float) -> nn.initializers.Initializer:
+    """Fan-in scaled normal with the variance an orthogonal init of this gain would give."""
+    return nn.initializers.variance_scaling(gain**2, "fan_in", "truncated_normal")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsLayout:
+    """Where each part of the flat observation (SPEC §6) sits, and how to scale it to ~[-1, 1]."""
+
+    window_shape: tuple[int, int]
+    plan_shape: tuple[int, int]
+    dynamic: bool
+    gps: bool
+    height_scale: float  # the tallest design cell (1 in 2D)
+    brick_scale: float  # the largest brick budget
+    step_scale: float  # the step limit
+
+    @classmethod
+    def from_env(cls, env: SNACEnv, params: EnvParams) -> "ObsLayout":
+        config = env.config
+        return cls(
+            window_shape=config.window_shape,
+            plan_shape=config.plan_shape,
+            dynamic=config.dynamic,
+            gps=config.gps,
+            height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
+            brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
+            step_scale=float(int(params.max_steps_in_episode)),
+        )
+
+    @property
+    def window_size(self) -> int:
+        return self.window_shape[0] * self.window_shape[1]
+
+    @property
+    def design_size(self) -> int:
+        return self.plan_shape[0] * self.plan_shape[1]
+
+    @property
+    def obs_size(self) -> int:
+        gps_size = (1 if self.plan_shape[0] == 1 else 2) if self.gps else 0
+        return self.window_size + 2 + (self.design_size if self.dynamic else 0) + gps_size
+
+    def split(self, obs: jax.Array) -> dict[str, jax.Array]:
+        """Scaled parts of `obs (..., obs_size)`: window (..., wr, wc), counters (..., 2),
+        and with the switches design (..., *plan_shape) and position (..., 1 or 2)."""
+        lead = obs.shape[:-1]
+        w = self.window_size
+        parts = {
+            "window": obs[..., :w].reshape(lead + self.window_shape) / self.height_scale,
+            "counters": obs[..., w : w + 2] / jnp.array([self.brick_scale, self.step_scale]),
+        }
+        offset = w + 2
+        if self.dynamic:
+            parts["design"] = obs[..., offset : offset + self.design_size].reshape(lead + self.plan_shape) / self.height_scale
+            offset += self.design_size
+        if self.gps:
+            parts["position"] = obs[..., offset:] / max(self.plan_shape)
+        return parts
+
+
+class DesignEncoder(nn.Module):
+    """Features of a dynamic task's design: a 1D conv for a row of columns, a small strided
+    conv for a 2D/3D plan."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, design: jax.Array) -> jax.Array:
+        lead, plan = design.shape[:-2], design.shape[-2:]
+        x = design.reshape((-1,) + plan + (1,))
+        if plan[0] == 1:  # 1D: (N, 1, W, 1) -> a 1D conv over the columns
+            x = x[:, 0]
+            x = nn.relu(nn.Conv(8, (5,), kernel_init=scaled_init(np.sqrt(2)))(x))
+        else:
+            x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
+            x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
+        x = x.reshape((x.shape[0], -1))
+        x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x))
+        return x.reshape(lead + (self.features,))
+
+
+class ObservationEncoder(nn.Module):
+    """Scaled window + counters (+ design features, + position) -> an MLP embedding."""
+
+    layout: ObsLayout
+    hidden_size: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        parts = self.layout.split(obs)
+        lead = obs.shape[:-1]
+        features = [parts["window"].reshape(lead + (-1,)), parts["counters"]]
+        if "position" in parts:
+            features.append(parts["position"])
+        if "design" in parts:
+            features.append(DesignEncoder(self.hidden_size)(parts["design"]))
+        x = jnp.concatenate(features, axis=-1)
+        for _ in range(2):
+            x = nn.relu(nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
+        return x
+
+
+class ScannedGRU(nn.Module):
+    """A GRU over time (`nn.scan`) whose carry is zeroed where `resets` marks a new episode.
+
+    Call with `carry (B, H)` and `(inputs (T, B, F), resets (T, B))`.
+    """
+
+    features: int
+
+    @functools.partial(
+        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False}
+    )
+    @nn.compact
+    def __call__(self, carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        inputs, resets = step
+        carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
+        cell = nn.GRUCell(
+            self.features,
+            kernel_init=scaled_init(1.0),
+            recurrent_kernel_init=scaled_init(1.0),
+        )
+        carry, out = cell(carry, inputs)
+        return carry, out
+
+
+def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float) -> jax.Array:
+    x = nn.relu(nn.Dense(hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
+    return nn.Dense(out, kernel_init=scaled_init(gain))(x)
+
+
+class ActorCritic(nn.Module):
+    """Policy logits and value from the observation, with an optional GRU core."""
+
+    layout: ObsLayout
+    num_actions: int
+    hidden_size: int = 64
+    rnn_size: int = 0  # 0: feed-forward
+
+    @property
+    def carry_size(self) -> int:
+        return self.rnn_size if self.rnn_size else 1
+
+    def initial_carry(self, batch: int) -> jax.Array:
+        return jnp.zeros((batch, self.carry_size), jnp.float32)
+
+    @nn.compact
+    def __call__(
+        self, carry: jax.Array, obs: jax.Array, resets: jax.Array
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`."""
+        x = ObservationEncoder(self.layout, self.hidden_size)(obs)
+        if self.rnn_size:
+            carry, x = ScannedGRU(self.rnn_size)(carry, (x, resets))
+        logits = mlp_head(x, self.hidden_size, self.num_actions, 0.01)
+        value = mlp_head(x, self.hidden_size, 1, 1.0)[..., 0]
+        return carry, logits, value
+
+
+def param_count(params) -> int:
+    return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
+
+
+__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedGRU", "ActorCritic", "scaled_init")

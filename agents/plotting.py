@@ -1,0 +1,60 @@
+"""`DIR/curve.png`: mean final IoU and mean episode return against env steps, one line per seed,
+with the paper's best reinforcement-learning result for the task as a dashed line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from snac_jax.evaluation import load_paper_results
+
+RL_METHODS = ("dqn", "drqn", "drqn_her", "sac", "ppo", "rainbow")
+"""The paper's learned methods (not the human or handcrafted rows)."""
+
+
+def paper_column(task: str) -> str:
+    """The paper's column for an environment task: the three 1D shapes share `1d-static`."""
+    return "1d-static" if task.startswith("1d-static") else task
+
+
+def best_rl_result(task: str, paper: dict | None = None) -> tuple[str, float] | None:
+    """`(method, mean IoU)` of the paper's best learned method on `task`, or None if none learned it."""
+    paper = load_paper_results() if paper is None else paper
+    column = paper_column(task)
+    scores = [
+        (method, paper["methods"][method][column]["avg"])
+        for method in RL_METHODS
+        if paper["methods"].get(method, {}).get(column, {}).get("avg") is not None
+    ]
+    return max(scores, key=lambda s: s[1]) if scores else None
+
+
+def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> None:
+    """Write the learning curve of `records` (metrics.jsonl lines) to `path` atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from agents.checkpoint import atomic_replace
+
+    steps = np.array([r["env_steps"] for r in records], dtype=float)
+    fig, (ax_iou, ax_return) = plt.subplots(1, 2, figsize=(11, 4))
+    for name, ax, label in (("iou", ax_iou, "mean final IoU"), ("return", ax_return, "mean episode return")):
+        values = np.array([r[name] for r in records], dtype=float)  # (chunks, seeds)
+        for seed in range(values.shape[1] if values.ndim == 2 else 0):
+            ax.plot(steps, values[:, seed], marker=".", label=f"seed {seed}")
+        ax.set_xlabel("env steps per seed")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    best = best_rl_result(task)
+    if best is not None:
+        method, score = best
+        ax_iou.axhline(score, linestyle="--", color="k", label=f"paper best RL ({method}, {score:.3f})")
+    ax_iou.set_ylim(0, 1)
+    ax_iou.legend(loc="lower right", fontsize="small")
+    fig.suptitle(title)
+    fig.tight_layout()
+    atomic_replace(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)

@@ -1,0 +1,278 @@
+"""PPO trained end-to-end inside `jit`, PureJaxRL-style: environment stepping, rollouts, GAE and
+the clipped-objective updates are one pure function of a key, vmappable over seeds.
+
+`PPO(config)` holds the static pieces (environment, network, optimiser); its methods are pure:
+
+- `init(key) -> RunnerState` for one seed;
+- `update(state, env_params) -> (state, metrics)`: one rollout of `rollout_steps` in every
+  world, then `update_epochs` passes over `num_minibatches` minibatches of worlds;
+- `train_chunk(state, env_params, n)`: `n` updates in a `lax.scan` (the driver runs chunks);
+- `policy(params) -> snac_jax.policy.Policy`: the greedy policy the evaluator runs.
+
+`make_train(config)` returns the whole run as a pure `train(key)`.
+
+Truncated episodes bootstrap from the value of `info["final_observation"]` (the last observation
+of the episode, before the auto-reset), computed with the hidden state that saw the episode.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import distrax
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from agents.config import PPOConfig
+from agents.networks import ActorCritic, ObsLayout
+from snac_jax.policy import Policy
+from snac_jax.tasks import make
+
+
+@struct.dataclass
+class Worlds:
+    """Everything with one entry per parallel world (the axis the driver shards over devices)."""
+
+    env_state: Any
+    obs: jax.Array  # (B, O), the observation the next action sees
+    reset: jax.Array  # (B,) bool, True where `obs` starts an episode (resets the GRU carry)
+    carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
+    episode_return: jax.Array  # (B,) return of the running episode so far
+
+
+@struct.dataclass
+class RunnerState:
+    params: Any
+    opt_state: Any
+    worlds: Worlds
+    key: jax.Array
+    update: jax.Array  # int32, updates done
+
+
+class Transition(NamedTuple):
+    obs: jax.Array
+    reset: jax.Array
+    action: jax.Array
+    log_prob: jax.Array
+    value: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    done: jax.Array
+    final_obs: jax.Array  # the episode's last observation where `done`
+    carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
+
+
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    next_values: jax.Array,
+    terminated: jax.Array,
+    done: jax.Array,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimation over time-major `(T, ...)` arrays.
+
+    `next_values[t]` is the value of the state after step t: the next observation's, or the
+    final observation's where the episode ended at t. A termination bootstraps nothing; a
+    truncation bootstraps from `next_values[t]`; either ends the advantage trace (`done`).
+    Returns `(advantages, value targets)`.
+    """
+    deltas = rewards + gamma * (1.0 - terminated) * next_values - values
+
+    def backward(advantage, step):
+        delta, ended = step
+        advantage = delta + gamma * gae_lambda * (1.0 - ended) * advantage
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(
+        backward, jnp.zeros_like(deltas[-1]), (deltas, done.astype(deltas.dtype)), reverse=True
+    )
+    return advantages, advantages + values
+
+
+class PPO:
+    """Static pieces of a PPO run; see the module docstring."""
+
+    def __init__(self, config: PPOConfig):
+        config.validate()
+        self.config = config
+        self.env, self.env_params = make(config.task)
+        self.layout = ObsLayout.from_env(self.env, self.env_params)
+        self.network = ActorCritic(
+            layout=self.layout,
+            num_actions=self.env.num_actions,
+            hidden_size=config.hidden_size,
+            rnn_size=config.rnn_size if config.recurrent else 0,
+        )
+        minibatch_steps = config.update_epochs * config.num_minibatches
+        lr = (
+            optax.linear_schedule(config.learning_rate, 0.0, config.num_updates * minibatch_steps)
+            if config.anneal_lr
+            else config.learning_rate
+        )
+        self.optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.config.steps_per_update
+
+    @property
+    def num_updates(self) -> int:
+        return self.config.num_updates
+
+    # --- pure functions -------------------------------------------------------------------------
+
+    def init(self, key: jax.Array) -> RunnerState:
+        n = self.config.num_envs
+        key, key_params, key_reset = jax.random.split(key, 3)
+        carry = self.network.initial_carry(n)
+        obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
+        params = self.network.init(key_params, carry[:1], obs[None, :1], jnp.ones((1, 1), bool))
+        worlds = Worlds(env_state, obs, jnp.ones((n,), bool), carry, jnp.zeros((n,), jnp.float32))
+        return RunnerState(params, self.optimizer.init(params), worlds, key, jnp.zeros((), jnp.int32))
+
+    def _rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
+        n = self.config.num_envs
+        step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
+
+        def env_step(carry, _):
+            worlds, key = carry
+            key, key_act, key_step = jax.random.split(key, 3)
+            new_carry, logits, value = self.network.apply(state.params, worlds.carry, worlds.obs[None], worlds.reset[None])
+            pi = distrax.Categorical(logits=logits[0])
+            action = pi.sample(seed=key_act)
+            obs, env_state, reward, terminated, truncated, info = step(
+                jax.random.split(key_step, n), worlds.env_state, action, env_params
+            )
+            done = terminated | truncated
+            episode_return = worlds.episode_return + reward
+            transition = Transition(
+                worlds.obs, worlds.reset, action, pi.log_prob(action), value[0], reward,
+                terminated, done, info["final_observation"], new_carry,
+            )
+            stats = {
+                "episodes": done.sum(),
+                "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
+                "return_sum": jnp.where(done, episode_return, 0.0).sum(),
+            }
+            worlds = Worlds(env_state, obs, done, new_carry, jnp.where(done, 0.0, episode_return))
+            return (worlds, key), (transition, stats)
+
+        (worlds, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        )
+        stats = jax.tree.map(jnp.sum, stats)
+        return state.replace(worlds=worlds, key=key), batch, stats
+
+    def _advantages(self, params, batch: Transition, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
+        cfg = self.config
+        t, n = batch.reward.shape
+        _, _, last_value = self.network.apply(params, worlds.carry, worlds.obs[None], worlds.reset[None])
+        # Score every step's final observation in one batched call (T folded into the batch).
+        _, _, final_value = self.network.apply(
+            params,
+            batch.carry_after.reshape(t * n, -1),
+            batch.final_obs.reshape(1, t * n, -1),
+            jnp.zeros((1, t * n), bool),
+        )
+        final_value = final_value.reshape(t, n)
+        following = jnp.concatenate([batch.value[1:], last_value], axis=0)
+        next_values = jnp.where(batch.done, final_value, following)
+        return gae(
+            batch.reward * cfg.reward_scale, batch.value, next_values,
+            batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
+        )
+
+    def _loss(self, params, carry0, batch: Transition, advantages, targets):
+        cfg = self.config
+        _, logits, value = self.network.apply(params, carry0, batch.obs, batch.reset)
+        pi = distrax.Categorical(logits=logits)
+        log_prob = pi.log_prob(batch.action)
+        clipped_value = batch.value + jnp.clip(value - batch.value, -cfg.clip_eps, cfg.clip_eps)
+        value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (clipped_value - targets) ** 2).mean()
+        ratio = jnp.exp(log_prob - batch.log_prob)
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        actor_loss = -jnp.minimum(
+            ratio * advantages, jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps) * advantages
+        ).mean()
+        entropy = pi.entropy().mean()
+        total = actor_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy
+        approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
+        return total, {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss,
+                       "entropy": entropy, "approx_kl": approx_kl}
+
+    def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
+        cfg = self.config
+        carry0 = state.worlds.carry
+        state, batch, stats = self._rollout(state, env_params)
+        # The final observations are only needed for the bootstrap values.
+        advantages, targets = self._advantages(state.params, batch, state.worlds)
+        batch = batch._replace(final_obs=None, carry_after=None)
+        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        m = cfg.num_minibatches
+
+        def epoch(carry, _):
+            params, opt_state, key = carry
+            key, key_perm = jax.random.split(key)
+            perm = jax.random.permutation(key_perm, cfg.num_envs)
+
+            def split(x, axis):  # shuffle the worlds, then cut them into m minibatches
+                x = jnp.take(x, perm, axis=axis)
+                x = x.reshape(x.shape[:axis] + (m, -1) + x.shape[axis + 1 :])
+                return jnp.moveaxis(x, axis, 0)
+
+            minibatches = (
+                split(carry0, 0),
+                jax.tree.map(lambda x: split(x, 1), batch),
+                split(advantages, 1),
+                split(targets, 1),
+            )
+
+            def minibatch_step(carry, minibatch):
+                params, opt_state = carry
+                (_, info), grads = grad_fn(params, *minibatch)
+                updates, opt_state = self.optimizer.update(grads, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), info
+
+            (params, opt_state), info = jax.lax.scan(minibatch_step, (params, opt_state), minibatches)
+            return (params, opt_state, key), info
+
+        (params, opt_state, key), info = jax.lax.scan(
+            epoch, (state.params, state.opt_state, state.key), None, length=cfg.update_epochs
+        )
+        metrics = {**jax.tree.map(jnp.mean, info), **stats}
+        state = state.replace(params=params, opt_state=opt_state, key=key, update=state.update + 1)
+        return state, metrics
+
+    def train_chunk(self, state: RunnerState, env_params, num_updates: int) -> tuple[RunnerState, dict]:
+        """`num_updates` updates; metrics stacked along a leading axis of that length."""
+        return jax.lax.scan(lambda s, _: self.update(s, env_params), state, None, length=num_updates)
+
+    # --- acting ---------------------------------------------------------------------------------
+
+    def policy(self, params) -> Policy:
+        """The trained network as a greedy `Policy` for one environment (vmap it for a batch)."""
+        network = self.network
+
+        def init(key, design):
+            return {"carry": network.initial_carry(1)[0], "reset": jnp.ones((), bool)}
+
+        def act(params, policy_state, obs, key):
+            carry, logits, _ = network.apply(params, policy_state["carry"][None], obs[None, None], policy_state["reset"][None, None])
+            return jnp.argmax(logits[0, 0]), {"carry": carry[0], "reset": jnp.zeros((), bool)}
+
+        kind = "recurrent" if self.config.recurrent else "feed-forward"
+        return Policy(init, act, params, f"ppo-{kind}")
+
+
+def make_train(config: PPOConfig):
+    """The whole run as a pure function of a key: `jax.jit(jax.vmap(make_train(c)))(keys)`."""
+    ppo = PPO(config)
+
+    def train(key: jax.Array) -> tuple[RunnerState, dict[str, jax.Array]]:
+        return ppo.train_chunk(ppo.init(key), ppo.env_params, ppo.num_updates)
+
+    return train

@@ -1,0 +1,122 @@
+"""`snac train ALGORITHM`: train an agent end-to-end on device, then score it with the protocol.
+
+One sub-subcommand per algorithm (`snac train ppo ...`); they share the options of the driver
+(task, budget, worlds, seeds, output directory, resume) and add their own. Each run writes
+`DIR/config.json`, `DIR/metrics.jsonl`, `DIR/checkpoints/`, `DIR/curve.png`, and after the
+evaluation protocol `DIR/eval.json` (the evaluator's format; one row per seed when several).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+from snac_jax.cli.arguments import positive_int, task_id
+from snac_jax.tasks import TASKS
+
+DEFAULT_TASK = "1d-static-sin"
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}")
+    parser.add_argument("--total-steps", type=positive_int, default=None, help="env steps per seed (default: tuned per task)")
+    parser.add_argument("--num-envs", type=positive_int, default=None, help="parallel worlds per seed (default: tuned per task)")
+    parser.add_argument("--seeds", type=positive_int, default=None, help="independent runs, vmapped (default 1)")
+    parser.add_argument("--seed", type=int, default=None, help="base seed (default 0)")
+    parser.add_argument("--chunks", type=positive_int, default=None, help="checkpoints/log lines over the run (default 20)")
+    parser.add_argument("--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)")
+    parser.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the run in DIR (other options ignored)")
+    parser.add_argument("--eval-episodes", type=positive_int, default=None,
+                        help="episodes per design for the final evaluation (default: the paper's protocol)")
+    parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("train", help="train an agent end-to-end on device, then evaluate it")
+    algorithms = parser.add_subparsers(dest="algorithm", required=True)
+
+    ppo = algorithms.add_parser("ppo", help="PPO (feed-forward, or recurrent with --recurrent)")
+    _common(ppo)
+    ppo.add_argument("--recurrent", action="store_true", default=None, help="GRU actor-critic")
+    ppo.add_argument("--learning-rate", type=_positive_float, default=None)
+    ppo.add_argument("--rollout-steps", type=positive_int, default=None)
+    ppo.add_argument("--update-epochs", type=positive_int, default=None)
+    ppo.add_argument("--num-minibatches", type=positive_int, default=None)
+    ppo.set_defaults(func=run, algorithm_options=("recurrent", "learning_rate", "rollout_steps", "update_epochs", "num_minibatches"))
+
+
+def build_config(args: argparse.Namespace):
+    from agents.config import make_config
+
+    options = {name: getattr(args, name) for name in ("total_steps", "num_envs", "seeds", "seed", "chunks")}
+    options.update({name: getattr(args, name) for name in args.algorithm_options})
+    return make_config(args.algorithm, args.task or DEFAULT_TASK, **options)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents import checkpoint
+    from agents.driver import read_metrics, train
+    from agents.plotting import plot_curve
+
+    if args.resume is not None:
+        out_dir = args.resume
+        config = checkpoint.read_config(out_dir)
+        if config.algorithm != args.algorithm:
+            raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
+    else:
+        config = build_config(args)
+        kind = "-rnn" if getattr(config, "recurrent", False) else ""
+        out_dir = args.out or Path("runs") / f"{config.algorithm}{kind}-{config.task}-{time.strftime('%Y%m%d-%H%M%S')}"
+    print(f"{config.algorithm} on {config.task}: {config.total_steps:,} env steps x {config.seeds} seed(s), "
+          f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
+
+    algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress)
+    config = algorithm.config
+    kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
+    plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
+    print(f"wrote {out_dir / 'curve.png'}", file=sys.stderr)
+    if not args.no_eval:
+        evaluate_run(algorithm, state, out_dir, args.eval_episodes)
+    return 0
+
+
+def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
+    """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`."""
+    import jax
+
+    from snac_jax.cli.eval import markdown_table, write_json_atomic
+    from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
+
+    config = algorithm.config
+    counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
+    results = []
+    for seed in range(config.seeds):
+        params = jax.tree.map(lambda x: x[seed], state.params)
+        result = evaluate_task(config.task, algorithm.policy(params), **counts)
+        if config.seeds > 1:
+            result = dataclasses.replace(result, task=f"{config.task} (seed {seed})")
+        results.append(result)
+    from agents.plotting import paper_column
+
+    paper = paper_row(load_paper_results(), config.algorithm)
+    paper = {r.task: paper.get(paper_column(config.task), {}) for r in results}
+    print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.algorithm} "
+          f"(the paper's {paper_column(config.task)} column)")
+    print()
+    print(markdown_table(results, paper))
+    write_json_atomic(out_dir / "eval.json", {r.task: r.to_json() for r in results})
+    print(f"\nwrote {out_dir / 'eval.json'}")
