@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import jax
@@ -15,11 +16,39 @@ from snac_jax.state import EnvParams, EnvState
 from snac_jax.transition import PADDING, is_stuck, transition
 
 
-def draw_stride(key: jax.Array, stride_probs: jax.Array) -> jax.Array:
-    """d in {1, 2, 3} with probabilities `stride_probs` (one uniform draw, two compares)."""
-    u = jax.random.uniform(key)
+def random_words(key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Two independent uint32 words from one hash of `key`.
+
+    A step needs a stride and, for the auto-reset, a design index: one threefry block gives
+    both (`fold_in` hashes the key with a two-word counter). `jax.random.split` followed by a
+    draw costs three blocks or more per env per step, and hashing dominates the step's cost.
+    """
+    data = jax.random.key_data(jax.random.fold_in(key, 0))
+    return data[..., 0], data[..., 1]
+
+
+def unit_float(word: jax.Array) -> jax.Array:
+    """A uniform float32 in [0, 1) from the 23 high bits of a uint32 word (as `jax.random.uniform`)."""
+    mantissa = jax.lax.shift_right_logical(word, jnp.uint32(9)) | jnp.uint32(0x3F800000)
+    return jax.lax.bitcast_convert_type(mantissa, jnp.float32) - 1.0
+
+
+def draw_stride(word: jax.Array, stride_probs: jax.Array) -> jax.Array:
+    """d in {1, 2, 3} with probabilities `stride_probs`, from one random uint32 word."""
+    u = unit_float(word)
     cumulative = jnp.cumsum(stride_probs)
     return (1 + (u >= cumulative[0]) + (u >= cumulative[1])).astype(jnp.int32)
+
+
+def draw_design_index(word: jax.Array, num_designs: int) -> jax.Array:
+    """An index into a bank of `num_designs` designs from one random uint32 word.
+
+    `word % K` is exactly uniform when K is a power of two (the default bank has 16384
+    designs) and biased by at most K / 2**32 otherwise.
+    """
+    if num_designs == 1:
+        return jnp.zeros((), jnp.int32)
+    return (word % jnp.uint32(num_designs)).astype(jnp.int32)
 
 
 class SNACEnv(environment.Environment[EnvState, EnvParams]):
@@ -92,19 +121,51 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         return self.get_obs(state, params), state
 
     def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
-        num_designs = params.designs.shape[0]
-        key_design, key_landmarks = jax.random.split(key)
-        index = jax.random.randint(key_design, (), 0, num_designs) if num_designs > 1 else 0
+        """A fresh episode on a design drawn from `params.designs`.
+
+        The design index comes from the second word of `random_words(key)`; `step_env` draws the
+        stride from the first. So the auto-reset in `step`, which hands both the same key, costs
+        one hash per env per step (XLA merges the identical hashes).
+        """
+        index = draw_design_index(random_words(key)[1], params.designs.shape[0])
+        key_landmarks = jax.random.fold_in(key, 1) if self.config.num_landmarks else key
         return self.reset_to_design(key_landmarks, params, index)
 
     # --- step ----------------------------------------------------------------------------------
 
+    @partial(jax.jit, static_argnames=("self",))
+    def step(
+        self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams | None = None
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
+        """gymnax's auto-resetting step, with the same outputs and info keys, made cheaper.
+
+        - One hash of `key` per step: `step_env` and `reset_env` read different words of it.
+        - The observation is computed once, of the state after the auto-reset, instead of for
+          both the stepped and the reset state (`final_observation`, the stepped state's
+          observation, costs nothing unless it is used).
+        - A static task's reset state does not depend on the key, so under `vmap` it stays
+          unbatched and the auto-reset is a broadcast select.
+        """
+        if params is None:
+            params = self.default_params
+        _, state_stepped, reward, terminated, info = self.step_env(key, state, action, params)
+        truncated = self.is_truncated(state_stepped, params)
+        done = terminated | truncated
+        _, state_reset = self.reset_env(key, params)
+        state = jax.tree.map(lambda r, s: jnp.where(done, r, s), state_reset, state_stepped)
+        info = {
+            **info,
+            "terminated": terminated,
+            "truncated": truncated,
+            "final_observation": self.get_obs(state_stepped, params),
+        }
+        return self.get_obs(state, params), state, reward, terminated, truncated, info
+
     def step_env(
         self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
-        stride = draw_stride(key, params.stride_probs)
-        obs, state, reward, terminated, info = self.step_with_stride(state, action, stride, params)
-        return obs, state, reward, terminated, info
+        stride = draw_stride(random_words(key)[0], params.stride_probs)
+        return self.step_with_stride(state, action, stride, params)
 
     def step_with_stride(
         self, state: EnvState, action: int | jax.Array, stride: int | jax.Array, params: EnvParams
