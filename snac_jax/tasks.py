@@ -96,8 +96,8 @@ def _require_int(name: str, value: Any, low: int, high: int | None = None) -> in
 
 def _stride_probs(value: Any) -> tuple[float, float, float]:
     try:
-        probs = tuple(float(p) for p in value)
-    except TypeError:
+        probs = () if isinstance(value, str) else tuple(float(p) for p in value)
+    except (TypeError, ValueError):
         probs = ()
     if len(probs) != 3 or any(not math.isfinite(p) or p < 0 for p in probs) or abs(sum(probs) - 1) > 1e-6:
         raise ValueError(
