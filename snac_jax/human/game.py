@@ -1,0 +1,216 @@
+"""The human-play game without the window: key bindings, one session of episodes, the screen.
+
+Everything here is testable without a display. `snac_jax.human.window` only turns pygame key
+events into key names, passes them to `GameSession.press` and shows `GameSession.frame()`.
+
+The player gets exactly the agent's information (paper, human baseline): the window around the
+robot, the step and brick counters, and the design in dynamic tasks (it is part of their
+observation) — drawn from the observation vector itself. Strides are drawn by the environment as
+for any agent. Training mode also shows the reward of the last step and the episode's total;
+evaluation mode hides rewards. The IoU appears when the episode ends.
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from snac_jax.config import EnvConfig
+from snac_jax.designs import NUM_TEST_DESIGNS
+from snac_jax.human.records import MODES, EpisodeRecord, append_record
+from snac_jax.rendering import CAPTION_BG, CAPTION_FG, draw_text, render_observation
+from snac_jax.tasks import make, task_spec
+
+_MOVE_KEYS = {(0, -1): "left", (0, 1): "right", (1, 0): "down", (-1, 0): "up"}
+_DROP_KEYS = {(0, 0): "space", (0, -1): "a", (0, 1): "d", (1, 0): "s", (-1, 0): "w"}
+_DIRECTION_WORDS = {(0, -1): "left", (0, 1): "right", (1, 0): "down", (-1, 0): "up"}
+NEXT_EPISODE_KEYS = ("return", "enter")
+QUIT_KEYS = ("escape", "q")
+
+_TEXT_LINES = 5
+_LINE_HEIGHT = 20
+_MIN_WIDTH = 460
+
+
+def key_bindings(config: EnvConfig) -> dict[str, int]:
+    """Key name (pygame's `key.name`) -> action index, derived from the task's action table.
+
+    Arrow keys move (up = row - d, as rows grow downward on screen); space drops on the own cell
+    (1D, 2D); with the neighbour-drop action set (3D, or 2D with obstacles) W/A/S/D drop on the
+    neighbour above/left/below/right.
+    """
+    bindings = {}
+    for action, (is_drop, d_row, d_col) in enumerate(config.actions):
+        table = _DROP_KEYS if is_drop else _MOVE_KEYS
+        bindings[table[(d_row, d_col)]] = action
+    return bindings
+
+
+def key_legend(config: EnvConfig) -> str:
+    """One line naming the keys of this task, shown on screen."""
+    bindings = key_bindings(config)
+    moves = "arrows: move" if config.dim > 1 else "left/right: move"
+    if "space" in bindings:
+        return f"{moves}   space: drop   esc: quit"
+    drops = " ".join(
+        f"{key.upper()}={_DIRECTION_WORDS[(d_row, d_col)]}"
+        for key, action in bindings.items()
+        for is_drop, d_row, d_col in [config.actions[action]]
+        if is_drop
+    )
+    return f"{moves}   drop: {drops}   esc: quit"
+
+
+class GameSession:
+    """A sequence of episodes of one task played through key presses.
+
+    Episode `i` uses seed `seed + i` (reset key `jax.random.key(seed + i)`; the stride of step
+    t comes from `fold_in` of that key with t + 1). In evaluation mode a dynamic task cycles
+    through its ten test designs (episode i plays test design i mod 10), as the protocol does.
+    Each finished episode is appended to `record_path` (if given) as an `EpisodeRecord`.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        mode: str = "train",
+        seed: int = 0,
+        *,
+        max_steps: int | None = None,
+        record_path: str | Path | None = None,
+        player: str | None = None,
+        clock=time.monotonic,
+    ):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        self.task, self.mode, self.seed = task, mode, seed
+        self.player = player
+        self.record_path = None if record_path is None else Path(record_path)
+        self._clock = clock
+        self._overrides = {} if max_steps is None else {"max_steps": max_steps}
+        # A dynamic task's training design bank takes seconds to draw: build it on first use only.
+        dynamic = task_spec(task).dynamic
+        self.env, params = make(task, **({"test_design": 0} if dynamic else {}), **self._overrides)
+        self._train_params = None if dynamic else params
+        self.config = self.env.config
+        self.bindings = key_bindings(self.config)
+        self._step = jax.jit(self.env.step_env)
+        self.episode_index = -1
+        self.records: list[EpisodeRecord] = []
+        self.new_episode()
+
+    # --- episodes ------------------------------------------------------------------------------
+
+    @property
+    def test_design(self) -> int | None:
+        if self.mode == "eval" and self.config.dynamic:
+            return self.episode_index % NUM_TEST_DESIGNS
+        return None
+
+    def new_episode(self) -> None:
+        self.episode_index += 1
+        if self.test_design is None:
+            if self._train_params is None:
+                _, self._train_params = make(self.task, **self._overrides)
+            self.params = self._train_params
+        else:
+            _, self.params = make(self.task, test_design=self.test_design, **self._overrides)
+        self.episode_seed = self.seed + self.episode_index
+        key = jax.random.key(self.episode_seed)
+        self._key_reset, self._key_steps = jax.random.split(key)
+        self.obs, self.state = self.env.reset(self._key_reset, self.params)
+        self.actions: list[int] = []
+        self.strides: list[int] = []
+        self.last_reward: float | None = None
+        self.total_reward = 0.0
+        self.over = False
+        self.terminated = False
+        self.final_iou: float | None = None
+        self._started = self._clock()
+        self._started_at = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+    def press(self, key_name: str) -> bool:
+        """Handle one key; True when it stepped the environment. Unbound keys do nothing."""
+        if self.over or key_name not in self.bindings:
+            return False
+        self.act(self.bindings[key_name])
+        return True
+
+    def act(self, action: int) -> None:
+        """One environment step with `action`; ends and records the episode when it ends."""
+        if self.over:
+            raise ValueError("the episode is over: start a new one with new_episode()")
+        if not 0 <= action < self.config.num_actions:
+            raise ValueError(f"action must be in 0..{self.config.num_actions - 1}, got {action}")
+        key = jax.random.fold_in(self._key_steps, len(self.actions) + 1)
+        self.obs, self.state, reward, terminated, info = self._step(key, self.state, action, self.params)
+        self.actions.append(int(action))
+        self.strides.append(int(info["stride"]))
+        self.last_reward = float(reward)
+        self.total_reward += self.last_reward
+        truncated = int(self.state.time) >= int(self.params.max_steps_in_episode)
+        if bool(terminated) or truncated:
+            self.over, self.terminated = True, bool(terminated)
+            self.final_iou = float(info["final_iou"])
+            self._finish()
+
+    def _finish(self) -> None:
+        record = EpisodeRecord(
+            task=self.task,
+            mode=self.mode,
+            seed=self.episode_seed,
+            test_design=self.test_design,
+            design=np.asarray(self.state.design).astype(int).tolist(),
+            max_steps=int(self.params.max_steps_in_episode),
+            actions=list(self.actions),
+            strides=list(self.strides),
+            total_reward=self.total_reward,
+            bricks_used=int(self.state.bricks_used),
+            terminated=self.terminated,
+            iou=self.final_iou,
+            duration_s=round(self._clock() - self._started, 3),
+            started_at=self._started_at,
+            player=self.player,
+        )
+        self.records.append(record)
+        if self.record_path is not None:
+            append_record(self.record_path, record)
+
+    # --- the screen ----------------------------------------------------------------------------
+
+    def status_lines(self) -> list[str]:
+        """The text under the view: counters (rewards only in training mode), keys, messages."""
+        steps = f"step {int(self.state.time)}/{int(self.params.max_steps_in_episode)}"
+        bricks = f"bricks {int(self.state.bricks_used)}/{int(self.state.max_bricks)}"
+        design = "" if self.test_design is None else f"   test design {self.test_design}"
+        lines = [f"{self.task}   {self.mode} mode   episode {self.episode_index + 1}{design}", f"{steps}   {bricks}"]
+        if self.mode == "train":
+            last = "-" if self.last_reward is None else f"{self.last_reward:+g}"
+            lines[1] += f"   reward {last}   total {self.total_reward:+g}"
+        lines.append(key_legend(self.config))
+        if self.over:
+            why = "out of bricks or stuck" if self.terminated else "step limit"
+            lines.append(f"Episode over ({why}): IoU {self.final_iou:.3f}")
+            lines.append("enter: next episode   esc: quit")
+        return lines
+
+    def frame(self) -> np.ndarray:
+        """The whole screen as uint8 RGB (H, W, 3); its shape never changes within a session."""
+        drop_labels = {
+            (d_row, d_col): key.upper()
+            for key, action in self.bindings.items()
+            for is_drop, d_row, d_col in [self.config.actions[action]]
+            if is_drop and (d_row, d_col) != (0, 0)
+        }
+        view = render_observation(self.env, self.obs, labels=drop_labels)
+        width = max(view.shape[1], _MIN_WIDTH)
+        screen = np.empty((view.shape[0] + _TEXT_LINES * _LINE_HEIGHT + 8, width, 3), np.uint8)
+        screen[:] = CAPTION_BG
+        screen[: view.shape[0], : view.shape[1]] = view
+        top = view.shape[0] + 4
+        items = [(6, top + i * _LINE_HEIGHT, line, CAPTION_FG) for i, line in enumerate(self.status_lines())]
+        return draw_text(screen, items, size=14)

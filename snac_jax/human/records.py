@@ -1,0 +1,183 @@
+"""Human episodes on disk: one JSON object per line, appended atomically, read back, checked.
+
+A record holds what is needed to replay the episode exactly (the design, the actions and the
+stride drawn at every step) next to what was measured (IoU, bricks, reward, duration), so a
+collected human baseline can be checked against the environment (`replay_iou`) and summarised
+like any policy (`summarize_records`, which `snac eval --human FILE` prints).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from snac_jax.tasks import TASKS
+
+RECORD_VERSION = 1
+MODES = ("train", "eval")
+"""`train`: the player sees per-step and total reward; `eval`: only steps and bricks (paper)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeRecord:
+    task: str
+    mode: str  # one of MODES
+    seed: int  # the episode's seed: reset key jax.random.key(seed) (strides are recorded too)
+    test_design: int | None  # dynamic tasks in eval mode: the test design played (0..9)
+    design: list  # the episode's design, plan-shaped nested lists of ints
+    max_steps: int
+    actions: list[int]
+    strides: list[int]
+    total_reward: float
+    bricks_used: int
+    terminated: bool  # out of bricks or stuck; False: the step limit ended it
+    iou: float
+    duration_s: float  # wall-clock seconds from the first frame to the end
+    started_at: str  # ISO 8601, UTC
+    player: str | None = None
+    version: int = RECORD_VERSION
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), separators=(",", ":"))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "EpisodeRecord":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        missing = sorted(f for f in fields - set(data) if f not in ("player", "version"))
+        if missing:
+            raise ValueError(f"human record lacks {missing}")
+        record = cls(**{k: v for k, v in data.items() if k in fields})
+        record.validate()
+        return record
+
+    def validate(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; allowed: {', '.join(TASKS)}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if len(self.actions) != len(self.strides) or not self.actions:
+            raise ValueError("a record needs one stride per action and at least one action")
+        if any(s not in (1, 2, 3) for s in self.strides):
+            raise ValueError("strides must be 1, 2 or 3")
+        if not 0.0 <= self.iou <= 1.0:
+            raise ValueError(f"iou must be in [0, 1], got {self.iou}")
+
+
+def append_record(path: str | os.PathLike, record: EpisodeRecord) -> Path:
+    """Append one line to the JSONL file at `path`, atomically.
+
+    The file is rewritten to a temporary file beside it (old lines + the new one), synced, then
+    renamed over it: a crash leaves either the old file or the new one, never a torn line.
+    """
+    record.validate()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    old = path.read_bytes() if path.exists() else b""
+    if old and not old.endswith(b"\n"):
+        old += b"\n"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(old + record.to_json().encode() + b"\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_records(path: str | os.PathLike) -> list[EpisodeRecord]:
+    """Every record of a JSONL file; `ValueError` naming the line of a malformed one."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"no human record file at {path}")
+    records = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            records.append(EpisodeRecord.from_dict(json.loads(line)))
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"{path}:{number}: not a valid human record ({error})") from error
+    return records
+
+
+def replay_iou(record: EpisodeRecord) -> float:
+    """The final IoU of replaying the record's actions and strides on its design.
+
+    Equal to `record.iou` for every honest record: `summarize_records` checks this. (The game
+    plays without landmarks, so the reset depends on the design alone.)
+    """
+    from snac_jax.replay import replay
+    from snac_jax.tasks import make, make_params
+
+    env, params = make(record.task, max_steps=record.max_steps)
+    fresh = make_params(np.asarray(record.design, dtype=np.int16)[None], env.config.dim)
+    params = params.replace(
+        designs=fresh.designs, design_max_bricks=fresh.design_max_bricks, design_volume=fresh.design_volume
+    )
+    return replay(env, params, record.actions, record.strides)["final_iou"]
+
+
+def paper_task(task: str) -> str:
+    """The paper's table column of an environment task (`1d-static-sin` -> `1d-static`)."""
+    return "1d-static" if task.startswith("1d-static") else task
+
+
+def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = None, verify: bool = True):
+    """Human episodes summarised per paper task as `snac_jax.evaluation.TaskResult`s.
+
+    Strata are as in the protocol: the shape (1d-static), the test design (dynamic tasks in eval
+    mode), or the task's training designs. `mode` keeps only one mode's episodes; `verify`
+    replays every record and raises `ValueError` when its IoU differs from the recorded one.
+    """
+    from snac_jax.evaluation import TaskResult, _stats, summarize
+
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES} or None, got {mode!r}")
+    chosen = [r for r in records if mode is None or r.mode == mode]
+    if verify:
+        for r in chosen:
+            replayed = replay_iou(r)
+            if abs(replayed - r.iou) > 1e-6:
+                raise ValueError(f"record of {r.task} seed {r.seed} claims IoU {r.iou}, its replay gives {replayed}")
+    groups: dict[str, list[EpisodeRecord]] = {}
+    for r in chosen:
+        groups.setdefault(paper_task(r.task), []).append(r)
+    results = []
+    for task, group in groups.items():
+        strata: dict[str, list[float]] = {}
+        for r in group:
+            name = r.task if r.test_design is None else f"{r.task}-test{r.test_design}"
+            strata.setdefault(name, []).append(r.iou)
+        arrays = {name: np.asarray(v, np.float64) for name, v in strata.items()}
+        stats = summarize(arrays)
+        results.append(
+            TaskResult(
+                task=task,
+                mean=stats["mean"],
+                min=stats["min"],
+                std=stats["std"],
+                ci95=stats["ci95"],
+                episodes=stats["episodes"],
+                mean_length=float(np.mean([r.steps for r in group])),
+                mean_bricks_used=float(np.mean([r.bricks_used for r in group])),
+                mean_return=float(np.mean([r.total_reward for r in group])),
+                per_design={n: _stats(v) for n, v in arrays.items()} if len(arrays) > 1 else {},
+                seed=-1,  # human episodes carry their own seeds
+                wall_s=float(sum(r.duration_s for r in group)),
+            )
+        )
+    return results

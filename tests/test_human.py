@@ -1,0 +1,136 @@
+"""The human-play game: key bindings, a scripted headless episode, the JSONL record, its summary."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+
+import numpy as np
+import pytest
+
+from snac_jax import designs, make
+from snac_jax.human import records, window
+from snac_jax.human.game import GameSession, key_bindings, key_legend
+
+
+@pytest.fixture(autouse=True)
+def headless(monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
+
+
+def test_key_bindings_follow_the_action_tables():
+    config_1d = make("1d-static-sin")[0].config
+    config_2d = make("2d-static-dense")[0].config
+    config_3d = make("3d-static-dense")[0].config
+    assert key_bindings(config_1d) == {"left": 0, "right": 1, "space": 2}
+    assert key_bindings(config_2d) == {"left": 0, "right": 1, "down": 2, "up": 3, "space": 4}
+    assert key_bindings(config_3d) == {"left": 0, "right": 1, "down": 2, "up": 3, "a": 4, "d": 5, "s": 6, "w": 7}
+    assert key_bindings(make("2d-static-dense", obstacles=True)[0].config) == key_bindings(config_3d)
+    assert "W=up" in key_legend(config_3d) and "space" not in key_legend(config_3d)
+
+
+def test_scripted_headless_episode_is_recorded(tmp_path):
+    path = tmp_path / "human.jsonl"
+    session = GameSession("2d-static-sparse", "train", seed=5, max_steps=6, record_path=path, player="t")
+    script = ["right", "x", "down", "space", "right", "space", "left", "return"]  # "x" is not bound
+    assert window.run_window(session, max_episodes=1, script=script) == 1
+    [record] = records.load_records(path)
+    assert record.task == "2d-static-sparse" and record.mode == "train" and record.seed == 5
+    assert record.actions == [1, 2, 4, 1, 4, 0] and record.steps == 6
+    assert len(record.strides) == 6 and set(record.strides) <= {1, 2, 3}
+    assert not record.terminated  # the step limit ended it
+    assert record.iou == pytest.approx(records.replay_iou(record), abs=1e-7)
+    assert record.bricks_used == 2 and record.duration_s >= 0 and record.player == "t"
+    np.testing.assert_array_equal(record.design, designs.fixed_design("2d-static-sparse"))
+    assert "IoU" in session.status_lines()[-2]
+    # Every line is a complete JSON object.
+    lines = path.read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["actions"] == record.actions
+
+
+def test_a_second_episode_and_quitting_mid_episode(tmp_path):
+    path = tmp_path / "human.jsonl"
+    session = GameSession("1d-static-step", "eval", seed=0, max_steps=3, record_path=path)
+    script = ["space", "right", "space", "return", "space", "escape"]
+    assert window.run_window(session, script=script) == 1  # the unfinished second episode is not saved
+    assert session.episode_index == 1 and session.episode_seed == 1
+    assert len(records.load_records(path)) == 1
+
+
+def test_modes_show_rewards_only_in_training():
+    train = GameSession("3d-static-sparse", "train", max_steps=4)
+    evaluation = GameSession("3d-static-sparse", "eval", max_steps=4)
+    for session in (train, evaluation):
+        for key in ("d", "d", "right", "s"):
+            session.press(key)
+        assert session.over
+    assert "reward" in train.status_lines()[1] and "total" in train.status_lines()[1]
+    assert "reward" not in "".join(evaluation.status_lines())
+    assert evaluation.status_lines()[1].startswith("step 4/4")
+    frame = evaluation.frame()
+    assert frame.dtype == np.uint8 and frame.shape == train.frame().shape
+
+
+def test_eval_mode_cycles_the_test_designs_of_a_dynamic_task():
+    session = GameSession("2d-dynamic-dense", "eval", max_steps=1)
+    for index in range(2):
+        assert session.test_design == index
+        expected = designs.fixed_design(f"2d-dynamic-dense-test{index}")
+        np.testing.assert_array_equal(np.asarray(session.state.design), expected)
+        session.press("space")
+        assert session.over
+        session.new_episode()
+
+
+def test_append_is_atomic(tmp_path, monkeypatch):
+    path = tmp_path / "human.jsonl"
+    session = GameSession("1d-static-sin", "eval", max_steps=2, record_path=path)
+    session.press("space")
+    session.press("space")
+    before = path.read_bytes()
+
+    def crash(*args):
+        raise OSError("disk gone")
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(OSError):
+        records.append_record(path, session.records[0])
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["human.jsonl"]  # no temporary file left
+
+
+def test_summary_matches_the_records_and_catches_a_false_iou(tmp_path):
+    path = tmp_path / "human.jsonl"
+    session = GameSession("2d-static-dense", "eval", seed=1, max_steps=5, record_path=path)
+    for _ in range(3):
+        for key in ("space", "right", "space", "down", "space"):
+            session.press(key)
+        session.new_episode()
+    loaded = records.load_records(path)
+    [result] = records.summarize_records(loaded)
+    assert result.task == "2d-static-dense" and result.episodes == 3
+    assert result.mean == pytest.approx(np.mean([r.iou for r in loaded]))
+    assert result.min == pytest.approx(min(r.iou for r in loaded))
+    assert result.mean_length == 5
+    forged = [records.EpisodeRecord(**{**vars(loaded[0]), "iou": min(loaded[0].iou + 0.25, 1.0)})]
+    with pytest.raises(ValueError, match="replay"):
+        records.summarize_records(forged)
+    path.write_text(path.read_text() + '{"task": "2d-static-dense"}\n')
+    with pytest.raises(ValueError, match=":4:"):
+        records.load_records(path)
+
+
+def test_play_command_runs_a_scripted_episode(tmp_path, monkeypatch, capsys):
+    from snac_jax.cli import main
+
+    scripted = functools.partial(window.run_window, script=["space", "space", "return"])
+    monkeypatch.setattr(window, "run_window", scripted)
+    path = tmp_path / "h.jsonl"
+    rc = main(["play", "--task", "1d-dynamic", "--mode", "eval", "--max-steps", "2", "--episodes", "1",
+               "--record", str(path), "--seed", "7"])
+    assert rc == 0
+    [record] = records.load_records(path)
+    assert record.test_design == 0 and record.seed == 7 and record.actions == [2, 2]
+    assert "appended" in capsys.readouterr().out

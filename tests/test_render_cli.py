@@ -1,0 +1,51 @@
+"""`snac render`: one episode to a GIF with the documented number of frames."""
+
+from __future__ import annotations
+
+import re
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from snac_jax.cli import main
+from snac_jax.cli.render import frame_indices
+from snac_jax.rendering import CAPTION_HEIGHT
+
+
+def test_frame_indices_always_end_on_the_last_state():
+    assert frame_indices(12, 5) == [0, 5, 10, 12]
+    assert frame_indices(10, 5) == [0, 5, 10]
+    assert frame_indices(3, 1) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize(
+    "task, policy, every",
+    [("1d-static-gauss", "random", 1), ("2d-dynamic-dense", "handcrafted", 4), ("3d-static-sparse", "random", 3)],
+)
+def test_render_writes_a_gif_with_one_frame_per_drawn_state(tmp_path, capsys, task, policy, every):
+    out = tmp_path / "run.gif"
+    rc = main(["render", "--task", task, "--policy", policy, "--out", str(out), "--max-steps", "14",
+               "--every", str(every), "--seed", "3"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    steps = int(re.search(r"(\d+) steps", printed).group(1))
+    assert 1 <= steps <= 14
+    frames = iio.imread(out, index=None)
+    assert frames.shape[0] == len(frame_indices(steps, every))
+    assert frames.shape[-1] == 3 and frames.shape[1] > 2 * CAPTION_HEIGHT
+    assert not np.array_equal(frames[0], frames[-1])  # the counters (at least) changed
+    assert [p.name for p in tmp_path.iterdir()] == ["run.gif"]
+
+
+def test_render_rejects_bad_requests(tmp_path, capsys):
+    assert main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.png")]) == 2
+    assert "gif" in capsys.readouterr().err
+    # a checkpoint needs a policy that loads one
+    rc = main(["render", "--task", "2d-static-dense", "--policy", "handcrafted", "--checkpoint", str(tmp_path),
+               "--out", str(tmp_path / "x.gif")])
+    assert rc == 2
+    assert "handcrafted" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", "--task", "4d-static", "--out", str(tmp_path / "x.gif")])
+    assert not list(tmp_path.iterdir())
