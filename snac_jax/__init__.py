@@ -1,21 +1,36 @@
-"""snac-jax: the SNAC mobile-construction benchmark as pure-functional JAX environments."""
+"""snac-jax: the SNAC mobile-construction benchmark as pure-functional JAX environments.
 
-from snac_jax.config import EnvConfig
-from snac_jax.env import SNACEnv
-from snac_jax.metrics import grid_iou, iou
-from snac_jax.state import EnvParams, EnvState
-from snac_jax.tasks import OVERRIDES, TASKS, make, test_design_names
+The names below are imported on first use: importing `snac_jax` (or a light submodule such as
+`snac_jax.devices`) must not start JAX's backend, because the number of CPU devices can only
+be chosen before that (`snac_jax.devices.use_cpu_devices`), and gymnax starts it on import.
+"""
 
-__all__ = [
-    "EnvConfig",
-    "EnvParams",
-    "EnvState",
-    "OVERRIDES",
-    "SNACEnv",
-    "TASKS",
-    "grid_iou",
-    "iou",
-    "make",
-    "test_design_names",
-]
+import importlib
+
+_EXPORTS = {
+    "EnvConfig": "snac_jax.config",
+    "EnvParams": "snac_jax.state",
+    "EnvState": "snac_jax.state",
+    "OVERRIDES": "snac_jax.tasks",
+    "SNACEnv": "snac_jax.env",
+    "TASKS": "snac_jax.tasks",
+    "grid_iou": "snac_jax.metrics",
+    "iou": "snac_jax.metrics",
+    "make": "snac_jax.tasks",
+    "test_design_names": "snac_jax.tasks",
+}
+
+__all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'snac_jax' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -1,4 +1,8 @@
-"""Batched rollouts: many worlds stepped in one jitted `lax.scan`, with gymnax auto-reset."""
+"""Batched rollouts: many worlds stepped in one jitted `lax.scan`, with gymnax auto-reset.
+
+`random_rollout` runs a uniform-random policy; with a device mesh (`snac_jax.devices`) each
+device steps its own share of the worlds, so every CPU core works.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from snac_jax import devices
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 
@@ -33,14 +38,29 @@ class EpisodeStats:
             iou_max=jnp.maximum(self.iou_max, jnp.max(jnp.where(done, final_iou, 0.0))),
         )
 
+    def combine(self) -> "EpisodeStats":
+        """Merge statistics stacked along a leading axis (one entry per device)."""
+        return EpisodeStats(
+            episodes=jnp.sum(self.episodes),
+            iou_sum=jnp.sum(self.iou_sum),
+            iou_min=jnp.min(self.iou_min),
+            iou_max=jnp.max(self.iou_max),
+        )
+
     @property
     def iou_mean(self) -> float:
         return float(self.iou_sum) / max(int(self.episodes), 1)
 
 
-@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps"))
-def random_rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int) -> EpisodeStats:
-    """`num_envs` worlds under a uniform-random policy for `num_steps` steps each."""
+def uniform_actions(key: jax.Array, num_envs: int, num_actions: int) -> jax.Array:
+    """One uniform action per env from one random word each (`bits % A`, biased by < A / 2**32;
+    `jax.random.randint` is exact but draws two words per action)."""
+    return (jax.random.bits(key, (num_envs,)) % jnp.uint32(num_actions)).astype(jnp.int32)
+
+
+def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int) -> EpisodeStats:
+    """`num_envs` worlds on one device: per step, one hash per env for the env key, one for the
+    action and one inside `env.step`."""
     key_reset, key_run = jax.random.split(key)
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
@@ -48,9 +68,32 @@ def random_rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: in
     def body(carry, step_key):
         states, stats = carry
         key_act, key_step = jax.random.split(step_key)
-        actions = jax.random.randint(key_act, (num_envs,), 0, env.num_actions)
+        actions = uniform_actions(key_act, num_envs, env.num_actions)
         _, states, _, terminated, truncated, info = step(jax.random.split(key_step, num_envs), states, actions, params)
         return (states, stats.add(terminated | truncated, info["final_iou"])), None
 
     (_, stats), _ = jax.lax.scan(body, (states, EpisodeStats.empty()), jax.random.split(key_run, num_steps))
     return stats
+
+
+@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh"))
+def random_rollout(
+    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None
+) -> EpisodeStats:
+    """`num_envs` worlds under a uniform-random policy for `num_steps` steps each.
+
+    With `mesh` (`snac_jax.devices.env_mesh()`), the worlds are split evenly over its devices,
+    each device running its own scan from its own key; `num_envs` must be a multiple of the
+    device count. The same key gives different (equally distributed) worlds for another mesh.
+    """
+    if mesh is None or mesh.devices.size == 1:
+        return _rollout(key, env, params, num_envs, num_steps)
+    devices.check_divisible(num_envs, mesh)
+    per_device = num_envs // mesh.devices.size
+
+    def shard(device_key, params):
+        stats = _rollout(device_key[0], env, params, per_device, num_steps)
+        return jax.tree.map(lambda x: x[None], stats)
+
+    run = jax.shard_map(shard, mesh=mesh, in_specs=(devices.ENVS, jax.sharding.PartitionSpec()), out_specs=devices.ENVS, check_vma=False)
+    return run(jax.random.split(key, mesh.devices.size), params).combine()

@@ -19,7 +19,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def use_cpu_devices_from(argv: list[str]) -> None:
+    """Honour `--devices N` (default: one CPU device per core) before any subcommand module
+    imports JAX: the CPU device count is fixed once JAX starts (see `snac_jax.devices`)."""
+    from snac_jax import devices
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--devices", default=None)
+    known, _ = pre.parse_known_args(argv)
+    try:
+        count = int(known.devices) if known.devices is not None else None
+    except ValueError:
+        count = None  # the subcommand's own parser rejects it
+    try:
+        devices.use_cpu_devices(count if count is None or count >= 1 else None)
+    except RuntimeError:
+        pass  # JAX already started in this process; the subcommand checks what it gets
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    use_cpu_devices_from(argv)
     args = build_parser().parse_args(argv)
     return args.func(args)
 

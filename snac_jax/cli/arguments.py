@@ -21,3 +21,13 @@ def task_id(text: str) -> str:
     if text not in TASKS:
         raise argparse.ArgumentTypeError(f"unknown task {text!r}; allowed: {', '.join(TASKS)}")
     return text
+
+
+def add_devices_argument(parser: argparse.ArgumentParser) -> None:
+    """`--devices N`: how many devices the worlds are split over (`snac_jax.devices`)."""
+    parser.add_argument(
+        "--devices",
+        type=positive_int,
+        default=None,
+        help="devices to split the worlds over (default: all; on a CPU one per core); 1 turns sharding off",
+    )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from snac_jax.cli.arguments import positive_int, task_id
+from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
 from snac_jax.tasks import TASKS
 
 
@@ -15,24 +15,31 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--num-envs", type=positive_int, default=4096)
     parser.add_argument("--steps", type=positive_int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
+    add_devices_argument(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from snac_jax import make
+    from snac_jax import devices, make
     from snac_jax.rollout import random_rollout
 
+    mesh = devices.env_mesh(args.devices, args.num_envs)
+    devices.check_divisible(args.num_envs, mesh)
     env, params = make(args.task)
     key = jax.random.key(args.seed)
     start = time.perf_counter()
-    compiled = random_rollout.lower(key, env, params, args.num_envs, args.steps).compile()
+    compiled = random_rollout.lower(key, env, params, args.num_envs, args.steps, mesh).compile()
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
     stats = jax.block_until_ready(compiled(key, params))
     run_s = time.perf_counter() - start
-    print(f"task {args.task}: {args.num_envs} envs x {args.steps} steps, uniform-random policy")
+    num_devices = mesh.devices.size
+    print(
+        f"task {args.task}: {args.num_envs} envs x {args.steps} steps, uniform-random policy, "
+        f"{num_devices} {mesh.devices.flat[0].platform} device{'s' if num_devices > 1 else ''}"
+    )
     print(f"compile {compile_s:.2f} s; run {run_s:.2f} s; {args.num_envs * args.steps / run_s:,.0f} env-steps/s")
     if int(stats.episodes):
         print(
