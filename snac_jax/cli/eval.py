@@ -1,0 +1,127 @@
+"""`snac eval`: the evaluation protocol (SPEC §8) for a registered policy, beside the paper's row.
+
+Policies come from the registry in `snac_jax.policies` (name -> builder), so a learned agent
+plugs in by registering a builder; options such as `--checkpoint` are handed to the builder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from snac_jax.cli.arguments import positive_int
+from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, PAPER_TASKS, STATIC_EPISODES
+from snac_jax.policies import POLICIES
+from snac_jax.tasks import TASKS
+
+TASK_CHOICES = ("all", *PAPER_TASKS, *(t for t in TASKS if t not in PAPER_TASKS))
+
+
+def _task(text: str) -> str:
+    if text not in TASK_CHOICES:
+        raise argparse.ArgumentTypeError(f"unknown task {text!r}; allowed: {', '.join(TASK_CHOICES)}")
+    return text
+
+
+def _policy(text: str) -> str:
+    if text not in POLICIES:
+        raise argparse.ArgumentTypeError(f"unknown policy {text!r}; registered policies: {', '.join(POLICIES)}")
+    return text
+
+
+def add_parser(subparsers) -> None:
+    policies = "; ".join(f"{name}: {entry.help}" for name, entry in POLICIES.items())
+    parser = subparsers.add_parser(
+        "eval",
+        help="score a policy with the paper's protocol; markdown table beside the paper's numbers",
+        description=f"Policies: {policies}.",
+    )
+    parser.add_argument("--policy", type=_policy, required=True, help=f"one of: {', '.join(POLICIES)}")
+    parser.add_argument(
+        "--task", type=_task, default="all", help="'all' (the paper's ten columns), a paper column or a task id"
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        help=f"episodes per design: static tasks (each 1D shape) and each dynamic test design "
+        f"(default: the paper's {STATIC_EPISODES} static, {EPISODES_PER_TEST_DESIGN} per test design)",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="write the results here (atomically)")
+    parser.add_argument(
+        "--paper-results", type=Path, default=None, help="paper_results.json to compare with (default: the packaged copy)"
+    )
+    parser.set_defaults(func=run)
+
+
+def write_json_atomic(path: Path, payload: object) -> None:
+    """Write to a temporary file beside `path`, then rename: a crash never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _fmt(value, digits: int = 3) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
+
+
+def markdown_table(results, paper: dict) -> str:
+    lines = [
+        "| task | episodes | mean IoU | 95% CI | min IoU | std | paper mean | paper min | Δ mean | mean length | mean bricks |",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        row = paper.get(r.task, {})
+        paper_mean, paper_min = row.get("avg"), row.get("min")
+        delta = None if paper_mean is None else r.mean - paper_mean
+        lines.append(
+            f"| {r.task} | {r.episodes} | {r.mean:.3f} | [{r.ci95[0]:.3f}, {r.ci95[1]:.3f}] | {r.min:.3f} | "
+            f"{r.std:.3f} | {_fmt(paper_mean)} | {_fmt(paper_min)} | "
+            f"{'—' if delta is None else f'{delta:+.3f}'} | {r.mean_length:.1f} | {r.mean_bricks_used:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
+    from snac_jax.policies import policy_builder
+
+    paper = paper_row(load_paper_results(args.paper_results), POLICIES[args.policy].paper_method)
+    builder = policy_builder(args.policy)
+    tasks = PAPER_TASKS if args.task == "all" else (args.task,)
+    episodes = {}
+    if args.episodes is not None:
+        episodes = {"static_episodes": args.episodes, "episodes_per_test_design": args.episodes}
+
+    results = []
+    start = time.perf_counter()
+    for task in tasks:
+        result = evaluate_task(task, builder, seed=args.seed, **episodes)
+        results.append(result)
+        print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
+    total_s = time.perf_counter() - start
+
+    method = POLICIES[args.policy].paper_method
+    print(f"policy {args.policy} (paper row: {method or 'none'}), seed {args.seed}")
+    print()
+    print(markdown_table(results, paper))
+    print()
+    print(f"wall time {total_s:.1f} s (compile included)")
+    if args.json is not None:
+        write_json_atomic(args.json, {r.task: r.to_json() for r in results})
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,271 @@
+"""The evaluation protocol (SPEC §8): every agent in the project is scored by `evaluate_task`.
+
+- Static task: `static_episodes` (500) episodes on its design. The paper's `1d-static` is the
+  three shapes, 500 episodes each: mean of the three means, minimum over all 1500.
+- Dynamic task: its ten fixed test designs x `episodes_per_test_design` (200) episodes.
+- Every episode runs to its own end (brick budget, stuck, or the step limit), never auto-reset;
+  the policy acts as given (a learned agent passes its greedy policy).
+
+One environment task is one jitted, vmapped call (`run_episodes`): all its episodes advance
+together in a `lax.while_loop` until the last one ends. The call is compiled once per
+(environment configuration, policy functions, episode count); the policy's parameters are an
+argument, so new weights do not recompile.
+
+The reported interval is a 95% normal confidence interval of the mean. Designs (or shapes) are
+fixed strata with equal weight, so the standard error is the stratified one,
+sqrt(sum_d s_d^2 / n_d) / D, which for a single design is the usual s / sqrt(n).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import zlib
+from functools import partial
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from snac_jax import designs, metrics
+from snac_jax.env import SNACEnv
+from snac_jax.policy import Policy
+from snac_jax.state import EnvParams
+from snac_jax.tasks import TASKS, make, make_params, task_spec, test_design_names
+
+STATIC_EPISODES = 500
+EPISODES_PER_TEST_DESIGN = 200
+Z_95 = 1.959963984540054
+
+PAPER_TASKS: tuple[str, ...] = (
+    "1d-static",
+    "1d-dynamic",
+    "2d-static-dense",
+    "2d-static-sparse",
+    "2d-dynamic-dense",
+    "2d-dynamic-sparse",
+    "3d-static-dense",
+    "3d-static-sparse",
+    "3d-dynamic-dense",
+    "3d-dynamic-sparse",
+)
+"""The columns of the paper's table; `1d-static` stands for the three 1D shapes."""
+
+_PAPER_GROUPS = {"1d-static": ("1d-static-sin", "1d-static-gauss", "1d-static-step")}
+
+PolicyLike = Policy | Callable[[SNACEnv], Policy]
+"""A `Policy` used as is for every environment task, or a builder `builder(env) -> Policy`
+called once per environment task (a learned agent loads the checkpoint of that task)."""
+
+
+def environment_tasks(task: str) -> tuple[str, ...]:
+    """The environment tasks behind a task name: the three shapes for `1d-static`."""
+    if task in _PAPER_GROUPS:
+        return _PAPER_GROUPS[task]
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; allowed: {', '.join(PAPER_TASKS)}, {', '.join(TASKS)}")
+    return (task,)
+
+
+# --- one environment task: the jitted, vmapped episodes -------------------------------------------
+
+
+@struct.dataclass
+class Episodes:
+    """Per-episode outcomes of one `run_episodes` call (leading axis: episodes)."""
+
+    iou: jax.Array  # float32, final IoU
+    length: jax.Array  # int32, steps taken
+    bricks_used: jax.Array  # int32
+    episode_return: jax.Array  # float32, sum of rewards
+    design_index: jax.Array  # int32, index into the params' designs
+
+
+@struct.dataclass
+class _Carry:
+    key: jax.Array
+    obs: jax.Array
+    state: Any
+    policy_state: Any
+    episode_return: jax.Array
+    done: jax.Array
+
+
+@partial(jax.jit, static_argnames=("env", "init", "act"))
+def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, design_indices) -> Episodes:
+    def episode(key, design_index):
+        key_reset, key_init, key_run = jax.random.split(key, 3)
+        obs, state = env.reset_to_design(key_reset, env_params, design_index)
+        carry = _Carry(key_run, obs, state, init(key_init, state.design), jnp.zeros(()), jnp.asarray(False))
+
+        def step(carry: _Carry) -> _Carry:
+            key, key_act, key_step = jax.random.split(carry.key, 3)
+            action, policy_state = act(policy_params, carry.policy_state, carry.obs, key_act)
+            obs, state, reward, terminated, _ = env.step_env(key_step, carry.state, action, env_params)
+            done = terminated | env.is_truncated(state, env_params)
+            return _Carry(key, obs, state, policy_state, carry.episode_return + reward, done)
+
+        # Under vmap the loop runs until the last episode ends; ended ones are left unchanged.
+        final = jax.lax.while_loop(lambda c: ~c.done, step, carry)
+        return Episodes(
+            iou=metrics.iou(final.state),
+            length=final.state.time,
+            bricks_used=final.state.bricks_used,
+            episode_return=final.episode_return,
+            design_index=design_index,
+        )
+
+    return jax.vmap(episode)(keys, design_indices)
+
+
+def run_episodes(env: SNACEnv, params: EnvParams, policy: Policy, key: jax.Array, design_indices) -> Episodes:
+    """One episode per entry of `design_indices` (indices into `params.designs`), each run to
+    its end with `policy`, all in one jitted, vmapped call."""
+    design_indices = jnp.asarray(design_indices, jnp.int32)
+    keys = jax.random.split(key, design_indices.shape[0])
+    return _run_episodes(env, policy.init, policy.act, policy.params, params, keys, design_indices)
+
+
+def test_design_params(task_id: str, params: EnvParams) -> EnvParams:
+    """`params` with its designs replaced by the ten test designs of a dynamic task (the
+    stride distribution and step limit of `params` are kept)."""
+    stack = np.stack([designs.fixed_design(name) for name in test_design_names(task_id)])
+    fresh = make_params(stack, task_spec(task_id).dim)
+    return params.replace(
+        designs=fresh.designs, design_max_bricks=fresh.design_max_bricks, design_volume=fresh.design_volume
+    )
+
+
+# --- statistics --------------------------------------------------------------------------------
+
+
+def _stats(values: np.ndarray) -> dict[str, Any]:
+    return {
+        "mean": float(np.mean(values)),
+        "min": float(np.min(values)),
+        "std": float(np.std(values, ddof=1)) if values.size > 1 else 0.0,
+        "episodes": int(values.size),
+    }
+
+
+def summarize(strata: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Mean (of the equal-weight strata means), min, pooled std and the stratified 95% CI of the
+    mean, from the final IoUs of each stratum (a design, or a 1D shape)."""
+    means = [float(np.mean(v)) for v in strata.values()]
+    variances = [float(np.var(v, ddof=1)) / v.size if v.size > 1 else 0.0 for v in strata.values()]
+    mean = float(np.mean(means))
+    half_width = Z_95 * math.sqrt(sum(variances)) / len(strata)
+    pooled = np.concatenate(list(strata.values()))
+    return {**_stats(pooled), "mean": mean, "ci95": [mean - half_width, mean + half_width]}
+
+
+@dataclasses.dataclass
+class TaskResult:
+    """The protocol's numbers for one task (a paper column or one environment task)."""
+
+    task: str
+    mean: float
+    min: float
+    std: float
+    ci95: list[float]
+    episodes: int
+    mean_length: float
+    mean_bricks_used: float
+    mean_return: float
+    per_design: dict[str, dict[str, Any]]  # per test design (dynamic) or per shape (1d-static)
+    seed: int
+    wall_s: float  # compile + run, all environment tasks of this task
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _task_key(seed: int, env_task: str) -> jax.Array:
+    # Each environment task has its own stream: a task's numbers do not depend on which other
+    # tasks ran before it.
+    return jax.random.fold_in(jax.random.key(seed), zlib.crc32(env_task.encode()))
+
+
+def evaluate_task(
+    task: str,
+    policy: PolicyLike,
+    *,
+    static_episodes: int = STATIC_EPISODES,
+    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN,
+    seed: int = 0,
+    **overrides: Any,
+) -> TaskResult:
+    """Score `policy` on `task` (a paper column such as `1d-static`, or an environment task id)
+    with the protocol of SPEC §8. `overrides` go to `snac_jax.make` (e.g. `gps=True`); a
+    dynamic task's test designs replace its training designs."""
+    import time
+
+    env_tasks = environment_tasks(task)
+    for name, count in (("static_episodes", static_episodes), ("episodes_per_test_design", episodes_per_test_design)):
+        if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {count!r}")
+    start = time.perf_counter()
+    strata: dict[str, np.ndarray] = {}
+    outcomes: list[Episodes] = []
+    for env_task in env_tasks:
+        dynamic = task_spec(env_task).dynamic
+        env, params = make(env_task, **overrides)
+        episode_policy = policy if isinstance(policy, Policy) else policy(env)
+        if not isinstance(episode_policy, Policy):
+            raise ValueError(f"expected a Policy or a builder returning one, got {type(episode_policy).__name__}")
+        if dynamic:
+            params = test_design_params(env_task, params)
+            names = test_design_names(env_task)
+            design_indices = np.repeat(np.arange(len(names)), episodes_per_test_design)
+        else:
+            names = [env_task]
+            design_indices = np.zeros(static_episodes, np.int32)
+        result = jax.device_get(run_episodes(env, params, episode_policy, _task_key(seed, env_task), design_indices))
+        outcomes.append(result)
+        for index, name in enumerate(names):
+            strata[name] = np.asarray(result.iou[result.design_index == index], np.float64)
+    wall_s = time.perf_counter() - start
+
+    stats = summarize(strata)
+    everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
+    return TaskResult(
+        task=task,
+        mean=stats["mean"],
+        min=stats["min"],
+        std=stats["std"],
+        ci95=stats["ci95"],
+        episodes=stats["episodes"],
+        mean_length=float(np.mean(everything.length)),
+        mean_bricks_used=float(np.mean(everything.bricks_used)),
+        mean_return=float(np.mean(everything.episode_return)),
+        per_design={name: _stats(values) for name, values in strata.items()} if len(strata) > 1 else {},
+        seed=seed,
+        wall_s=wall_s,
+    )
+
+
+# --- the paper's numbers -------------------------------------------------------------------------
+
+
+def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
+    """The paper's tables: `path`, or the copy shipped in the package."""
+    if path is None:
+        text = resources.files("snac_jax").joinpath("data/paper_results.json").read_text()
+    else:
+        text = Path(path).read_text()
+    results = json.loads(text)
+    if not isinstance(results, dict) or not isinstance(results.get("methods"), dict):
+        raise ValueError(f"{path or 'paper_results.json'}: expected an object with a 'methods' table")
+    return results
+
+
+def paper_row(results: dict[str, Any], method: str | None) -> dict[str, dict[str, float | None]]:
+    """The paper's {task: {"avg", "min"}} for `method`, or {} when the paper has no such row."""
+    if method is None:
+        return {}
+    return results["methods"].get(method, {})

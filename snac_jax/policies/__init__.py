@@ -1,0 +1,55 @@
+"""Policies that the evaluator and the CLI can run, by name.
+
+Every policy implements the one interface of `snac_jax.policy.Policy`. The registry maps a
+name to a *builder* `builder(env, **options) -> Policy` (for `env`'s task), named as
+"module:function" so that listing the names imports nothing heavy. A learned agent plugs in with
+one line here, e.g. `"ppo": PolicyEntry("snac_jax.agents.ppo:eval_policy", "ppo", "...")`, its
+builder taking the options it needs (such as `checkpoint`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any, Callable
+
+from snac_jax.policy import Policy
+
+PolicyBuilder = Callable[..., Policy]
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyEntry:
+    builder: str  # "module:function", called as builder(env, **options)
+    paper_method: str | None  # key of the paper's table (`paper_results.json` "methods"), if any
+    help: str
+
+
+POLICIES: dict[str, PolicyEntry] = {
+    "handcrafted": PolicyEntry(
+        "snac_jax.policies.handcrafted:handcrafted_policy",
+        "handcrafted",
+        "the paper's handcrafted baseline (1D: the variant without a brick map, as the paper's table)",
+    ),
+    "handcrafted-map": PolicyEntry(
+        "snac_jax.policies.handcrafted:handcrafted_policy_map",
+        "handcrafted",
+        "the handcrafted baseline, 1D variant with its own brick map (2D/3D unchanged)",
+    ),
+    "random": PolicyEntry("snac_jax.policies.random:random_policy", None, "uniformly random actions"),
+}
+
+
+def policy_builder(name: str) -> PolicyBuilder:
+    """The builder registered as `name`; `ValueError` naming the registered ones otherwise."""
+    if name not in POLICIES:
+        raise ValueError(f"unknown policy {name!r}; registered policies: {', '.join(POLICIES)}")
+    module, function = POLICIES[name].builder.split(":")
+    return getattr(importlib.import_module(module), function)
+
+
+def build_policy(name: str, env: Any, **options: Any) -> Policy:
+    return policy_builder(name)(env, **options)
+
+
+__all__ = ["POLICIES", "Policy", "PolicyBuilder", "PolicyEntry", "build_policy", "policy_builder"]
