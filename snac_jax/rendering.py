@@ -608,6 +608,16 @@ def _font(size: int):
     return ImageFont.load_default(size=size)
 
 
+def file_mode(path: Path) -> int:
+    """The permissions a rewritten `path` should keep: its own, or those of a new file (0666
+    less the umask; `mkstemp` would otherwise leave 0600)."""
+    if path.exists():
+        return path.stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 def _atomic_write(path: str | os.PathLike, write) -> Path:
     """Run `write(file)` on a temporary file beside `path`, then rename it over `path`."""
     path = Path(path)
@@ -618,6 +628,7 @@ def _atomic_write(path: str | os.PathLike, write) -> Path:
             write(f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -134,3 +134,16 @@ def test_play_command_runs_a_scripted_episode(tmp_path, monkeypatch, capsys):
     [record] = records.load_records(path)
     assert record.test_design == 0 and record.seed == 7 and record.actions == [2, 2]
     assert "appended" in capsys.readouterr().out
+
+
+def test_human_report_is_the_evaluator_table_beside_the_paper(tmp_path):
+    path = tmp_path / "human.jsonl"
+    session = GameSession("2d-static-sparse", "eval", max_steps=3, record_path=path)
+    for key in ("space", "right", "space"):
+        session.press(key)
+    report = records.human_report(path)
+    row = next(line for line in report.splitlines() if line.startswith("| 2d-static-sparse"))
+    assert f"{session.records[0].iou:.3f}" in row
+    assert "0.606" in row  # the paper's human mean on 2d-static-sparse, from paper_results.json
+    with pytest.raises(ValueError, match="train mode"):
+        records.human_report(path, mode="train")

@@ -17,6 +17,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from snac_jax.rendering import file_mode
 from snac_jax.tasks import TASKS
 
 RECORD_VERSION = 1
@@ -91,6 +92,7 @@ def append_record(path: str | os.PathLike, record: EpisodeRecord) -> Path:
             f.write(old + record.to_json().encode() + b"\n")
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -181,3 +183,20 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
             )
         )
     return results
+
+
+def human_report(path: str | os.PathLike, *, mode: str | None = None, paper_results: str | os.PathLike | None = None,
+                 verify: bool = True) -> str:
+    """What `snac eval --human FILE` prints: the summary of a record file as the evaluator's
+    markdown table, beside the paper's human row. Every record is replayed first (`verify`)."""
+    from snac_jax.cli.eval import markdown_table
+    from snac_jax.evaluation import load_paper_results, paper_row
+
+    records = load_records(path)
+    results = summarize_records(records, mode=mode, verify=verify)
+    if not results:
+        raise ValueError(f"{path}: no human episodes" + ("" if mode is None else f" in {mode} mode"))
+    paper = paper_row(load_paper_results(paper_results), "human")
+    chosen = "all modes" if mode is None else f"{mode} mode"
+    header = f"human episodes from {path} ({chosen}; every record replayed: {'yes' if verify else 'no'})"
+    return header + "\n\n" + markdown_table(results, paper)
