@@ -186,6 +186,12 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         """Out of bricks, or (with obstacles) stuck: the conditions `transition` ends on."""
         return (state.bricks_used >= state.max_bricks) | is_stuck(self.config, state)
 
+    def render(self, state: EnvState, params: EnvParams | None = None, **kwargs) -> np.ndarray:
+        """An RGB picture of one (unbatched) state; see `snac_jax.rendering.render`."""
+        from snac_jax.rendering import render  # rendering stays out of the step's imports
+
+        return render(self, state, params or self.default_params, **kwargs)
+
     # --- spaces --------------------------------------------------------------------------------
 
     def action_space(self, params: EnvParams | None = None) -> spaces.Discrete:
