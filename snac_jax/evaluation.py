@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax import designs, metrics
+from snac_jax import designs, devices, metrics
 from snac_jax.env import SNACEnv
 from snac_jax.policy import Policy
 from snac_jax.state import EnvParams
@@ -123,12 +123,41 @@ def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, de
     return jax.vmap(episode)(keys, design_indices)
 
 
-def run_episodes(env: SNACEnv, params: EnvParams, policy: Policy, key: jax.Array, design_indices) -> Episodes:
+@partial(jax.jit, static_argnames=("env", "init", "act", "mesh"))
+def _run_episodes_sharded(env, init, act, policy_params, env_params, keys, design_indices, mesh) -> Episodes:
+    # Each device runs its own share of the episodes (its own while-loop), so every core works.
+    def per_device(keys, design_indices, policy_params, env_params):
+        return _run_episodes(env, init, act, policy_params, env_params, keys, design_indices)
+
+    replicated = jax.sharding.PartitionSpec()
+    run = jax.shard_map(
+        per_device,
+        mesh=mesh,
+        in_specs=(devices.ENVS, devices.ENVS, replicated, replicated),
+        out_specs=devices.ENVS,
+        check_vma=False,
+    )
+    return run(keys, design_indices, policy_params, env_params)
+
+
+def run_episodes(
+    env: SNACEnv, params: EnvParams, policy: Policy, key: jax.Array, design_indices, num_devices: int | None = None
+) -> Episodes:
     """One episode per entry of `design_indices` (indices into `params.designs`), each run to
-    its end with `policy`, all in one jitted, vmapped call."""
+    its end with `policy`, all in one jitted, vmapped call.
+
+    The episodes are split over `num_devices` local devices (default: as many as divide the
+    episode count evenly; see `snac_jax.devices`). Every episode has its own key, so the
+    outcomes do not depend on the number of devices.
+    """
     design_indices = jnp.asarray(design_indices, jnp.int32)
-    keys = jax.random.split(key, design_indices.shape[0])
-    return _run_episodes(env, policy.init, policy.act, policy.params, params, keys, design_indices)
+    num_episodes = design_indices.shape[0]
+    keys = jax.random.split(key, num_episodes)
+    mesh = devices.env_mesh(num_devices, num_envs=num_episodes)
+    if mesh.devices.size == 1:
+        return _run_episodes(env, policy.init, policy.act, policy.params, params, keys, design_indices)
+    devices.check_divisible(num_episodes, mesh)
+    return _run_episodes_sharded(env, policy.init, policy.act, policy.params, params, keys, design_indices, mesh)
 
 
 def test_design_params(task_id: str, params: EnvParams) -> EnvParams:
@@ -198,11 +227,13 @@ def evaluate_task(
     static_episodes: int = STATIC_EPISODES,
     episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN,
     seed: int = 0,
+    num_devices: int | None = None,
     **overrides: Any,
 ) -> TaskResult:
     """Score `policy` on `task` (a paper column such as `1d-static`, or an environment task id)
     with the protocol of SPEC §8. `overrides` go to `snac_jax.make` (e.g. `gps=True`); a
-    dynamic task's test designs replace its training designs."""
+    dynamic task's test designs replace its training designs. `num_devices`: see
+    `run_episodes` (the numbers do not depend on it)."""
     import time
 
     env_tasks = environment_tasks(task)
@@ -225,7 +256,8 @@ def evaluate_task(
         else:
             names = [env_task]
             design_indices = np.zeros(static_episodes, np.int32)
-        result = jax.device_get(run_episodes(env, params, episode_policy, _task_key(seed, env_task), design_indices))
+        key = _task_key(seed, env_task)
+        result = jax.device_get(run_episodes(env, params, episode_policy, key, design_indices, num_devices))
         outcomes.append(result)
         for index, name in enumerate(names):
             strata[name] = np.asarray(result.iou[result.design_index == index], np.float64)

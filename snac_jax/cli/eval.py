@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from snac_jax.cli.arguments import positive_int
+from snac_jax.cli.arguments import add_devices_argument, positive_int
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, PAPER_TASKS, STATIC_EPISODES
 from snac_jax.policies import POLICIES
 from snac_jax.tasks import TASKS
@@ -41,9 +41,13 @@ def add_parser(subparsers) -> None:
         help="score a policy with the paper's protocol; markdown table beside the paper's numbers",
         description=f"Policies: {policies}.",
     )
-    parser.add_argument("--policy", type=_policy, required=True, help=f"one of: {', '.join(POLICIES)}")
+    parser.add_argument("--policy", type=_policy, default=None, help=f"one of: {', '.join(POLICIES)}")
     parser.add_argument(
-        "--task", type=_task, default="all", help="'all' (the paper's ten columns), a paper column or a task id"
+        "--checkpoint", type=Path, default=None, metavar="DIR",
+        help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given)",
+    )
+    parser.add_argument(
+        "--task", type=_task, default=None, help="'all' (default: the paper's ten columns), a paper column or a task id"
     )
     parser.add_argument(
         "--episodes",
@@ -57,6 +61,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--paper-results", type=Path, default=None, help="paper_results.json to compare with (default: the packaged copy)"
     )
+    add_devices_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -100,8 +105,18 @@ def run(args: argparse.Namespace) -> int:
     from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
     from snac_jax.policies import policy_builder
 
-    paper = paper_row(load_paper_results(args.paper_results), POLICIES[args.policy].paper_method)
-    builder = policy_builder(args.policy)
+    if (args.policy is None) == (args.checkpoint is None):
+        raise SystemExit("snac eval: give exactly one of --policy NAME or --checkpoint DIR")
+    if args.checkpoint is not None:
+        from agents.checkpoint import checkpoint_builder
+
+        builder, run_task, method = checkpoint_builder(args.checkpoint)
+        args.task = args.task or run_task
+        policy_name = f"checkpoint {args.checkpoint}"
+    else:
+        builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy
+    paper = paper_row(load_paper_results(args.paper_results), method)
+    args.task = args.task or "all"
     tasks = PAPER_TASKS if args.task == "all" else (args.task,)
     episodes = {}
     if args.episodes is not None:
@@ -110,13 +125,12 @@ def run(args: argparse.Namespace) -> int:
     results = []
     start = time.perf_counter()
     for task in tasks:
-        result = evaluate_task(task, builder, seed=args.seed, **episodes)
+        result = evaluate_task(task, builder, seed=args.seed, num_devices=args.devices, **episodes)
         results.append(result)
         print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
     total_s = time.perf_counter() - start
 
-    method = POLICIES[args.policy].paper_method
-    print(f"policy {args.policy} (paper row: {method or 'none'}), seed {args.seed}")
+    print(f"policy {policy_name} (paper row: {method or 'none'}), seed {args.seed}")
     print()
     print(markdown_table(results, paper))
     print()
