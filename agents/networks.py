@@ -153,6 +153,29 @@ class ScannedGRU(nn.Module):
         return carry, out
 
 
+class ScannedLSTM(nn.Module):
+    """An LSTM over time (`nn.scan`), reset like `ScannedGRU`. The carry is one array
+    `(B, 2 * features)`, the cell state and the hidden state side by side, so recurrent learners
+    can keep it in a runner state and a replay sample the same way as a GRU's."""
+
+    features: int
+
+    @functools.partial(
+        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False}
+    )
+    @nn.compact
+    def __call__(self, carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        inputs, resets = step
+        carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
+        cell = nn.OptimizedLSTMCell(
+            self.features,
+            kernel_init=scaled_init(1.0),
+            recurrent_kernel_init=scaled_init(1.0),
+        )
+        (c, h), out = cell(jnp.split(carry, 2, axis=-1), inputs)
+        return jnp.concatenate([c, h], axis=-1), out
+
+
 def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float) -> jax.Array:
     x = nn.relu(nn.Dense(hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
     return nn.Dense(out, kernel_init=scaled_init(gain))(x)
@@ -190,4 +213,4 @@ def param_count(params) -> int:
     return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
 
 
-__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedGRU", "ActorCritic", "scaled_init")
+__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedGRU", "ScannedLSTM", "ActorCritic", "scaled_init")

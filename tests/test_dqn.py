@@ -1,0 +1,280 @@
+"""DQN / DRQN / DRQN+HER: sequence replay, burn-in, hindsight relabelling against a replay of the
+episode, the target network's schedule, n-step targets, tiny runs of each agent, resume, config errors.
+
+Episodes are cut short with the `max_steps` training option so that tiny buffers hold many
+episode boundaries.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agents.config import make_config
+from agents.dqn import DQN, hindsight_rewards, n_step_targets, stack_frames
+
+TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2)
+RECURRENT = dict(lstm_size=16, burn_in=4, sequence_length=6)
+
+
+def _agent(algorithm, task="1d-static-sin", **options):
+    extra = RECURRENT if algorithm != "dqn" else {}
+    return DQN(make_config(algorithm, task, **{**TINY, **extra, **options}))
+
+
+def _run(agent, updates, seed=0):
+    """`updates` iterations of `agent` from `init`, jitted as one chunk."""
+    state = jax.jit(agent.init)(jax.random.key(seed))
+    return jax.jit(lambda s: agent.train_chunk(s, agent.env_params, updates))(state)
+
+
+@pytest.fixture(scope="module")
+def her_1d():
+    """A DRQN+HER run on 12-step episodes with random actions; its buffer has wrapped around."""
+    agent = _agent("drqn-her", total_steps=10 * 64, buffer_size=8 * 40, max_steps=12, eps_start=1.0, eps_end=1.0,
+                   hindsight_fraction=1.0)
+    state, _ = _run(agent, 10)
+    assert bool(state.buffer.is_full)
+    return agent, state
+
+
+# --- pure pieces -------------------------------------------------------------------------------------
+
+
+def test_n_step_targets_match_hand_computation():
+    gamma = 0.5
+    rewards = jnp.array([1.0, 2.0, 4.0, 8.0, 16.0])[:, None]
+    dones = jnp.array([False, True, False, False, False])[:, None]
+    values = jnp.array([100.0, 200.0, 300.0, 400.0, 500.0])[:, None]
+    targets = n_step_targets(rewards, dones, values, gamma, n=2, length=3)
+    expected = [
+        1.0 + 0.5 * 2.0,  # the episode ends at step 1: no bootstrap
+        2.0,  # ends right here
+        4.0 + 0.5 * 8.0 + 0.25 * 500.0,  # two rewards, then the value two steps on
+    ]
+    np.testing.assert_allclose(targets[:, 0], expected)
+
+
+def test_stacked_frames_are_zero_before_the_episode_start():
+    obs = jnp.arange(1.0, 6.0)[:, None, None]  # 5 steps, one world, one feature
+    resets = jnp.array([False, False, True, False, False])[:, None]
+    frames = stack_frames(obs, resets, 3)[:, 0, :, 0]
+    np.testing.assert_array_equal(frames, [[0, 0, 3], [0, 3, 4], [3, 4, 5]])
+
+
+# --- replay --------------------------------------------------------------------------------------------
+
+
+def _check_windows_keep_episodes_apart(agent, state, key):
+    batch = jax.device_get(agent.buffer.sample(state.buffer, key).experience)
+    counter = batch.obs[..., agent.layout.window_size + 1].astype(int)  # N_s of each observation
+    reset, done = batch.reset, batch.done
+    # A new episode inside a window always carries a reset flag exactly after the step that ended
+    # the previous one, and the step counter restarts there; otherwise it counts on by one.
+    np.testing.assert_array_equal(reset[:, 1:], done[:, :-1])
+    np.testing.assert_array_equal(counter[:, 1:], np.where(reset[:, 1:], 0, counter[:, :-1] + 1))
+    assert reset[:, 1:].any(), "the windows should cross episode boundaries for this check to mean something"
+    return batch
+
+
+def test_sampled_sequences_never_mix_episodes_without_a_reset_flag(her_1d):
+    agent, state = her_1d
+    for i in range(3):
+        batch = _check_windows_keep_episodes_apart(agent, state, jax.random.key(i))
+        # One world per window; the episode counter moves on exactly at reset flags.
+        assert (batch.world == batch.world[:, :1]).all()
+        np.testing.assert_array_equal(batch.episode[:, 1:] - batch.episode[:, :-1], batch.reset[:, 1:].astype(int))
+
+
+def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart():
+    agent = _agent("drqn", total_steps=6 * 64, buffer_size=8 * 30, max_steps=9)
+    state, _ = _run(agent, 6)
+    assert bool(state.buffer.is_full)
+    _check_windows_keep_episodes_apart(agent, state, jax.random.key(7))
+
+
+def test_burn_in_steps_carry_no_gradient(her_1d):
+    agent, state = her_1d
+    batch, obs, rewards, mask = agent.sample(state, jax.random.key(3))
+    burn_in = agent.burn_in
+    loss = lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0]
+    grad = jax.grad(loss)(obs)
+    assert np.abs(np.asarray(grad[:burn_in])).max() == 0.0
+    assert np.abs(np.asarray(grad[burn_in:])).max() > 0.0
+    # The burn-in does warm the state: changing its observations changes the loss (in windows
+    # without a reset right after the burn-in).
+    bumped = obs.at[:burn_in].add(3.0)
+    assert float(loss(bumped)) != float(loss(obs))
+
+
+# --- hindsight ------------------------------------------------------------------------------------------
+
+
+def _replay(env, params, design, max_bricks, actions, strides):
+    """Rewards of replaying `actions` with `strides` from reset on `design` (its budget kept)."""
+    params = params.replace(
+        designs=jnp.asarray(design, jnp.int16)[None],
+        design_max_bricks=jnp.asarray([max_bricks], jnp.int32),
+        design_volume=jnp.asarray([int(np.sum(design))], jnp.int32),
+    )
+    _, state = env.reset_to_design(jax.random.key(0), params, 0)
+    rewards = []
+    for action, stride in zip(actions, strides):
+        _, state, reward, _, _ = env.step_with_stride(state, int(action), int(stride), params)
+        rewards.append(float(reward))
+    return np.asarray(rewards), state
+
+
+def _check_relabelled_rewards_equal_replay(agent, state, key):
+    env, cfg = agent.env, agent.env.config
+    batch, obs, rewards, mask = jax.device_get(agent.sample(state, key))
+    batch = jax.tree.map(lambda x: np.asarray(x).swapaxes(0, 1), batch)  # back to (S, L)
+    obs, rewards, mask = (np.asarray(x).swapaxes(0, 1) for x in (obs, rewards, mask))
+    ring = jax.device_get(state.worlds.final_grids)
+    checked = 0
+    for s in range(batch.reward.shape[0]):
+        starts = np.flatnonzero(batch.reset[s])
+        for start in starts:
+            ends = np.flatnonzero(batch.done[s, start:])
+            if not len(ends):
+                continue
+            end = start + ends[0]
+            world, episode = batch.world[s, start], batch.episode[s, start]
+            slot = episode % agent.ring_size
+            assert ring.episode[world, slot] == episode
+            final_grid = ring.grids[world, slot]
+            steps = slice(start, end + 1)
+            if agent.layout.dynamic:
+                offset = agent.layout.window_size + 2
+                design = batch.obs[s, start, offset : offset + agent.layout.design_size].reshape(cfg.plan_shape)
+                np.testing.assert_array_equal(obs[s, steps, offset : offset + agent.layout.design_size],
+                                              np.broadcast_to(final_grid.reshape(-1), (end + 1 - start, final_grid.size)))
+            else:
+                design = np.asarray(agent.env_params.designs[0])
+            max_bricks = int(np.asarray(agent.env_params.design_max_bricks)[0]) if not agent.layout.dynamic else None
+            if max_bricks is None:
+                from snac_jax.tasks import make_params, task_spec
+
+                max_bricks = int(make_params(design[None], task_spec(cfg.task_id).dim).design_max_bricks[0])
+            actions, strides = batch.action[s, steps], batch.stride[s, steps]
+            # The environment's own rewards and final grid come back from a replay on the design...
+            original, final_state = _replay(env, agent.env_params, design, max_bricks, actions, strides)
+            np.testing.assert_array_equal(original, batch.reward[s, steps])
+            (pr, pc), (h, w) = cfg.pad, cfg.plan_shape
+            np.testing.assert_array_equal(np.asarray(final_state.grid)[pr : pr + h, pc : pc + w], final_grid)
+            # ... and the relabelled rewards equal a replay against the final grid as the design.
+            relabelled, _ = _replay(env, agent.env_params, final_grid, max_bricks, actions, strides)
+            np.testing.assert_array_equal(rewards[s, steps], relabelled)
+            assert mask[s, steps].all()
+            checked += 1
+    assert checked > 0
+    return checked
+
+
+def test_hindsight_rewards_equal_replaying_against_the_final_grid(her_1d):
+    agent, state = her_1d
+    _check_relabelled_rewards_equal_replay(agent, state, jax.random.key(11))
+
+
+@pytest.mark.parametrize("task", ["2d-static-dense", "1d-dynamic"])
+def test_hindsight_relabelling_in_2d_and_on_dynamic_designs(task):
+    agent = _agent("drqn-her", task, total_steps=6 * 64, buffer_size=8 * 40, max_steps=14, eps_start=1.0,
+                   eps_end=1.0, hindsight_fraction=1.0, burn_in=2, sequence_length=14, batch_size=8)
+    state, _ = _run(agent, 6)
+    _check_relabelled_rewards_equal_replay(agent, state, jax.random.key(2))
+
+
+def test_hindsight_rewards_use_the_environment_reward():
+    """Direct check of `hindsight_rewards` on hand-made records: height vs design height."""
+    from snac_jax.tasks import make
+
+    env, _ = make("1d-static-sin")
+    design = jnp.array([[3, 1, 0, 2]])
+    cells = jnp.array([0, 1, 2, -1])
+    heights = jnp.array([3, 2, 1, 7], jnp.int16)
+    rewards = hindsight_rewards(env.config, cells, heights, jnp.broadcast_to(design, (4, 1, 4)))
+    np.testing.assert_array_equal(rewards, [10.0, -1.0, -1.0, 0.0])
+
+
+# --- target network, runs, resume, errors ---------------------------------------------------------
+
+
+def test_target_network_updates_on_schedule():
+    agent = _agent("dqn", total_steps=64 * 8, target_update_interval=3, buffer_size=8 * 20)
+    state = jax.jit(agent.init)(jax.random.key(0))
+    update = jax.jit(lambda s: agent.update(s, agent.env_params))
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+    for _ in range(7):
+        previous = state
+        state, _ = update(state)
+        step = int(state.gradient_step)
+        assert step == int(previous.gradient_step) + 1
+        assert not same(state.params, previous.params)
+        if step % 3 == 0:
+            assert same(state.target_params, state.params), step
+        else:
+            assert same(state.target_params, previous.target_params), step
+            assert not same(state.target_params, state.params), step
+
+
+@pytest.mark.parametrize(
+    "algorithm,task,options",
+    [
+        ("dqn", "1d-static-gauss", dict(frame_stack=3, n_step=2)),
+        ("drqn", "2d-static-sparse", dict(double_q=False, dueling=False)),
+        ("drqn-her", "2d-dynamic-dense", {}),
+    ],
+)
+def test_tiny_run_of_each_agent_completes(algorithm, task, options):
+    agent = _agent(algorithm, task, total_steps=4 * 64, buffer_size=8 * 40, max_steps=20, **options)
+    state, metrics = _run(agent, 4)
+    assert metrics["loss"].shape == (4,)
+    assert np.all(np.isfinite(metrics["loss"])) and np.all(np.isfinite(metrics["q_mean"]))
+    assert int(state.gradient_step) == 4 - int((agent.config.sample_length - 1) // 8)  # learning waits for one window
+    assert int(metrics["episodes"].sum()) > 0
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
+
+
+def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
+    from agents.checkpoint import checkpoint_policy
+    from agents.driver import train
+    from snac_jax.evaluation import evaluate_task
+
+    config = make_config("drqn-her", "1d-dynamic", **TINY, **RECURRENT, total_steps=4 * 64, buffer_size=8 * 30,
+                         max_steps=10)
+    _, full = train(config, tmp_path / "full", progress=False)
+    train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
+    _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    result = evaluate_task("1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"),
+                           episodes_per_test_design=2, max_steps=20)
+    assert result.episodes == 20 and 0.0 <= result.mean <= 1.0
+
+
+@pytest.mark.parametrize(
+    "algorithm,options,message",
+    [
+        ("dqn", dict(buffer_size=100, num_envs=64), "buffer_size \\(100\\) holds 1 steps per world"),
+        ("drqn", dict(burn_in=-1), "burn_in must be an int >= 0"),
+        ("drqn-her", dict(hindsight_fraction=1.5), "hindsight_fraction must be a number in \\[0, 1\\]"),
+        ("dqn", dict(lstm_size=8), "unknown dqn option"),
+        ("drqn", dict(eps_end=-0.1), "eps_end must be a number in \\[0, 1\\]"),
+    ],
+)
+def test_config_errors_are_clear(algorithm, options, message):
+    with pytest.raises(ValueError, match=message):
+        make_config(algorithm, "1d-static-sin", **options)
+
+
+def test_replay_memory_is_bounded_by_the_config():
+    with pytest.raises(ValueError, match="exceeds max_buffer_mb"):
+        DQN(make_config("drqn", "2d-dynamic-dense", buffer_size=2_000_000, max_buffer_mb=100.0))
+    agent = DQN(make_config("drqn", "1d-static-sin", buffer_size=100_000, num_envs=100))
+    # int16 observations (7) + reset + action + float32 reward + done per step
+    per_step = 7 * 2 + 1 + 1 + 4 + 1
+    assert 100_000 * per_step <= agent.memory_bytes["buffer"] <= 100_000 * per_step + 16
