@@ -8,8 +8,9 @@
 
 One environment task is one jitted, vmapped call (`run_episodes`): all its episodes advance
 together in a `lax.while_loop` until the last one ends. The call is compiled once per
-(environment configuration, policy functions, episode count); the policy's parameters are an
-argument, so new weights do not recompile.
+(environment configuration, policy functions, episode count): `policy.init` and `policy.act`
+are static arguments, so build them once per configuration (a new closure recompiles), while
+`policy.params` is an ordinary argument, so new weights do not recompile.
 
 The reported interval is a 95% normal confidence interval of the mean. Designs (or shapes) are
 fixed strata with equal weight, so the standard error is the stratified one,

@@ -7,8 +7,9 @@ handcrafted row, including their quirks (each one is named where it is reproduce
 
 Localisation (after each move; a drop keeps the estimate)
   - 2D/3D: if the window did not change, assume one cell moved (odometry). Otherwise the first
-    stride of 1, 2, 3 whose shifted previous window matches the new one on their overlap. Clip
-    to the design area. Then, when a wall (-1) shows at an end of the window's middle column
+    stride of 1, 2, 3 whose shifted previous window matches the new one on their overlap; if
+    none matches the estimate is kept (as in the reference; a real move always matches its own
+    stride, so only a hand-made state gets there). Clip to the design area. Then, when a wall (-1) shows at an end of the window's middle column
     (row) the row (column) is recomputed from the number of wall cells: exact near walls.
   - 1D: the strides whose shifted window matches are counted; several matches mean odometry
     (one cell), one match gives the stride, none keeps the estimate. What the new window is
@@ -18,7 +19,8 @@ Localisation (after each move; a drop keeps the estimate)
         It reproduces the paper's 1D numbers (1d-static 0.948, 1d-dynamic 0.995); the default.
       * `"map"` (`slam_1d.py` with `saved_heights`): the robot's own record of the bricks it
         laid, read at the candidate cells; it also decides drops from that record. It scores
-        lower (about 0.93 / 0.94, the "with map" figures noted in the reference test scripts).
+        lower: 0.93 / 0.94 here, close to the "with map" figures (0.946 / 0.944) written at
+        the end of the reference test scripts.
     A reference quirk kept: moving 2 cells onto the left end is recognised (strides 2 and 3 both
     end there), the same test on the right end looks one cell past it and never fires.
 
