@@ -142,3 +142,14 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
         raise ValueError(f"seed_index must be in 0..{seeds - 1} for {checkpoint}, got {seed_index}")
     params = jax.tree.map(lambda x: x[seed_index], state.params)
     return algorithm.policy(params)
+
+
+def checkpoint_builder(directory: str | Path):
+    """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
+    of its algorithm)`. The 1D static shapes are scored on the shape the run trained on."""
+    config = read_config(directory)
+
+    def builder(env, **options):
+        return checkpoint_policy(env, directory, **options)
+
+    return builder, config.task, config.algorithm

@@ -27,14 +27,23 @@ class TrainConfig:
     seeds: int = 1  # independent runs, vmapped
     seed: int = 0  # base seed; run i uses fold_in(key(seed), i)
     chunks: int = 20  # the driver saves, logs and checkpoints this many times
+    max_steps: int = 0  # episode step limit for training; 0 keeps the task's (SPEC §1)
 
     def validate(self) -> None:
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; allowed: {', '.join(TASKS)}")
         for name in ("total_steps", "num_envs", "seeds", "chunks"):
             _positive_int(name, getattr(self, name))
+        if not isinstance(self.max_steps, int) or isinstance(self.max_steps, bool) or self.max_steps < 0:
+            raise ValueError(f"max_steps must be an int >= 0 (0: the task's limit), got {self.max_steps!r}")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {self.seed!r}")
+
+    def make_env(self):
+        """The training environment `(env, params)` of this config."""
+        from snac_jax.tasks import make
+
+        return make(self.task, **({"max_steps": self.max_steps} if self.max_steps else {}))
 
     def to_json(self) -> dict[str, Any]:
         return {"algorithm": self.algorithm, **dataclasses.asdict(self)}

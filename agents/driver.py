@@ -27,9 +27,9 @@ import numpy as np
 
 from agents import checkpoint
 from agents.config import TrainConfig, save_config
-from agents.sharding import check_divisible, state_shardings, world_mesh
+from agents.sharding import check_divisible, env_mesh, state_shardings
 
-ALGORITHM_CLASSES = {"ppo": "agents.ppo:PPO"}
+ALGORITHM_CLASSES = {"ppo": "agents.ppo:PPO", "dqn": "agents.dqn:DQN", "drqn": "agents.dqn:DQN", "drqn-her": "agents.dqn:DQN"}
 """Algorithm name (a key of `agents.config.ALGORITHMS`) -> "module:class" built from its config."""
 
 
@@ -44,8 +44,9 @@ def seed_keys(config: TrainConfig) -> jax.Array:
 
 
 def initial_state(algorithm, mesh=None) -> Any:
-    """The seed-batched initial state, its worlds split over `mesh` (default: all devices)."""
-    mesh = world_mesh() if mesh is None else mesh
+    """The seed-batched initial state, its worlds split over `mesh` (default: as many local
+    devices as split the worlds evenly)."""
+    mesh = env_mesh(num_envs=algorithm.config.num_envs) if mesh is None else mesh
     check_divisible(algorithm.config.num_envs, mesh)
     init = jax.vmap(algorithm.init)
     shardings = state_shardings(jax.eval_shape(init, seed_keys(algorithm.config)), mesh)
@@ -107,7 +108,7 @@ def train(
         out_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, out_dir / checkpoint.CONFIG_FILE)
     algorithm = build_algorithm(config)
-    mesh = world_mesh() if mesh is None else mesh
+    mesh = env_mesh(num_envs=config.num_envs) if mesh is None else mesh
     state = initial_state(algorithm, mesh)
     shardings = jax.tree.map(lambda x: x.sharding, state)
 
@@ -163,10 +164,11 @@ def train(
                 f.write(json.dumps(record) + "\n")
             checkpoint.save_state(out_dir, index, state)
             bar.update(sizes[index] * steps_per_update * config.seeds)
-            bar.set_postfix(
-                {"steps/s": f"{record['steps_per_s']:,.0f}", "IoU": f"{np.nanmean(record['iou']):.3f}",
-                 "return": f"{np.nanmean(record['return']):.1f}"}
-            )
+            postfix = {"steps/s": f"{record['steps_per_s']:,.0f}"}
+            if np.any(np.isfinite(record["iou"])):  # no episode may end within a short chunk
+                postfix["IoU"] = f"{np.nanmean(record['iou']):.3f}"
+                postfix["return"] = f"{np.nanmean(record['return']):.1f}"
+            bar.set_postfix(postfix)
     finally:
         bar.close()
     return algorithm, state

@@ -28,7 +28,6 @@ from flax import struct
 from agents.config import PPOConfig
 from agents.networks import ActorCritic, ObsLayout
 from snac_jax.policy import Policy
-from snac_jax.tasks import make
 
 
 @struct.dataclass
@@ -99,7 +98,7 @@ class PPO:
     def __init__(self, config: PPOConfig):
         config.validate()
         self.config = config
-        self.env, self.env_params = make(config.task)
+        self.env, self.env_params = config.make_env()
         self.layout = ObsLayout.from_env(self.env, self.env_params)
         self.network = ActorCritic(
             layout=self.layout,

@@ -8,7 +8,7 @@ import importlib
 import sys
 
 # One module per subcommand; each defines `add_parser(subparsers)`.
-COMMAND_MODULES = ("rollout", "render", "eval", "play")
+COMMAND_MODULES = ("rollout", "render", "eval", "play", "train")
 
 
 def build_parser() -> argparse.ArgumentParser:

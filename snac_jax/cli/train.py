@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from snac_jax.cli.arguments import positive_int, task_id
+from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
 from snac_jax.tasks import TASKS
 
 DEFAULT_TASK = "1d-static-sin"
@@ -43,6 +43,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help="episodes per design for the final evaluation (default: the paper's protocol)")
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_devices_argument(parser)
 
 
 def add_parser(subparsers) -> None:
@@ -84,7 +85,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"{config.algorithm} on {config.task}: {config.total_steps:,} env steps x {config.seeds} seed(s), "
           f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
 
-    algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress)
+    from snac_jax import devices
+
+    mesh = devices.env_mesh(args.devices, config.num_envs)
+    devices.check_divisible(config.num_envs, mesh)
+    print(f"worlds split over {mesh.devices.size} {mesh.devices.flat[0].platform} device(s)", file=sys.stderr)
+    algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress, mesh=mesh)
     config = algorithm.config
     kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
     plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
