@@ -152,4 +152,4 @@ def checkpoint_builder(directory: str | Path):
     def builder(env, **options):
         return checkpoint_policy(env, directory, **options)
 
-    return builder, config.task, config.algorithm
+    return builder, config.task, getattr(config, "paper_method", config.algorithm)

@@ -102,7 +102,126 @@ class PPOConfig(TrainConfig):
                 raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
 
 
-ALGORITHMS: dict[str, type[TrainConfig]] = {"ppo": PPOConfig}
+@dataclasses.dataclass(frozen=True)
+class DQNConfig(TrainConfig):
+    """DQN with double Q-learning, a dueling head, n-step returns and an optional stack of the
+    last `frame_stack` observations; replay on device (see `agents.dqn`)."""
+
+    algorithm: ClassVar[str] = "dqn"
+    paper_method: ClassVar[str] = "dqn"  # the paper's row (`paper_results.json` "methods")
+    uses_lstm: ClassVar[bool] = False
+    hindsight: ClassVar[bool] = False
+
+    rollout_steps: int = 8  # steps per world between learning phases
+    gradient_steps: int = 1  # gradient steps per learning phase
+    batch_size: int = 256  # sampled sequences per gradient step
+    sequence_length: int = 1  # steps per sampled sequence that get a loss
+    buffer_size: int = 500_000  # replay capacity in env steps, over all worlds of a seed
+    max_buffer_mb: float = 2048.0  # the config is refused when the replay memory would exceed this
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    n_step: int = 3
+    huber_delta: float = 1.0
+    max_grad_norm: float = 10.0
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    exploration_fraction: float = 0.3  # of total_steps over which epsilon decays linearly
+    learning_starts: int = 20_000  # env steps per seed before the first gradient step
+    target_update_interval: int = 250  # gradient steps between copies into the target network
+    hidden_size: int = 128
+    dueling: bool = True
+    double_q: bool = True
+    frame_stack: int = 1
+    reward_scale: float = 0.1  # rewards are multiplied by this for learning (not for reporting)
+
+    @property
+    def context(self) -> int:
+        """Steps before the first learning step of a sampled sequence (frame stack context; the
+        recurrent configs add their burn-in)."""
+        return self.frame_stack - 1
+
+    @property
+    def sample_length(self) -> int:
+        """Steps per sampled sequence: context, learning steps, and n more to bootstrap from."""
+        return self.context + self.sequence_length + self.n_step
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_steps
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.total_steps // self.steps_per_update)
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("rollout_steps", "gradient_steps", "batch_size", "sequence_length", "buffer_size",
+                     "n_step", "target_update_interval", "hidden_size", "frame_stack"):
+            _positive_int(name, getattr(self, name))
+        if not isinstance(self.learning_starts, int) or isinstance(self.learning_starts, bool) or self.learning_starts < 0:
+            raise ValueError(f"learning_starts must be an int >= 0, got {self.learning_starts!r}")
+        for name in ("learning_rate", "huber_delta", "max_grad_norm", "reward_scale", "max_buffer_mb"):
+            _positive_float(name, getattr(self, name))
+        for name in ("gamma", "eps_start", "eps_end", "exploration_fraction"):
+            value = getattr(self, name)
+            if not _is_real(value) or not 0 <= value <= 1:
+                raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
+        for name in ("dueling", "double_q"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        per_world = self.buffer_size // self.num_envs
+        if per_world < self.sample_length + self.rollout_steps:
+            raise ValueError(
+                f"buffer_size ({self.buffer_size}) holds {per_world} steps per world; it must hold at least "
+                f"sample_length + rollout_steps = {self.sample_length + self.rollout_steps} (raise buffer_size or lower num_envs)"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class DRQNConfig(DQNConfig):
+    """DQN with an LSTM core (paper: 256 units), trained on sampled sequences whose first
+    `burn_in` steps only warm the hidden state."""
+
+    algorithm: ClassVar[str] = "drqn"
+    paper_method: ClassVar[str] = "drqn"
+    uses_lstm: ClassVar[bool] = True
+
+    lstm_size: int = 256
+    burn_in: int = 20
+    batch_size: int = 32
+    sequence_length: int = 40
+
+    @property
+    def context(self) -> int:
+        return self.frame_stack - 1 + self.burn_in
+
+    def validate(self) -> None:
+        _positive_int("lstm_size", self.lstm_size)
+        if not isinstance(self.burn_in, int) or isinstance(self.burn_in, bool) or self.burn_in < 0:
+            raise ValueError(f"burn_in must be an int >= 0, got {self.burn_in!r}")
+        super().validate()
+
+
+@dataclasses.dataclass(frozen=True)
+class DRQNHERConfig(DRQNConfig):
+    """DRQN whose replay also holds each finished episode relabelled with its final grid as the
+    design (hindsight experience replay, as the paper's DRQN+Hindsight)."""
+
+    algorithm: ClassVar[str] = "drqn-her"
+    paper_method: ClassVar[str] = "drqn_her"
+    hindsight: ClassVar[bool] = True
+
+    hindsight_fraction: float = 0.5  # share of sampled sequences read from the relabelled copy
+
+    def validate(self) -> None:
+        super().validate()
+        if not _is_real(self.hindsight_fraction) or not 0 <= self.hindsight_fraction <= 1:
+            raise ValueError(f"hindsight_fraction must be a number in [0, 1], got {self.hindsight_fraction!r}")
+
+
+ALGORITHMS: dict[str, type[TrainConfig]] = {
+    "ppo": PPOConfig, "dqn": DQNConfig, "drqn": DRQNConfig, "drqn-her": DRQNHERConfig,
+}
 
 # Tuned defaults per (algorithm, task, recurrent). Anything not listed falls back to the
 # dataclass defaults. The budgets are what reached the targets in bench/results/ppo.md.

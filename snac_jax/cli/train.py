@@ -30,6 +30,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an int >= 0, got {text!r}")
+    return value
+
+
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}")
     parser.add_argument("--total-steps", type=positive_int, default=None, help="env steps per seed (default: tuned per task)")
@@ -59,6 +69,24 @@ def add_parser(subparsers) -> None:
     ppo.add_argument("--num-minibatches", type=positive_int, default=None)
     ppo.set_defaults(func=run, algorithm_options=("recurrent", "learning_rate", "rollout_steps", "update_epochs", "num_minibatches"))
 
+    value_based = ("learning_rate", "rollout_steps", "gradient_steps", "batch_size", "buffer_size", "max_buffer_mb",
+                   "n_step", "target_update_interval", "learning_starts", "hidden_size", "frame_stack", "max_steps")
+    recurrent = ("lstm_size", "burn_in", "sequence_length")
+    for name, help_text, options in (
+        ("dqn", "DQN: double Q, dueling head, n-step returns, optional frame stack; replay on device", value_based),
+        ("drqn", "DRQN: the DQN with an LSTM, trained on replayed sequences with burn-in", value_based + recurrent),
+        ("drqn-her", "DRQN + hindsight relabelling with the episode's final grid as the design",
+         value_based + recurrent + ("hindsight_fraction",)),
+    ):
+        sub = algorithms.add_parser(name, help=help_text)
+        _common(sub)
+        for option in options:
+            kind = _positive_float if option in ("learning_rate", "max_buffer_mb", "hindsight_fraction") else positive_int
+            if option in ("learning_starts", "burn_in", "max_steps"):
+                kind = _non_negative_int
+            sub.add_argument("--" + option.replace("_", "-"), type=kind, default=None)
+        sub.set_defaults(func=run, algorithm_options=options)
+
 
 def build_config(args: argparse.Namespace):
     from agents.config import make_config
@@ -70,7 +98,7 @@ def build_config(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     from agents import checkpoint
-    from agents.driver import read_metrics, train
+    from agents.driver import build_algorithm, read_metrics, train
     from agents.plotting import plot_curve
 
     if args.resume is not None:
@@ -85,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{config.algorithm} on {config.task}: {config.total_steps:,} env steps x {config.seeds} seed(s), "
           f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
 
+    memory = getattr(build_algorithm(config), "describe_memory", None)  # replay learners: say the buffer's size
+    if memory is not None:
+        print(memory(), file=sys.stderr)
     from snac_jax import devices
 
     mesh = devices.env_mesh(args.devices, config.num_envs)
@@ -118,9 +149,9 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
         results.append(result)
     from agents.plotting import paper_column
 
-    paper = paper_row(load_paper_results(), config.algorithm)
+    paper = paper_row(load_paper_results(), getattr(config, "paper_method", config.algorithm))
     paper = {r.task: paper.get(paper_column(config.task), {}) for r in results}
-    print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.algorithm} "
+    print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {getattr(config, 'paper_method', config.algorithm)} "
           f"(the paper's {paper_column(config.task)} column)")
     print()
     print(markdown_table(results, paper))
