@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import time
 import zlib
 from functools import partial
 from importlib import resources
@@ -235,8 +236,6 @@ def evaluate_task(
     with the protocol of SPEC §8. `overrides` go to `snac_jax.make` (e.g. `gps=True`); a
     dynamic task's test designs replace its training designs. `num_devices`: see
     `run_episodes` (the numbers do not depend on it)."""
-    import time
-
     env_tasks = environment_tasks(task)
     for name, count in (("static_episodes", static_episodes), ("episodes_per_test_design", episodes_per_test_design)):
         if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
