@@ -147,3 +147,17 @@ def test_human_report_is_the_evaluator_table_beside_the_paper(tmp_path):
     assert "0.606" in row  # the paper's human mean on 2d-static-sparse, from paper_results.json
     with pytest.raises(ValueError, match="train mode"):
         records.human_report(path, mode="train")
+
+
+def test_snac_eval_human_prints_the_summary(tmp_path, capsys):
+    from snac_jax.cli import main
+
+    path = tmp_path / "human.jsonl"
+    session = GameSession("2d-static-sparse", "eval", max_steps=3, record_path=path)
+    for key in ("space", "right", "space"):
+        session.press(key)
+    assert main(["eval", "--human", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "| 2d-static-sparse | 1 |" in out and "0.606" in out
+    with pytest.raises(SystemExit, match="exactly one of"):
+        main(["eval", "--human", str(path), "--policy", "random"])

@@ -47,6 +47,10 @@ def add_parser(subparsers) -> None:
         help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given)",
     )
     parser.add_argument(
+        "--human", type=Path, default=None, metavar="FILE",
+        help="summarise the episodes `snac play` recorded in FILE (each is replayed and checked first)",
+    )
+    parser.add_argument(
         "--task", type=_task, default=None, help="'all' (default: the paper's ten columns), a paper column or a task id"
     )
     parser.add_argument(
@@ -105,8 +109,14 @@ def run(args: argparse.Namespace) -> int:
     from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
     from snac_jax.policies import policy_builder
 
-    if (args.policy is None) == (args.checkpoint is None):
-        raise SystemExit("snac eval: give exactly one of --policy NAME or --checkpoint DIR")
+    sources = [args.policy, args.checkpoint, args.human]
+    if sum(source is not None for source in sources) != 1:
+        raise SystemExit("snac eval: give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+    if args.human is not None:
+        from snac_jax.human.records import human_report
+
+        print(human_report(args.human, paper_results=args.paper_results))
+        return 0
     if args.checkpoint is not None:
         from agents.checkpoint import checkpoint_builder
 
