@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from snac_jax.atomic import atomic_write
 from snac_jax.config import EnvConfig
 from snac_jax.observation import LANDMARK_VALUE
 from snac_jax.state import EnvParams, EnvState
@@ -189,7 +189,7 @@ def save_png(path: str | os.PathLike, frame: np.ndarray) -> Path:
     from PIL import Image
 
     _check_frame(frame)
-    return _atomic_write(path, lambda f: Image.fromarray(frame).save(f, format="PNG"))
+    return atomic_write(path, lambda f: Image.fromarray(frame).save(f, format="PNG"))
 
 
 def save_gif(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 10.0,
@@ -216,7 +216,7 @@ def save_gif(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float =
         raise ValueError("durations_ms must hold one positive duration per frame")
     stack = np.stack(frames)
     durations = [float(d) for d in durations_ms]
-    return _atomic_write(path, lambda f: iio.imwrite(f, stack, extension=".gif", duration=durations, loop=0))
+    return atomic_write(path, lambda f: iio.imwrite(f, stack, extension=".gif", duration=durations, loop=0))
 
 
 def render_observation(env, obs, *, cell: int = 44, design_cell: int | None = None,
@@ -606,31 +606,3 @@ def _font(size: int):
     from PIL import ImageFont
 
     return ImageFont.load_default(size=size)
-
-
-def file_mode(path: Path) -> int:
-    """The permissions a rewritten `path` should keep: its own, or those of a new file (0666
-    less the umask; `mkstemp` would otherwise leave 0600)."""
-    if path.exists():
-        return path.stat().st_mode & 0o777
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
-def _atomic_write(path: str | os.PathLike, write) -> Path:
-    """Run `write(file)` on a temporary file beside `path`, then rename it over `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, file_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path

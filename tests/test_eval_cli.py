@@ -7,7 +7,7 @@ import json
 import pytest
 
 from snac_jax.cli import main
-from snac_jax.cli.eval import write_json_atomic
+from snac_jax.atomic import atomic_write_json as write_json_atomic
 
 
 def test_eval_prints_table_beside_the_paper_and_writes_json(tmp_path, capsys):

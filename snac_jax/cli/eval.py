@@ -7,13 +7,11 @@ plugs in by registering a builder; options such as `--checkpoint` are handed to 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
+from snac_jax.atomic import atomic_write_json
 from snac_jax.cli.arguments import add_devices_argument, positive_int
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, PAPER_TASKS, STATIC_EPISODES
 from snac_jax.policies import POLICIES
@@ -67,21 +65,6 @@ def add_parser(subparsers) -> None:
     )
     add_devices_argument(parser)
     parser.set_defaults(func=run)
-
-
-def write_json_atomic(path: Path, payload: object) -> None:
-    """Write to a temporary file beside `path`, then rename: a crash never leaves half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -146,6 +129,6 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f"wall time {total_s:.1f} s (compile included)")
     if args.json is not None:
-        write_json_atomic(args.json, {r.task: r.to_json() for r in results})
+        atomic_write_json(args.json, {r.task: r.to_json() for r in results})
         print(f"wrote {args.json}")
     return 0

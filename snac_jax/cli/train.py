@@ -135,7 +135,8 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
     """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`."""
     import jax
 
-    from snac_jax.cli.eval import markdown_table, write_json_atomic
+    from snac_jax.atomic import atomic_write_json
+    from snac_jax.cli.eval import markdown_table
     from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
 
     config = algorithm.config
@@ -155,5 +156,5 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
           f"(the paper's {paper_column(config.task)} column)")
     print()
     print(markdown_table(results, paper))
-    write_json_atomic(out_dir / "eval.json", {r.task: r.to_json() for r in results})
+    atomic_write_json(out_dir / "eval.json", {r.task: r.to_json() for r in results})
     print(f"\nwrote {out_dir / 'eval.json'}")

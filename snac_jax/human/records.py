@@ -11,13 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
-from snac_jax.rendering import file_mode
+from snac_jax.atomic import atomic_write
 from snac_jax.tasks import TASKS
 
 RECORD_VERSION = 1
@@ -86,17 +85,7 @@ def append_record(path: str | os.PathLike, record: EpisodeRecord) -> Path:
     old = path.read_bytes() if path.exists() else b""
     if old and not old.endswith(b"\n"):
         old += b"\n"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(old + record.to_json().encode() + b"\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, file_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda f: f.write(old + record.to_json().encode() + b"\n"))
     return path
 
 
