@@ -10,21 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from snac_jax import metrics, observation
+from snac_jax import metrics, observation, threefry
 from snac_jax.config import EnvConfig
 from snac_jax.state import EnvParams, EnvState
 from snac_jax.transition import PADDING, is_stuck, transition
 
 
 def random_words(key: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Two independent uint32 words from one hash of `key`.
+    """Two independent uint32 words from one hash of `key`: `key_data(fold_in(key, 0))`.
 
-    A step needs a stride and, for the auto-reset, a design index: one threefry block gives
-    both (`fold_in` hashes the key with a two-word counter). `jax.random.split` followed by a
-    draw costs three blocks or more per env per step, and hashing dominates the step's cost.
+    A step needs a stride and, for the auto-reset, a design index: one Threefry block gives
+    both. (`jax.random.split` followed by a draw costs three blocks or more per env per step,
+    and on the CPU `snac_jax.threefry` computes the block fused with the rest of the step.)
     """
-    data = jax.random.key_data(jax.random.fold_in(key, 0))
-    return data[..., 0], data[..., 1]
+    return threefry.fold_in_words(key)
 
 
 def unit_float(word: jax.Array) -> jax.Array:

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from snac_jax import devices
+from snac_jax import devices, threefry
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 
@@ -55,7 +55,7 @@ class EpisodeStats:
 def uniform_actions(key: jax.Array, num_envs: int, num_actions: int) -> jax.Array:
     """One uniform action per env from one random word each (`bits % A`, biased by < A / 2**32;
     `jax.random.randint` is exact but draws two words per action)."""
-    return (jax.random.bits(key, (num_envs,)) % jnp.uint32(num_actions)).astype(jnp.int32)
+    return (threefry.bits(key, num_envs) % jnp.uint32(num_actions)).astype(jnp.int32)
 
 
 def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int) -> EpisodeStats:
@@ -69,7 +69,7 @@ def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num
         states, stats = carry
         key_act, key_step = jax.random.split(step_key)
         actions = uniform_actions(key_act, num_envs, env.num_actions)
-        _, states, _, terminated, truncated, info = step(jax.random.split(key_step, num_envs), states, actions, params)
+        _, states, _, terminated, truncated, info = step(threefry.split(key_step, num_envs), states, actions, params)
         return (states, stats.add(terminated | truncated, info["final_iou"])), None
 
     (_, stats), _ = jax.lax.scan(body, (states, EpisodeStats.empty()), jax.random.split(key_run, num_steps))
