@@ -215,6 +215,27 @@ class TaskResult:
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    @classmethod
+    def from_episodes(cls, task: str, strata: dict[str, np.ndarray], lengths, bricks_used, returns,
+                      seed: int, wall_s: float) -> "TaskResult":
+        """The protocol's statistics from the final IoUs of each stratum (a design or a 1D
+        shape) and the episodes' lengths, bricks and returns."""
+        stats = summarize(strata)
+        return cls(
+            task=task,
+            mean=stats["mean"],
+            min=stats["min"],
+            std=stats["std"],
+            ci95=stats["ci95"],
+            episodes=stats["episodes"],
+            mean_length=float(np.mean(lengths)),
+            mean_bricks_used=float(np.mean(bricks_used)),
+            mean_return=float(np.mean(returns)),
+            per_design={name: _stats(values) for name, values in strata.items()} if len(strata) > 1 else {},
+            seed=seed,
+            wall_s=wall_s,
+        )
+
 
 def _task_key(seed: int, env_task: str) -> jax.Array:
     # Each environment task has its own stream: a task's numbers do not depend on which other
@@ -263,21 +284,9 @@ def evaluate_task(
             strata[name] = np.asarray(result.iou[result.design_index == index], np.float64)
     wall_s = time.perf_counter() - start
 
-    stats = summarize(strata)
     everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
-    return TaskResult(
-        task=task,
-        mean=stats["mean"],
-        min=stats["min"],
-        std=stats["std"],
-        ci95=stats["ci95"],
-        episodes=stats["episodes"],
-        mean_length=float(np.mean(everything.length)),
-        mean_bricks_used=float(np.mean(everything.bricks_used)),
-        mean_return=float(np.mean(everything.episode_return)),
-        per_design={name: _stats(values) for name, values in strata.items()} if len(strata) > 1 else {},
-        seed=seed,
-        wall_s=wall_s,
+    return TaskResult.from_episodes(
+        task, strata, everything.length, everything.bricks_used, everything.episode_return, seed, wall_s
     )
 
 

@@ -134,7 +134,7 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
     mode), or the task's training designs. `mode` keeps only one mode's episodes; `verify`
     replays every record and raises `ValueError` when its IoU differs from the recorded one.
     """
-    from snac_jax.evaluation import TaskResult, _stats, summarize
+    from snac_jax.evaluation import TaskResult
 
     if mode is not None and mode not in MODES:
         raise ValueError(f"mode must be one of {MODES} or None, got {mode!r}")
@@ -154,19 +154,12 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
             name = r.task if r.test_design is None else f"{r.task}-test{r.test_design}"
             strata.setdefault(name, []).append(r.iou)
         arrays = {name: np.asarray(v, np.float64) for name, v in strata.items()}
-        stats = summarize(arrays)
         results.append(
-            TaskResult(
-                task=task,
-                mean=stats["mean"],
-                min=stats["min"],
-                std=stats["std"],
-                ci95=stats["ci95"],
-                episodes=stats["episodes"],
-                mean_length=float(np.mean([r.steps for r in group])),
-                mean_bricks_used=float(np.mean([r.bricks_used for r in group])),
-                mean_return=float(np.mean([r.total_reward for r in group])),
-                per_design={n: _stats(v) for n, v in arrays.items()} if len(arrays) > 1 else {},
+            TaskResult.from_episodes(
+                task, arrays,
+                lengths=[r.steps for r in group],
+                bricks_used=[r.bricks_used for r in group],
+                returns=[r.total_reward for r in group],
                 seed=-1,  # human episodes carry their own seeds
                 wall_s=float(sum(r.duration_s for r in group)),
             )
