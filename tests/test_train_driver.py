@@ -108,6 +108,7 @@ def _run_devices(devices: int, out_dir) -> dict:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # two training subprocesses: ~1 min idle, minutes on a loaded 2-core CPU
 def test_two_device_run_matches_one_device_shapes_and_learns(tmp_path):
     two = _run_devices(2, tmp_path / "two")
     one = _run_devices(1, tmp_path / "one")
