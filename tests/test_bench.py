@@ -1,0 +1,50 @@
+"""`bench/throughput.py` runs and writes its JSON rows, table and plots."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "bench" / "throughput.py"
+KEYS = {"task", "num_envs", "steps_per_s", "compile_s", "numpy_steps_per_s", "ratio"}
+
+
+def _run(args, tmp_path):
+    done = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    return json.loads((tmp_path / "throughput.json").read_text())
+
+
+def test_tiny_run_writes_rows_table_and_plots(tmp_path):
+    rows = _run(["--tasks", "3d-dynamic-sparse", "1d-static-sin", "--num-envs", "1", "4", "--steps", "60",
+                 "--numpy-steps", "200", "--no-e2e"], tmp_path)
+    assert [(r["task"], r["num_envs"]) for r in rows] == [
+        ("1d-static-sin", 1), ("1d-static-sin", 4), ("3d-dynamic-sparse", 1), ("3d-dynamic-sparse", 4)]
+    for row in rows:
+        assert KEYS <= set(row)
+        assert row["steps_per_s"] > 0 and row["numpy_steps_per_s"] > 0 and row["compile_s"] > 0
+        assert row["ratio"] == pytest.approx(row["steps_per_s"] / row["numpy_steps_per_s"])
+    assert rows[3]["episodes"] > 0  # random 3D episodes end fast (stuck): auto-reset ran
+    table = (tmp_path / "throughput.md").read_text()
+    assert "## 1D" in table and "## 3D" in table and "## 2D" not in table
+    for family in ("1d", "3d"):
+        assert (tmp_path / f"throughput_{family}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bad_arguments_are_rejected(tmp_path):
+    for args in (["--repeats", "2"], ["--num-envs", "0"], ["--devices", "x"]):
+        done = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+        assert done.returncode == 2, (args, done.stderr)
+
+
+@pytest.mark.slow
+def test_quick_run_covers_every_task(tmp_path):
+    from snac_jax import TASKS
+
+    rows = _run(["--quick"], tmp_path)
+    assert sorted(r["task"] for r in rows) == sorted(TASKS)
+    e2e = json.loads((tmp_path / "snac_rollout_e2e.json").read_text())
+    assert e2e and all(item["wall_s"] > 0 and "env-steps/s" in item["output"] for item in e2e)
