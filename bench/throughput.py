@@ -7,8 +7,10 @@ auto-reset, for every task and batch size, against the plain NumPy engine in the
     python bench/throughput.py --tasks 2d-static-dense --num-envs 1024 4096 --json out.json
 
 What is timed: `snac_jax.rollout.random_rollout`, one jitted `lax.scan` of `--steps` steps over
-N worlds (uniform-random actions, gymnax auto-reset, episode statistics accumulated), split over
-the local devices with `shard_map` (`--devices`; on a CPU one device per core). Each point is
+N worlds (uniform-random actions, auto-reset, episode statistics accumulated), split over the
+local devices with `shard_map` (`--devices`; on a CPU one device per core). The worlds step with
+`env.step_batch` (equal to `vmap(env.step)` bit for bit; it resets only the worlds that ended);
+`--vmap-step` also measures `vmap(env.step)`. Each point is
 the median of `--repeats` timed calls after one warm-up call; compilation is timed on its own.
 The policy does not read observations, so XLA drops their computation, as in gymnax's own
 benchmarks; a learning agent pays for them on top.
@@ -74,6 +76,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per point, median reported (>= 3)")
     parser.add_argument("--devices", type=device_counts, default=None,
                         help="device counts to measure, e.g. 'all' (default: one per core), '1', '1,all'")
+    parser.add_argument("--vmap-step", action="store_true",
+                        help="also measure jax.vmap(env.step) (select-all auto-reset) besides env.step_batch")
     parser.add_argument("--numpy-steps", type=positive_int, default=None, help="steps of the NumPy baseline per task (default 20000)")
     parser.add_argument("--no-e2e", action="store_true", help="skip timing `snac rollout` end to end")
     parser.add_argument("--quick", action="store_true", help="every task at N=64, T=100: a smoke run (< 2 min)")
@@ -98,7 +102,7 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repeats: int) -> dict:
+def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repeats: int, step: str = "step_batch") -> dict:
     import jax
 
     from snac_jax import make
@@ -110,7 +114,7 @@ def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repe
     mesh = devices.env_mesh(usable)
     key = jax.random.key(0)
     start = time.perf_counter()
-    compiled = random_rollout.lower(key, env, params, num_envs, num_steps, mesh).compile()
+    compiled = random_rollout.lower(key, env, params, num_envs, num_steps, mesh, step == "step_batch").compile()
     compile_s = time.perf_counter() - start
     memory = compiled.memory_analysis()
     xla_mb = None
@@ -172,16 +176,16 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
         "NumPy: one world per Python loop (`snac_jax.numpy_engine`), one core.",
         "",
     ]
-    device_counts = sorted({r["devices_requested"] for r in rows})
+    columns = sorted({(r["devices_requested"], r["step"]) for r in rows}, key=lambda c: (c[1] != "step_batch", c[0]))
     largest = max(r["num_envs"] for r in rows)
     lines += [f"## Headline: N = {largest}", ""]
-    header = "| task | " + " | ".join(f"{d} device{'s' if d > 1 else ''}" for d in device_counts) + " | NumPy | JAX / NumPy |"
-    lines += [header, "|" + "---|" * (len(device_counts) + 3)]
+    header = "| task | " + " | ".join(f"{d} device{'s' if d > 1 else ''}, {step}" for d, step in columns) + " | NumPy | JAX / NumPy (best) |"
+    lines += [header, "|" + "---|" * (len(columns) + 3)]
     for task in dict.fromkeys(r["task"] for r in rows):
         cells = []
         best = None
-        for d in device_counts:
-            match = [r for r in rows if r["task"] == task and r["num_envs"] == largest and r["devices_requested"] == d]
+        for d, step in columns:
+            match = [r for r in rows if r["task"] == task and r["num_envs"] == largest and r["devices_requested"] == d and r["step"] == step]
             cells.append(f"{match[0]['steps_per_s'] / 1e6:.2f} M" if match else "")
             if match and (best is None or match[0]["steps_per_s"] > best["steps_per_s"]):
                 best = match[0]
@@ -191,12 +195,12 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
         fam_rows = [r for r in rows if family(r["task"]) == fam]
         if not fam_rows:
             continue
-        lines += ["", f"## {fam.upper()}", "", "| task | N | devices | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += ["", f"## {fam.upper()}", "", "| task | N | devices | step | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
+                  "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
         for r in fam_rows:
             xla = f"{r['xla_buffers_mb']:.0f}" if r["xla_buffers_mb"] is not None else ""
             lines.append(
-                f"| {r['task']} | {r['num_envs']} | {r['devices']} | {r['steps_per_s']:,.0f} | {r['compile_s']:.2f} | {xla} | "
+                f"| {r['task']} | {r['num_envs']} | {r['devices']} | {r['step']} | {r['steps_per_s']:,.0f} | {r['compile_s']:.2f} | {xla} | "
                 f"{r['peak_rss_mb']:.0f} | {r['numpy_steps_per_s']:,.0f} | {r['ratio']:.1f} |"
             )
     if e2e:
@@ -221,10 +225,13 @@ def plot(rows: list[dict], out: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for i, task in enumerate(dict.fromkeys(r["task"] for r in fam_rows)):
             colour = f"C{i}"
-            for d in sorted({r["devices_requested"] for r in fam_rows}):
-                points = sorted((r["num_envs"], r["steps_per_s"]) for r in fam_rows if r["task"] == task and r["devices_requested"] == d)
-                style = "-o" if d > 1 else "--s"
-                ax.plot(*zip(*points), style, color=colour, label=f"{task} ({d} dev)", markersize=4)
+            for d, step in sorted({(r["devices_requested"], r["step"]) for r in fam_rows}):
+                points = sorted(
+                    (r["num_envs"], r["steps_per_s"]) for r in fam_rows if r["task"] == task and r["devices_requested"] == d and r["step"] == step
+                )
+                style = ("-" if d > 1 else "--") + ("o" if step == "step_batch" else "x")
+                label = f"{task} ({d} dev{'' if step == 'step_batch' else ', vmap(step)'})"
+                ax.plot(*zip(*points), style, color=colour, label=label, markersize=4)
             numpy_rate = next(r["numpy_steps_per_s"] for r in fam_rows if r["task"] == task)
             ax.axhline(numpy_rate, color=colour, linestyle=":", linewidth=1)
         ax.set_xscale("log")
@@ -282,13 +289,14 @@ def main(argv=None) -> int:
         "load_start": load(),
     }
     print(f"# {len(tasks)} tasks, N in {args.num_envs}, T={args.steps}, devices {args.devices}, load {context['load_start']}", flush=True)
+    steps = ["step_batch", "vmap(step)"] if args.vmap_step else ["step_batch"]
     rows = []
     for task in tasks:
         numpy_rate = measure_numpy(task, args.numpy_steps)
         print(f"{task:20s} numpy {numpy_rate:12,.0f} steps/s", flush=True)
-        for requested in args.devices:
+        for requested, step in [(d, s) for d in args.devices for s in steps]:
             for num_envs in args.num_envs:
-                result = measure_jax(task, num_envs, args.steps, requested, args.repeats)
+                result = measure_jax(task, num_envs, args.steps, requested, args.repeats, step)
                 row = {
                     "task": task,
                     "num_envs": num_envs,
@@ -297,13 +305,14 @@ def main(argv=None) -> int:
                     "numpy_steps_per_s": numpy_rate,
                     "ratio": result["steps_per_s"] / numpy_rate,
                     "devices_requested": requested,
+                    "step": step,
                     **{k: v for k, v in result.items() if k not in ("steps_per_s", "compile_s")},
                     "steps": args.steps,
                     "load": load(),
                 }
                 rows.append(row)
                 print(
-                    f"{task:20s} N={num_envs:6d} dev={row['devices']} {row['steps_per_s']:14,.0f} steps/s  "
+                    f"{task:20s} N={num_envs:6d} dev={row['devices']} {step:10s} {row['steps_per_s']:14,.0f} steps/s  "
                     f"compile {row['compile_s']:5.2f}s  x{row['ratio']:7.1f} numpy  rss {row['peak_rss_mb']:.0f} MB  load {row['load']}",
                     flush=True,
                 )

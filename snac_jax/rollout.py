@@ -58,12 +58,15 @@ def uniform_actions(key: jax.Array, num_envs: int, num_actions: int) -> jax.Arra
     return (threefry.bits(key, num_envs) % jnp.uint32(num_actions)).astype(jnp.int32)
 
 
-def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int) -> EpisodeStats:
+def _rollout(
+    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, reset_ended_only: bool = True
+) -> EpisodeStats:
     """`num_envs` worlds on one device: per step, one hash per env for the env key, one for the
-    action and one inside `env.step`."""
+    action and one inside the step. `env.step_batch` (default) or `vmap(env.step)`: the same
+    worlds, the first resets only the worlds that ended."""
     key_reset, key_run = jax.random.split(key)
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
-    step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    step = env.step_batch if reset_ended_only else jax.vmap(env.step, in_axes=(0, 0, 0, None))
 
     def body(carry, step_key):
         states, stats = carry
@@ -76,23 +79,26 @@ def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num
     return stats
 
 
-@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh"))
+@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh", "reset_ended_only"))
 def random_rollout(
-    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None
+    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None, reset_ended_only: bool = True
 ) -> EpisodeStats:
     """`num_envs` worlds under a uniform-random policy for `num_steps` steps each.
+
+    The worlds are stepped with `env.step_batch`, or with `jax.vmap(env.step)` when
+    `reset_ended_only` is False (same worlds and statistics, slower auto-reset).
 
     With `mesh` (`snac_jax.devices.env_mesh()`), the worlds are split evenly over its devices,
     each device running its own scan from its own key; `num_envs` must be a multiple of the
     device count. The same key gives different (equally distributed) worlds for another mesh.
     """
     if mesh is None or mesh.devices.size == 1:
-        return _rollout(key, env, params, num_envs, num_steps)
+        return _rollout(key, env, params, num_envs, num_steps, reset_ended_only)
     devices.check_divisible(num_envs, mesh)
     per_device = num_envs // mesh.devices.size
 
     def shard(device_key, params):
-        stats = _rollout(device_key[0], env, params, per_device, num_steps)
+        stats = _rollout(device_key[0], env, params, per_device, num_steps, reset_ended_only)
         return jax.tree.map(lambda x: x[None], stats)
 
     run = jax.shard_map(shard, mesh=mesh, in_specs=(devices.ENVS, jax.sharding.PartitionSpec()), out_specs=devices.ENVS, check_vma=False)
