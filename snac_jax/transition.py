@@ -40,18 +40,28 @@ def is_stuck(config: EnvConfig, state: EnvState) -> jax.Array:
     return jnp.all(neighbours_block_moving(state.grid, padded))
 
 
-def _move(config: EnvConfig, state: EnvState, padded: jax.Array, direction: jax.Array, stride: jax.Array):
-    """New plan position after a move of `stride` cells in `direction`."""
-    if not config.obstacles:
-        upper = jnp.asarray(config.plan_shape) - 1
-        return jnp.clip(state.position + stride * direction, 0, upper)
-    # Obstacle rule: advance cell by cell while the next cell is empty (0). The padding is
-    # >= MAX_STRIDE wide, so every probed index stays inside the grid.
-    steps = jnp.arange(1, MAX_STRIDE + 1)
-    probed = padded[None, :] + steps[:, None] * direction[None, :]
-    free = state.grid[probed[:, 0], probed[:, 1]] == 0
-    advanced = jnp.sum(jnp.cumprod(free) * (steps <= stride))
-    return state.position + advanced * direction
+# The four directions of moves (actions 0..3) and of neighbour drops (SPEC §3-4), in that order.
+DIRECTIONS = np.asarray([(0, -1), (0, 1), (1, 0), (-1, 0)])
+
+
+def rays(grid: jax.Array, padded_position: jax.Array) -> jax.Array:
+    """(4, MAX_STRIDE): the cells 1..MAX_STRIDE away from the robot in each of `DIRECTIONS`,
+    nearest first; everything the obstacle rule reads, in one gather. The padding is
+    >= MAX_STRIDE wide, so every index stays inside the grid."""
+    distances = np.arange(1, MAX_STRIDE + 1)
+    offsets = DIRECTIONS[:, None, :] * distances[None, :, None]
+    return grid[padded_position[0] + offsets[..., 0], padded_position[1] + offsets[..., 1]]
+
+
+def _advance(along: jax.Array, stride: jax.Array) -> jax.Array:
+    """Obstacle rule: how many cells a move advances, cell by cell while the next cell is empty
+    (0), up to `stride`. `along` holds the cells in the move's direction, nearest first."""
+    advanced = jnp.zeros((), jnp.int32)
+    clear = jnp.asarray(True)
+    for distance in range(MAX_STRIDE):
+        clear = clear & (along[distance] == 0)
+        advanced = advanced + (clear & (stride > distance)).astype(jnp.int32)
+    return advanced
 
 
 def transition(
@@ -67,15 +77,26 @@ def transition(
     direction = table[action, 1:]
     offset = jnp.asarray(config.pad)
     padded = state.position + offset
-    stuck = is_stuck(config, state)  # judged before the action
+    target = padded + direction
 
-    # Moves (a drop leaves the position unchanged).
-    moved = _move(config, state, padded, direction, stride)
+    if config.obstacles:
+        # One gather of the four rays around the robot serves the stuck test (the nearest cell
+        # of each ray), the move (the ray in the action's direction) and a neighbour drop
+        # (that ray's nearest cell: the obstacle rule comes with the neighbour-drop actions).
+        around = rays(state.grid, padded)
+        stuck = jnp.all(around[:, 0] != 0)  # judged before the action
+        heading = jnp.all(direction[None, :] == jnp.asarray(DIRECTIONS), axis=1)
+        along = jnp.sum(jnp.where(heading[:, None], around, 0), axis=0, dtype=around.dtype)
+        moved = state.position + _advance(along, stride) * direction
+        target_value = along[0]
+    else:
+        stuck = jnp.asarray(False)
+        upper = jnp.asarray(config.plan_shape) - 1
+        moved = jnp.clip(state.position + stride * direction, 0, upper)
+        target_value = state.grid[target[0], target[1]]
     position = jnp.where(is_drop, state.position, moved)
 
     # Drops: onto the own cell, or onto a neighbour with the neighbour-drop action table.
-    target = padded + direction
-    target_value = state.grid[target[0], target[1]]
     counted = is_drop & (target_value != PADDING)  # a drop toward padding spends nothing
     on_landmark = (
         state.landmarks[target[0], target[1]] if state.landmarks is not None else jnp.asarray(False)
