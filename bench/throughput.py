@@ -82,6 +82,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--no-e2e", action="store_true", help="skip timing `snac rollout` end to end")
     parser.add_argument("--quick", action="store_true", help="every task at N=64, T=100: a smoke run (< 2 min)")
     parser.add_argument("--json", type=Path, default=None, help="where to write the rows (default OUT/throughput.json)")
+    parser.add_argument("--from-json", type=Path, default=None, metavar="PATH",
+                        help="measure nothing: rebuild the table and plots from the rows of an earlier run")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results", help="directory for the table and plots")
     args = parser.parse_args(argv)
     if args.repeats < 3:
@@ -102,6 +104,13 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def usable_devices(num_envs: int, num_devices: int) -> int:
+    """The most devices, up to the number asked for, that split the worlds evenly (N = 1: one)."""
+    import jax
+
+    return max(d for d in range(1, min(num_devices, len(jax.devices())) + 1) if num_envs % d == 0)
+
+
 def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repeats: int, step: str = "step_batch") -> dict:
     import jax
 
@@ -109,9 +118,7 @@ def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repe
     from snac_jax.rollout import random_rollout
 
     env, params = make(task)
-    # The most devices, up to the number asked for, that split the worlds evenly (N = 1: one).
-    usable = max(d for d in range(1, min(num_devices, len(jax.devices())) + 1) if num_envs % d == 0)
-    mesh = devices.env_mesh(usable)
+    mesh = devices.env_mesh(usable_devices(num_envs, num_devices))
     key = jax.random.key(0)
     start = time.perf_counter()
     compiled = random_rollout.lower(key, env, params, num_envs, num_steps, mesh, step == "step_batch").compile()
@@ -257,6 +264,7 @@ def write_atomic(path: Path, write) -> None:
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
@@ -267,8 +275,30 @@ def write_text(path: Path, text: str) -> None:
     write_atomic(path, lambda tmp: Path(tmp).write_text(text))
 
 
+def rebuild(args: argparse.Namespace) -> int:
+    """The table and plots of the rows in `args.from_json` (and its snac_rollout_e2e.json)."""
+    rows = json.loads(args.from_json.read_text())
+    e2e_path = args.from_json.parent / "snac_rollout_e2e.json"
+    e2e = json.loads(e2e_path.read_text()) if e2e_path.exists() else []
+    loads = [r["load"] for r in rows]
+    context = {
+        "machine": f"{platform.processor() or platform.machine()}",
+        "cores": devices.available_cores(),
+        "jax": rows[0].get("jax", "?"),
+        "steps": rows[0]["steps"],
+        "repeats": rows[0].get("repeats", "?"),
+        "load_start": loads[0],
+        "load_end": loads[-1],
+    }
+    write_text(args.out / "throughput.md", markdown(rows, e2e, context))
+    plot(rows, args.out)
+    return 0
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.from_json is not None:
+        return rebuild(args)
     devices.use_cpu_devices(max(args.devices))  # before anything starts JAX (gymnax does on import)
     import jax
 
@@ -291,12 +321,17 @@ def main(argv=None) -> int:
     print(f"# {len(tasks)} tasks, N in {args.num_envs}, T={args.steps}, devices {args.devices}, load {context['load_start']}", flush=True)
     steps = ["step_batch", "vmap(step)"] if args.vmap_step else ["step_batch"]
     rows = []
+    measured = {}
     for task in tasks:
         numpy_rate = measure_numpy(task, args.numpy_steps)
         print(f"{task:20s} numpy {numpy_rate:12,.0f} steps/s", flush=True)
         for requested, step in [(d, s) for d in args.devices for s in steps]:
             for num_envs in args.num_envs:
-                result = measure_jax(task, num_envs, args.steps, requested, args.repeats, step)
+                # A point that runs on as many devices as one already measured is that point
+                # (N = 1 runs on one device whatever was asked), not a second compilation.
+                same = (task, num_envs, usable_devices(num_envs, requested), step)
+                result = measured[same] if same in measured else measure_jax(task, num_envs, args.steps, requested, args.repeats, step)
+                measured[same] = result
                 row = {
                     "task": task,
                     "num_envs": num_envs,
@@ -308,6 +343,8 @@ def main(argv=None) -> int:
                     "step": step,
                     **{k: v for k, v in result.items() if k not in ("steps_per_s", "compile_s")},
                     "steps": args.steps,
+                    "repeats": args.repeats,
+                    "jax": jax.__version__,
                     "load": load(),
                 }
                 rows.append(row)
