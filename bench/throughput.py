@@ -41,19 +41,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from snac_jax import devices  # noqa: E402  (light: does not start JAX)
+from snac_jax.cli.arguments import positive_int  # noqa: E402  (light as well)
 
 DEFAULT_NUM_ENVS = (1, 64, 1024, 4096, 16384)
 FAMILIES = ("1d", "2d", "3d")
-
-
-def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an int >= 1, got {text!r}")
-    return value
 
 
 def device_counts(text: str) -> list[int]:

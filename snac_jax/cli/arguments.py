@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from snac_jax.tasks import TASKS
-
 
 def positive_int(text: str) -> int:
     try:
@@ -18,6 +16,8 @@ def positive_int(text: str) -> int:
 
 
 def task_id(text: str) -> str:
+    from snac_jax.tasks import TASKS  # here, not at import: the task registry imports JAX
+
     if text not in TASKS:
         raise argparse.ArgumentTypeError(f"unknown task {text!r}; allowed: {', '.join(TASKS)}")
     return text
