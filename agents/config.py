@@ -65,6 +65,7 @@ class PPOConfig(TrainConfig):
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     ent_coef: float = 0.01
+    ent_coef_end: float | None = None  # entropy coefficient at the last update (linear); None: constant
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     hidden_size: int = 64  # width of the encoder and the heads
@@ -96,6 +97,8 @@ class PPOConfig(TrainConfig):
             value = getattr(self, name)
             if not _is_real(value) or value < 0:
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        if self.ent_coef_end is not None and (not _is_real(self.ent_coef_end) or self.ent_coef_end < 0):
+            raise ValueError(f"ent_coef_end must be a number >= 0 or None (constant ent_coef), got {self.ent_coef_end!r}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)
             if not _is_real(value) or not 0 <= value <= 1:

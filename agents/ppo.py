@@ -113,6 +113,10 @@ class PPO:
             else config.learning_rate
         )
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
+        # Entropy bonus per update: annealing it lets the greedy policy the protocol scores
+        # settle on the actions sampling preferred, instead of keeping them near-uniform.
+        end = config.ent_coef if config.ent_coef_end is None else config.ent_coef_end
+        self.ent_coef = optax.linear_schedule(config.ent_coef, end, max(1, config.num_updates - 1))
 
     @property
     def steps_per_update(self) -> int:
@@ -185,7 +189,7 @@ class PPO:
             batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
         )
 
-    def _loss(self, params, carry0, batch: Transition, advantages, targets):
+    def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
         cfg = self.config
         _, logits, value = self.network.apply(params, carry0, batch.obs, batch.reset)
         pi = distrax.Categorical(logits=logits)
@@ -198,7 +202,7 @@ class PPO:
             ratio * advantages, jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps) * advantages
         ).mean()
         entropy = pi.entropy().mean()
-        total = actor_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy
+        total = actor_loss + cfg.vf_coef * value_loss - ent_coef * entropy
         approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
         return total, {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss,
                        "entropy": entropy, "approx_kl": approx_kl}
@@ -211,6 +215,7 @@ class PPO:
         advantages, targets = self._advantages(state.params, batch, state.worlds)
         batch = batch._replace(final_obs=None, carry_after=None)
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        ent_coef = self.ent_coef(state.update)
         m = cfg.num_minibatches
 
         def epoch(carry, _):
@@ -232,7 +237,7 @@ class PPO:
 
             def minibatch_step(carry, minibatch):
                 params, opt_state = carry
-                (_, info), grads = grad_fn(params, *minibatch)
+                (_, info), grads = grad_fn(params, *minibatch, ent_coef)
                 updates, opt_state = self.optimizer.update(grads, opt_state, params)
                 return (optax.apply_updates(params, updates), opt_state), info
 

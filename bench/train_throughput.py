@@ -21,6 +21,8 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=10, help="timed updates per configuration")
     parser.add_argument("--num-envs", type=int, default=None, help="default: the tuned value per task")
     parser.add_argument("--devices", type=int, default=None, help="default: one CPU device per core")
+    for option in ("hidden-size", "rnn-size", "update-epochs", "num-minibatches", "rollout-steps"):
+        parser.add_argument("--" + option, type=int, default=None, help="default: the tuned value per task")
     args = parser.parse_args()
 
     from snac_jax import devices
@@ -34,11 +36,13 @@ def main() -> None:
 
     variants = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
     print(f"jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s)")
-    print("| task | network | worlds | params | compile s | env-steps/s (with learning) | load avg |")
-    print("|---|---|---:|---:|---:|---:|---|")
+    print("| task | network | worlds | steps x epochs x minibatches | params | compile s | env-steps/s (with learning) | load avg |")
+    print("|---|---|---:|---|---:|---:|---:|---|")
     for task in args.tasks:
         for recurrent in variants:
-            config = make_config("ppo", task, recurrent=recurrent, num_envs=args.num_envs)
+            config = make_config("ppo", task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
+                                 rnn_size=args.rnn_size, update_epochs=args.update_epochs,
+                                 num_minibatches=args.num_minibatches, rollout_steps=args.rollout_steps)
             algorithm = build_algorithm(config)
             mesh = devices.env_mesh(args.devices, config.num_envs)
             state = initial_state(algorithm, mesh)
@@ -54,7 +58,7 @@ def main() -> None:
             rate = args.updates * algorithm.steps_per_update / elapsed
             params = param_count(jax.tree.map(lambda x: x[0], state.params))
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
-            print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {params:,} | {compile_s:.1f} | "
+            print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x {config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | "
                   f"{rate:,.0f} | {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
 
 

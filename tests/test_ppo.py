@@ -123,11 +123,21 @@ def test_policy_runs_in_the_evaluator_with_recurrent_state():
         (dict(total_steps=0), "total_steps must be an int >= 1"),
         (dict(recurrent="yes"), "recurrent must be True or False"),
         (dict(rollout_length=3), "unknown ppo option"),
+        (dict(ent_coef_end=-0.1), "ent_coef_end must be a number >= 0 or None"),
     ],
 )
 def test_config_errors_are_clear(options, message):
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
         make_config("ppo", "1d-static-sin", **options)
+
+
+def test_entropy_coefficient_anneals_linearly_to_its_end_value():
+    config = make_config("ppo", "1d-static-sin", **{**TINY, "total_steps": 5 * 32 * 16}, ent_coef=0.02, ent_coef_end=0.0)
+    ppo = PPO(config)
+    coefs = [float(ppo.ent_coef(u)) for u in range(config.num_updates)]
+    np.testing.assert_allclose(coefs, [0.02, 0.015, 0.01, 0.005, 0.0], atol=1e-7)
+    constant = PPO(make_config("ppo", "1d-static-sin", **TINY, ent_coef=0.02))
+    assert float(constant.ent_coef(0)) == float(constant.ent_coef(constant.num_updates - 1)) == pytest.approx(0.02)
 
 
 def test_config_rejects_unknown_task_and_algorithm():

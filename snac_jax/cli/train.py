@@ -30,6 +30,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
+    return value
+
+
 def _non_negative_int(text: str) -> int:
     try:
         value = int(text)
@@ -67,7 +77,14 @@ def add_parser(subparsers) -> None:
     ppo.add_argument("--rollout-steps", type=positive_int, default=None)
     ppo.add_argument("--update-epochs", type=positive_int, default=None)
     ppo.add_argument("--num-minibatches", type=positive_int, default=None)
-    ppo.set_defaults(func=run, algorithm_options=("recurrent", "learning_rate", "rollout_steps", "update_epochs", "num_minibatches"))
+    ppo.add_argument("--hidden-size", type=positive_int, default=None, help="encoder and head width")
+    ppo.add_argument("--rnn-size", type=positive_int, default=None, help="GRU units (with --recurrent)")
+    ppo.add_argument("--gamma", type=_positive_float, default=None)
+    ppo.add_argument("--ent-coef", type=_non_negative_float, default=None, help="entropy coefficient (at the first update)")
+    ppo.add_argument("--ent-coef-end", type=_non_negative_float, default=None,
+                     help="entropy coefficient at the last update, annealed linearly (default: constant)")
+    ppo.set_defaults(func=run, algorithm_options=("recurrent", "learning_rate", "rollout_steps", "update_epochs", "num_minibatches",
+                                                  "hidden_size", "rnn_size", "gamma", "ent_coef", "ent_coef_end"))
 
     value_based = ("learning_rate", "rollout_steps", "gradient_steps", "batch_size", "buffer_size", "max_buffer_mb",
                    "n_step", "target_update_interval", "learning_starts", "hidden_size", "frame_stack", "max_steps")
