@@ -88,7 +88,7 @@ def test_train_is_vmappable_over_seeds_and_seeds_differ():
 def test_ppo_learns_on_a_short_episode_task():
     """A learning-threshold check: with 40-step episodes on the 1D step design, a few hundred
     thousand steps must clearly beat the untrained policy's IoU."""
-    config = make_config("ppo", "1d-static-step", total_steps=300_000, num_envs=64, rollout_steps=40,
+    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=None, total_steps=300_000, num_envs=64, rollout_steps=40,
                          hidden_size=32, learning_rate=3e-3, max_steps=40)
     ppo = PPO(config)
 

@@ -80,7 +80,7 @@ TWO_DEVICES = textwrap.dedent(
     import numpy as np
 
     devices = int(sys.argv[1])
-    config = make_config("ppo", "1d-static-step", total_steps=200_000, num_envs=64, rollout_steps=40,
+    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=None, total_steps=200_000, num_envs=64, rollout_steps=40,
                          hidden_size=32, learning_rate=3e-3, max_steps=40, chunks=2)
     mesh = env_mesh(devices)
     algorithm, state = train(config, sys.argv[2], progress=False, mesh=mesh)
