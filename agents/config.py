@@ -28,6 +28,15 @@ class TrainConfig:
     seed: int = 0  # base seed; run i uses fold_in(key(seed), i)
     chunks: int = 20  # the driver saves, logs and checkpoints this many times
     max_steps: int = 0  # episode step limit for training; 0 keeps the task's (SPEC §1)
+    rollout_steps: int = 64  # steps per world between learning phases (each algorithm sets its own)
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_steps
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.total_steps // self.steps_per_update)
 
     def validate(self) -> None:
         if self.task not in TASKS:
@@ -71,14 +80,6 @@ class PPOConfig(TrainConfig):
     hidden_size: int = 64  # width of the encoder and the heads
     rnn_size: int = 64  # GRU units (recurrent only)
     reward_scale: float = 0.1  # rewards are multiplied by this for learning (not for reporting)
-
-    @property
-    def steps_per_update(self) -> int:
-        return self.num_envs * self.rollout_steps
-
-    @property
-    def num_updates(self) -> int:
-        return max(1, self.total_steps // self.steps_per_update)
 
     def validate(self) -> None:
         super().validate()
@@ -147,14 +148,6 @@ class DQNConfig(TrainConfig):
     def sample_length(self) -> int:
         """Steps per sampled sequence: context, learning steps, and n more to bootstrap from."""
         return self.context + self.sequence_length + self.n_step
-
-    @property
-    def steps_per_update(self) -> int:
-        return self.num_envs * self.rollout_steps
-
-    @property
-    def num_updates(self) -> int:
-        return max(1, self.total_steps // self.steps_per_update)
 
     def validate(self) -> None:
         super().validate()
