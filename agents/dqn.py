@@ -45,7 +45,7 @@ import optax
 from flax import struct
 
 from agents.config import DQNConfig
-from agents.networks import ObsLayout, ObservationEncoder, ScannedLSTM, mlp_head
+from agents.networks import ObsLayout, ObservationEncoder, ScannedRNN, mlp_head
 from snac_jax.config import EnvConfig
 from snac_jax.policy import Policy
 from snac_jax.transition import drop_reward
@@ -81,7 +81,7 @@ class QNetwork(nn.Module):
         else:
             x = x[..., 0, :]
         if self.lstm_size:
-            carry, x = ScannedLSTM(self.lstm_size)(carry, (x, resets))
+            carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
         if self.dueling:
             value = mlp_head(x, self.hidden_size, 1, 1.0)
             advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)
@@ -233,7 +233,6 @@ class DQN:
         config.validate()
         self.config = config
         self.env, self.env_params = config.make_env()
-        env_config = self.env.config
         self.layout = ObsLayout.from_env(self.env, self.env_params)
         self.network = QNetwork(
             layout=self.layout,
@@ -273,14 +272,6 @@ class DQN:
                 f"replay memory {sum(self.memory_bytes.values()) / 2**20:.1f} MiB per seed exceeds max_buffer_mb "
                 f"({config.max_buffer_mb}); lower buffer_size or raise max_buffer_mb"
             )
-
-    @property
-    def steps_per_update(self) -> int:
-        return self.config.steps_per_update
-
-    @property
-    def num_updates(self) -> int:
-        return self.config.num_updates
 
     def _example_step(self) -> Step:
         obs_size = self.layout.obs_size
@@ -528,6 +519,6 @@ def make_train(config: DQNConfig):
     agent = DQN(config)
 
     def train(key: jax.Array) -> tuple[RunnerState, dict[str, jax.Array]]:
-        return agent.train_chunk(agent.init(key), agent.env_params, agent.num_updates)
+        return agent.train_chunk(agent.init(key), agent.env_params, agent.config.num_updates)
 
     return train

@@ -122,7 +122,7 @@ def train(
         history = _read_metrics(metrics_path, last)
         checkpoint.atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
 
-    sizes = chunk_sizes(algorithm.num_updates, config.chunks)
+    sizes = chunk_sizes(config.num_updates, config.chunks)
     compiled: dict[int, Callable] = {}
 
     def run_chunk(n: int) -> Callable:
@@ -135,7 +135,7 @@ def train(
             bar.write(f"compiled a chunk of {n} updates in {time.perf_counter() - start:.1f} s")
         return compiled[n]
 
-    steps_per_update = algorithm.steps_per_update
+    steps_per_update = config.steps_per_update
     total_steps = sum(sizes) * steps_per_update
     done_steps = sum(sizes[:done_chunks]) * steps_per_update
     wall = history[-1]["wall_s"] if history else 0.0

@@ -1,5 +1,5 @@
 """Network pieces shared by every learner: observation layout and scaling, the design encoder,
-a GRU scanned over time with resets at episode boundaries, and the actor-critic heads.
+a GRU or LSTM scanned over time with resets at episode boundaries, and the actor-critic heads.
 
 Every network takes time-major inputs `(T, B, obs_size)` with `resets (T, B)` (True where the
 observation starts a new episode) and a carry `(B, carry_size)`, and returns the new carry.
@@ -129,13 +129,17 @@ class ObservationEncoder(nn.Module):
         return x
 
 
-class ScannedGRU(nn.Module):
-    """A GRU over time (`nn.scan`) whose carry is zeroed where `resets` marks a new episode.
+class ScannedRNN(nn.Module):
+    """A GRU or LSTM over time (`nn.scan`) whose carry is zeroed where `resets` marks a new
+    episode. Call with `carry (B, carry_size)` and `(inputs (T, B, F), resets (T, B))`.
 
-    Call with `carry (B, H)` and `(inputs (T, B, F), resets (T, B))`.
+    The carry is always one array, so recurrent learners keep it in a runner state and a replay
+    sample the same way: the GRU's hidden state, or the LSTM's cell and hidden states side by
+    side (`carry_size` = 2 * features).
     """
 
     features: int
+    cell: str = "gru"  # "gru" or "lstm"
 
     @functools.partial(
         nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False}
@@ -144,36 +148,11 @@ class ScannedGRU(nn.Module):
     def __call__(self, carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         inputs, resets = step
         carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
-        cell = nn.GRUCell(
-            self.features,
-            kernel_init=scaled_init(1.0),
-            recurrent_kernel_init=scaled_init(1.0),
-        )
-        carry, out = cell(carry, inputs)
-        return carry, out
-
-
-class ScannedLSTM(nn.Module):
-    """An LSTM over time (`nn.scan`), reset like `ScannedGRU`. The carry is one array
-    `(B, 2 * features)`, the cell state and the hidden state side by side, so recurrent learners
-    can keep it in a runner state and a replay sample the same way as a GRU's."""
-
-    features: int
-
-    @functools.partial(
-        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False}
-    )
-    @nn.compact
-    def __call__(self, carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
-        inputs, resets = step
-        carry = jnp.where(resets[:, None], jnp.zeros_like(carry), carry)
-        cell = nn.OptimizedLSTMCell(
-            self.features,
-            kernel_init=scaled_init(1.0),
-            recurrent_kernel_init=scaled_init(1.0),
-        )
-        (c, h), out = cell(jnp.split(carry, 2, axis=-1), inputs)
-        return jnp.concatenate([c, h], axis=-1), out
+        inits = dict(kernel_init=scaled_init(1.0), recurrent_kernel_init=scaled_init(1.0))
+        if self.cell == "lstm":
+            (c, h), out = nn.OptimizedLSTMCell(self.features, **inits)(jnp.split(carry, 2, axis=-1), inputs)
+            return jnp.concatenate([c, h], axis=-1), out
+        return nn.GRUCell(self.features, **inits)(carry, inputs)
 
 
 def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float) -> jax.Array:
@@ -203,7 +182,7 @@ class ActorCritic(nn.Module):
         """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`."""
         x = ObservationEncoder(self.layout, self.hidden_size)(obs)
         if self.rnn_size:
-            carry, x = ScannedGRU(self.rnn_size)(carry, (x, resets))
+            carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
         logits = mlp_head(x, self.hidden_size, self.num_actions, 0.01)
         value = mlp_head(x, self.hidden_size, 1, 1.0)[..., 0]
         return carry, logits, value
@@ -213,4 +192,4 @@ def param_count(params) -> int:
     return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
 
 
-__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedGRU", "ScannedLSTM", "ActorCritic", "scaled_init")
+__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedRNN", "ActorCritic", "scaled_init")

@@ -118,14 +118,6 @@ class PPO:
         end = config.ent_coef if config.ent_coef_end is None else config.ent_coef_end
         self.ent_coef = optax.linear_schedule(config.ent_coef, end, max(1, config.num_updates - 1))
 
-    @property
-    def steps_per_update(self) -> int:
-        return self.config.steps_per_update
-
-    @property
-    def num_updates(self) -> int:
-        return self.config.num_updates
-
     # --- pure functions -------------------------------------------------------------------------
 
     def init(self, key: jax.Array) -> RunnerState:
@@ -277,6 +269,6 @@ def make_train(config: PPOConfig):
     ppo = PPO(config)
 
     def train(key: jax.Array) -> tuple[RunnerState, dict[str, jax.Array]]:
-        return ppo.train_chunk(ppo.init(key), ppo.env_params, ppo.num_updates)
+        return ppo.train_chunk(ppo.init(key), ppo.env_params, ppo.config.num_updates)
 
     return train

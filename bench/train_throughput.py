@@ -55,7 +55,7 @@ def main() -> None:
             start = time.perf_counter()
             jax.block_until_ready(compiled(state, algorithm.env_params))
             elapsed = time.perf_counter() - start
-            rate = args.updates * algorithm.steps_per_update / elapsed
+            rate = args.updates * algorithm.config.steps_per_update / elapsed
             params = param_count(jax.tree.map(lambda x: x[0], state.params))
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
             print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x {config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | "

@@ -137,7 +137,7 @@ def test_entropy_coefficient_anneals_linearly_to_its_end_value():
     coefs = [float(ppo.ent_coef(u)) for u in range(config.num_updates)]
     np.testing.assert_allclose(coefs, [0.02, 0.015, 0.01, 0.005, 0.0], atol=1e-7)
     constant = PPO(make_config("ppo", "1d-static-sin", **TINY, ent_coef=0.02))
-    assert float(constant.ent_coef(0)) == float(constant.ent_coef(constant.num_updates - 1)) == pytest.approx(0.02)
+    assert float(constant.ent_coef(0)) == float(constant.ent_coef(constant.config.num_updates - 1)) == pytest.approx(0.02)
 
 
 def test_config_rejects_unknown_task_and_algorithm():

@@ -14,40 +14,15 @@ import sys
 import time
 from pathlib import Path
 
-from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
+from snac_jax.cli.arguments import add_devices_argument, bounded_number, positive_int, task_id
 from snac_jax.tasks import TASKS
 
 DEFAULT_TASK = "1d-static-sin"
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = 0.0
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an int >= 0, got {text!r}")
-    return value
+_positive_float = bounded_number(float, 0, strict=True)
+_non_negative_float = bounded_number(float, 0)
+_non_negative_int = bounded_number(int, 0)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
