@@ -102,8 +102,16 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
         return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
     target = jax.tree.map(abstract, to_storable(like))
-    restored = manager.restore(chunk, args=ocp.args.StandardRestore(target))
-    manager.close()
+    try:
+        restored = manager.restore(chunk, args=ocp.args.StandardRestore(target))
+    except (ValueError, KeyError, TypeError) as error:
+        # orbax reports a mismatch as a long tree diff; say first what it means.
+        raise ValueError(
+            f"{directory}: checkpoint {chunk} does not match the network and state its config.json "
+            f"describes (edited config.json, or saved by an older snac-jax?): {str(error)[:500]}"
+        ) from error
+    finally:
+        manager.close()
     return chunk, from_storable(restored, like)
 
 
