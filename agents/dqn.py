@@ -124,9 +124,11 @@ class Worlds:
     """Everything with one entry per parallel world (the axis the driver shards over devices)."""
 
     env_state: Any
-    obs: jax.Array  # (B, O) float32, the observation the next action sees
-    history: jax.Array | None  # (B, k-1, O) the frames before `obs`, oldest first, zeros before the
-    # episode; None without a frame stack (orbax cannot save empty arrays)
+    obs: jax.Array  # (B, O) float32, the environment's observation the next action sees
+    previous_obs: jax.Array  # (B, O) the observation before it (ignored where `reset`)
+    last_action: jax.Array  # (B,) int32, the action that led to `obs` (ignored where `reset`)
+    history: jax.Array | None  # (B, k-1, O') the network inputs before this one, oldest first, zeros
+    # before the episode; None without a frame stack (orbax cannot save empty arrays)
     reset: jax.Array  # (B,) bool, `obs` starts an episode
     carry: jax.Array  # (B, C) LSTM state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,)
@@ -233,7 +235,7 @@ class DQN:
         config.validate()
         self.config = config
         self.env, self.env_params = config.make_env()
-        self.layout = ObsLayout.from_env(self.env, self.env_params)
+        self.layout = ObsLayout.from_env(self.env, self.env_params, previous_step=config.previous_step)
         self.network = QNetwork(
             layout=self.layout,
             num_actions=self.env.num_actions,
@@ -274,7 +276,7 @@ class DQN:
             )
 
     def _example_step(self) -> Step:
-        obs_size = self.layout.obs_size
+        obs_size = self.layout.env_obs_size
         step = Step(
             obs=jnp.zeros((obs_size,), jnp.int16),
             reset=jnp.zeros((), bool),
@@ -312,9 +314,10 @@ class DQN:
         cfg, n = self.config, self.config.num_envs
         key, key_params, key_reset = jax.random.split(key, 3)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
-        history = jnp.zeros((n, cfg.frame_stack - 1, obs.shape[-1]), jnp.float32) if cfg.frame_stack > 1 else None
+        history = jnp.zeros((n, cfg.frame_stack - 1, self.layout.obs_size), jnp.float32) if cfg.frame_stack > 1 else None
         carry = self.network.initial_carry(n)
-        frames = _frames(history, obs)
+        no_action, resets = jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool)
+        frames = _frames(history, self.layout.with_previous_step(obs, obs, no_action, resets))
         params = self.network.init(key_params, carry[:1], frames[None, :1], jnp.ones((1, 1), bool))
         final_grids = None
         if cfg.hindsight:
@@ -323,7 +326,7 @@ class DQN:
                 episode=jnp.full((n, self.ring_size), -1, jnp.int32),
             )
         worlds = Worlds(
-            env_state, obs, history, jnp.ones((n,), bool), carry, jnp.zeros((n,), jnp.float32),
+            env_state, obs, obs, no_action, history, resets, carry, jnp.zeros((n,), jnp.float32),
             jnp.zeros((n,), jnp.int32), final_grids,
         )
         zero = jnp.zeros((), jnp.int32)
@@ -337,7 +340,8 @@ class DQN:
         episode's final grid is at hand for hindsight."""
         n, env, cfg = self.config.num_envs, self.env, self.config
         key_explore, key_random, key_step = jax.random.split(key, 3)
-        frames = _frames(worlds.history, worlds.obs)
+        net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
+        frames = _frames(worlds.history, net_obs)
         carry, q = self.network.apply(params, worlds.carry, frames[None], worlds.reset[None])
         explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
         action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, env.num_actions), jnp.argmax(q[0], -1))
@@ -372,7 +376,7 @@ class DQN:
 
         history = worlds.history
         if cfg.frame_stack > 1:
-            history = jnp.concatenate([history[:, 1:], worlds.obs[:, None]], axis=1)
+            history = jnp.concatenate([history[:, 1:], net_obs[:, None]], axis=1)
             history = jnp.where(done[:, None, None], 0.0, history)
         episode_return = worlds.episode_return + reward
         stats = {
@@ -381,7 +385,7 @@ class DQN:
             "return_sum": jnp.where(done, episode_return, 0.0).sum(),
         }
         worlds = Worlds(
-            env_state, obs, history, done, carry, jnp.where(done, 0.0, episode_return),
+            env_state, obs, worlds.obs, action.astype(jnp.int32), history, done, carry, jnp.where(done, 0.0, episode_return),
             worlds.episode + done.astype(jnp.int32), final_grids,
         )
         return worlds, step, stats
@@ -427,6 +431,16 @@ class DQN:
                 obs = obs.at[..., start : start + self.layout.design_size].set(design)
         return batch, obs, rewards, mask
 
+    def network_inputs(self, obs: jax.Array, actions: jax.Array, resets: jax.Array) -> jax.Array:
+        """What the network reads along a replayed window `(L, S, O)`: each observation with the
+        previous step (window and action) taken from the row before it. The window's first step
+        has no row before it and reads as an episode start (it lies in the burn-in or the frame
+        stack's context whenever those are configured)."""
+        previous_obs = jnp.concatenate([obs[:1], obs[:-1]], axis=0)
+        last_action = jnp.concatenate([actions[:1], actions[:-1]], axis=0).astype(jnp.int32)
+        first = jnp.zeros_like(resets).at[0].set(True)
+        return self.layout.with_previous_step(obs, previous_obs, last_action, resets | first)
+
     def sequence_q(self, params, frames: jax.Array, resets: jax.Array) -> jax.Array:
         """Q-values `(T - burn_in, S, A)` of a sampled window from a zero LSTM state; the burn-in
         only warms the state (its carry is cut from the gradient)."""
@@ -440,7 +454,7 @@ class DQN:
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
         cfg = self.config
         k, length, c = cfg.frame_stack, cfg.sequence_length, cfg.context
-        frames = stack_frames(obs, batch.reset, k)
+        frames = stack_frames(self.network_inputs(obs, batch.action, batch.reset), batch.reset, k)
         resets = batch.reset[k - 1 :]
         q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
@@ -499,17 +513,21 @@ class DQN:
 
     def policy(self, params) -> Policy:
         """The greedy policy for one environment (vmap it for a batch)."""
-        network, k, obs_size = self.network, self.config.frame_stack, self.layout.obs_size
+        network, k, layout = self.network, self.config.frame_stack, self.layout
 
         def init(key, design):
-            history = jnp.zeros((k - 1, obs_size), jnp.float32) if k > 1 else None
-            return {"carry": network.initial_carry(1)[0], "history": history, "reset": jnp.ones((), bool)}
+            history = jnp.zeros((k - 1, layout.obs_size), jnp.float32) if k > 1 else None
+            return {"carry": network.initial_carry(1)[0], "history": history, "reset": jnp.ones((), bool),
+                    "previous_obs": jnp.zeros((layout.env_obs_size,), jnp.float32), "last_action": jnp.zeros((), jnp.int32)}
 
         def act(params, policy_state, obs, key):
-            frames = _frames(policy_state["history"], obs)
+            net_obs = layout.with_previous_step(obs, policy_state["previous_obs"], policy_state["last_action"], policy_state["reset"])
+            frames = _frames(policy_state["history"], net_obs)
             carry, q = network.apply(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
             history = frames[1:] if k > 1 else None
-            return jnp.argmax(q[0, 0]), {"carry": carry[0], "history": history, "reset": jnp.zeros((), bool)}
+            action = jnp.argmax(q[0, 0]).astype(jnp.int32)
+            return action, {"carry": carry[0], "history": history, "reset": jnp.zeros((), bool),
+                            "previous_obs": obs.astype(jnp.float32), "last_action": action}
 
         return Policy(init, act, params, self.config.algorithm)
 

@@ -42,9 +42,13 @@ class ObsLayout:
     height_scale: float  # the tallest design cell (1 in 2D)
     brick_scale: float  # the largest brick budget
     step_scale: float  # the step limit
+    # > 0: the learner appends the previous step to the environment's observation: the window
+    # before the last action, and that action one-hot in `num_actions + 1` entries
+    # (`with_previous_step`).
+    num_actions: int = 0
 
     @classmethod
-    def from_env(cls, env: SNACEnv, params: EnvParams) -> "ObsLayout":
+    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> "ObsLayout":
         config = env.config
         return cls(
             window_shape=config.window_shape,
@@ -54,6 +58,7 @@ class ObsLayout:
             height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
             brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
             step_scale=float(int(params.max_steps_in_episode)),
+            num_actions=env.num_actions if previous_step else 0,
         )
 
     @property
@@ -65,17 +70,66 @@ class ObsLayout:
         return self.plan_shape[0] * self.plan_shape[1]
 
     @property
-    def obs_size(self) -> int:
+    def env_obs_size(self) -> int:
+        """The environment's observation (SPEC §6)."""
         gps_size = (1 if self.plan_shape[0] == 1 else 2) if self.gps else 0
         return self.window_size + 2 + (self.design_size if self.dynamic else 0) + gps_size
 
+    @property
+    def previous_step_size(self) -> int:
+        return self.window_size + self.num_actions + 1 if self.num_actions else 0
+
+    @property
+    def obs_size(self) -> int:
+        """What the network reads: the environment's observation (+ the previous step)."""
+        return self.env_obs_size + self.previous_step_size
+
+    def with_previous_step(
+        self, obs: jax.Array, previous_obs: jax.Array, last_action: jax.Array, reset: jax.Array
+    ) -> jax.Array:
+        """Append to `obs (..., env_obs_size)` the window of `previous_obs` and the one-hot of
+        `last_action`; where `reset` (an episode's first observation) there is no previous step:
+        the window repeats the current one and the action is "none" (index `num_actions`).
+
+        Why: the robot localises by how its window shifted after a move (SPEC §11). A recurrent
+        policy that samples its actions cannot tell from its own state which one was drawn, and
+        comparing two windows is far easier side by side than through a recurrent state: with
+        both, PPO on 1d-static-sin went from greedy IoU 0.816 to 0.855 (last action alone).
+        """
+        if not self.num_actions:
+            return obs
+        w = self.window_size
+        previous_window = jnp.where(reset[..., None], obs[..., :w], previous_obs[..., :w])
+        last_action = jnp.where(reset, self.num_actions, last_action)
+        action = jax.nn.one_hot(last_action, self.num_actions + 1, dtype=obs.dtype)
+        return jnp.concatenate([obs, previous_window.astype(obs.dtype), action], axis=-1)
+
+    @property
+    def num_height_classes(self) -> int:
+        """Landmark (-2), padding (-1), heights 0..tallest, and one class for anything taller."""
+        return int(self.height_scale) + 4
+
+    def height_classes(self, cells: jax.Array) -> jax.Array:
+        """One-hot `(..., n, num_height_classes)` of raw cell values.
+
+        Why: the policy must stop dropping exactly when a column reaches its design height
+        (+10 at equality, -1 above). A scaled height puts 19 and 20 bricks 0.03 apart; a one-hot
+        makes "is it exactly 20?" one weight, and a trained PPO policy without it missed its
+        columns by ~4 bricks even at the start cell, whose position it knows.
+        """
+        index = jnp.clip(cells.astype(jnp.int32) + 2, 0, self.num_height_classes - 1)
+        return jax.nn.one_hot(index, self.num_height_classes, dtype=jnp.float32)
+
     def split(self, obs: jax.Array) -> dict[str, jax.Array]:
-        """Scaled parts of `obs (..., obs_size)`: window (..., wr, wc), counters (..., 2),
-        and with the switches design (..., *plan_shape) and position (..., 1 or 2)."""
+        """Scaled parts of `obs (..., obs_size)`: window (..., wr, wc), its cells one-hot
+        (..., wr * wc, classes), counters (..., 2),
+        with the switches design (..., *plan_shape) and position (..., 1 or 2), and with
+        `num_actions` the previous window (scaled and one-hot) and the last action."""
         lead = obs.shape[:-1]
         w = self.window_size
         parts = {
             "window": obs[..., :w].reshape(lead + self.window_shape) / self.height_scale,
+            "window_classes": self.height_classes(obs[..., :w]),
             "counters": obs[..., w : w + 2] / jnp.array([self.brick_scale, self.step_scale]),
         }
         offset = w + 2
@@ -83,7 +137,13 @@ class ObsLayout:
             parts["design"] = obs[..., offset : offset + self.design_size].reshape(lead + self.plan_shape) / self.height_scale
             offset += self.design_size
         if self.gps:
-            parts["position"] = obs[..., offset:] / max(self.plan_shape)
+            gps_size = self.env_obs_size - offset
+            parts["position"] = obs[..., offset : offset + gps_size] / max(self.plan_shape)
+        if self.num_actions:
+            previous_window = obs[..., self.env_obs_size : self.env_obs_size + w]
+            parts["previous_window"] = previous_window.reshape(lead + self.window_shape) / self.height_scale
+            parts["previous_window_classes"] = self.height_classes(previous_window)
+            parts["last_action"] = obs[..., self.env_obs_size + w :]
         return parts
 
 
@@ -109,7 +169,7 @@ class DesignEncoder(nn.Module):
 
 
 class ObservationEncoder(nn.Module):
-    """Scaled window + counters (+ design features, + position) -> an MLP embedding."""
+    """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding."""
 
     layout: ObsLayout
     hidden_size: int
@@ -118,9 +178,19 @@ class ObservationEncoder(nn.Module):
     def __call__(self, obs: jax.Array) -> jax.Array:
         parts = self.layout.split(obs)
         lead = obs.shape[:-1]
-        features = [parts["window"].reshape(lead + (-1,)), parts["counters"]]
+        features = [
+            parts["window"].reshape(lead + (-1,)),
+            parts["window_classes"].reshape(lead + (-1,)),
+            parts["counters"],
+        ]
         if "position" in parts:
             features.append(parts["position"])
+        if self.layout.num_actions:
+            features += [
+                parts["previous_window"].reshape(lead + (-1,)),
+                parts["previous_window_classes"].reshape(lead + (-1,)),
+                parts["last_action"],
+            ]
         if "design" in parts:
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)

@@ -35,7 +35,9 @@ class Worlds:
     """Everything with one entry per parallel world (the axis the driver shards over devices)."""
 
     env_state: Any
-    obs: jax.Array  # (B, O), the observation the next action sees
+    obs: jax.Array  # (B, O), the environment's observation the next action sees
+    previous_obs: jax.Array  # (B, O), the observation before it (ignored where `reset`)
+    last_action: jax.Array  # (B,) int32, the action that led to `obs` (ignored where `reset`)
     reset: jax.Array  # (B,) bool, True where `obs` starts an episode (resets the GRU carry)
     carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,) return of the running episode so far
@@ -51,7 +53,7 @@ class RunnerState:
 
 
 class Transition(NamedTuple):
-    obs: jax.Array
+    obs: jax.Array  # what the network read: the observation (+ the previous step, see ObsLayout)
     reset: jax.Array
     action: jax.Array
     log_prob: jax.Array
@@ -99,7 +101,7 @@ class PPO:
         config.validate()
         self.config = config
         self.env, self.env_params = config.make_env()
-        self.layout = ObsLayout.from_env(self.env, self.env_params)
+        self.layout = ObsLayout.from_env(self.env, self.env_params, previous_step=config.previous_step)
         self.network = ActorCritic(
             layout=self.layout,
             num_actions=self.env.num_actions,
@@ -114,7 +116,11 @@ class PPO:
         )
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
         # Entropy bonus per update: annealing it lets the greedy policy the protocol scores
-        # settle on the actions sampling preferred, instead of keeping them near-uniform.
+        # settle on the actions sampling preferred. Why it may end below 0: a partially
+        # observed task rewards a stochastic policy (a coin flip breaks a left-right loop), so
+        # PPO keeps a few states near 50/50 even at zero bonus, and its argmax then loops. A
+        # small entropy *penalty* at the end makes the sampled rollouts the greedy ones, so PPO
+        # sees and repairs those loops.
         end = config.ent_coef if config.ent_coef_end is None else config.ent_coef_end
         self.ent_coef = optax.linear_schedule(config.ent_coef, end, max(1, config.num_updates - 1))
 
@@ -125,9 +131,13 @@ class PPO:
         key, key_params, key_reset = jax.random.split(key, 3)
         carry = self.network.initial_carry(n)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
-        params = self.network.init(key_params, carry[:1], obs[None, :1], jnp.ones((1, 1), bool))
-        worlds = Worlds(env_state, obs, jnp.ones((n,), bool), carry, jnp.zeros((n,), jnp.float32))
+        worlds = Worlds(env_state, obs, obs, jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool), carry, jnp.zeros((n,), jnp.float32))
+        net_obs = self._network_obs(worlds)
+        params = self.network.init(key_params, carry[:1], net_obs[None, :1], jnp.ones((1, 1), bool))
         return RunnerState(params, self.optimizer.init(params), worlds, key, jnp.zeros((), jnp.int32))
+
+    def _network_obs(self, worlds: Worlds) -> jax.Array:
+        return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
 
     def _rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         n = self.config.num_envs
@@ -136,7 +146,8 @@ class PPO:
         def env_step(carry, _):
             worlds, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
-            new_carry, logits, value = self.network.apply(state.params, worlds.carry, worlds.obs[None], worlds.reset[None])
+            net_obs = self._network_obs(worlds)
+            new_carry, logits, value = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
             obs, env_state, reward, terminated, truncated, info = step(
@@ -144,16 +155,17 @@ class PPO:
             )
             done = terminated | truncated
             episode_return = worlds.episode_return + reward
+            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
             transition = Transition(
-                worlds.obs, worlds.reset, action, pi.log_prob(action), value[0], reward,
-                terminated, done, info["final_observation"], new_carry,
+                net_obs, worlds.reset, action, pi.log_prob(action), value[0], reward,
+                                terminated, done, final_obs, new_carry,
             )
             stats = {
                 "episodes": done.sum(),
                 "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
                 "return_sum": jnp.where(done, episode_return, 0.0).sum(),
             }
-            worlds = Worlds(env_state, obs, done, new_carry, jnp.where(done, 0.0, episode_return))
+            worlds = Worlds(env_state, obs, worlds.obs, action.astype(jnp.int32), done, new_carry, jnp.where(done, 0.0, episode_return))
             return (worlds, key), (transition, stats)
 
         (worlds, key), (batch, stats) = jax.lax.scan(
@@ -165,7 +177,7 @@ class PPO:
     def _advantages(self, params, batch: Transition, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
         cfg = self.config
         t, n = batch.reward.shape
-        _, _, last_value = self.network.apply(params, worlds.carry, worlds.obs[None], worlds.reset[None])
+        _, _, last_value = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
         # Score every step's final observation in one batched call (T folded into the batch).
         _, _, final_value = self.network.apply(
             params,
@@ -251,14 +263,21 @@ class PPO:
 
     def policy(self, params) -> Policy:
         """The trained network as a greedy `Policy` for one environment (vmap it for a batch)."""
-        network = self.network
+        network, layout = self.network, self.layout
 
         def init(key, design):
-            return {"carry": network.initial_carry(1)[0], "reset": jnp.ones((), bool)}
+            return {
+                "carry": network.initial_carry(1)[0],
+                "reset": jnp.ones((), bool),
+                "previous_obs": jnp.zeros((layout.env_obs_size,), jnp.float32),
+                "last_action": jnp.zeros((), jnp.int32),
+            }
 
         def act(params, policy_state, obs, key):
-            carry, logits, _ = network.apply(params, policy_state["carry"][None], obs[None, None], policy_state["reset"][None, None])
-            return jnp.argmax(logits[0, 0]), {"carry": carry[0], "reset": jnp.zeros((), bool)}
+            net_obs = layout.with_previous_step(obs, policy_state["previous_obs"], policy_state["last_action"], policy_state["reset"])
+            carry, logits, _ = network.apply(params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None])
+            action = jnp.argmax(logits[0, 0]).astype(jnp.int32)
+            return action, {"carry": carry[0], "reset": jnp.zeros((), bool), "previous_obs": obs.astype(jnp.float32), "last_action": action}
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
         return Policy(init, act, params, f"ppo-{kind}")

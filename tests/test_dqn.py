@@ -102,8 +102,11 @@ def test_burn_in_steps_carry_no_gradient(her_1d):
     batch, obs, rewards, mask = agent.sample(state, jax.random.key(3))
     burn_in = agent.burn_in
     loss = lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0]
-    grad = jax.grad(loss)(obs)
-    assert np.abs(np.asarray(grad[:burn_in])).max() == 0.0
+    grad = np.asarray(jax.grad(loss)(obs))
+    assert np.abs(grad[: burn_in - 1]).max() == 0.0
+    # The last burn-in observation reaches the first trained step only as its previous window.
+    assert agent.layout.num_actions, "the fixture's agent should read the previous step"
+    assert np.abs(grad[burn_in - 1, ..., agent.layout.window_size :]).max() == 0.0
     assert np.abs(np.asarray(grad[burn_in:])).max() > 0.0
     # The burn-in does warm the state: changing its observations changes the loss (in windows
     # without a reset right after the burn-in).
@@ -280,3 +283,21 @@ def test_replay_memory_is_bounded_by_the_config():
     # int16 observations (7) + reset + action + float32 reward + done per step
     per_step = 7 * 2 + 1 + 1 + 4 + 1
     assert 100_000 * per_step <= agent.memory_bytes["buffer"] <= 100_000 * per_step + 16
+
+
+def test_replayed_windows_read_the_previous_step_from_the_row_before():
+    agent = _agent("drqn")
+    layout = agent.layout
+    o = layout.env_obs_size
+    obs = jnp.arange(4 * o, dtype=jnp.float32).reshape(4, 1, o)  # (L, S, O), distinct rows
+    actions = jnp.array([2, 0, 1, 2], jnp.int8)[:, None]
+    resets = jnp.array([False, False, True, False])[:, None]
+    inputs = np.asarray(agent.network_inputs(obs, actions, resets))[:, 0]
+    w, a = layout.window_size, layout.num_actions
+    # Row 1 reads row 0's window and action; row 3 reads row 2's.
+    np.testing.assert_array_equal(inputs[1, o : o + w], obs[0, 0, :w])
+    assert inputs[1, o + w :].argmax() == 2 and inputs[3, o + w :].argmax() == 1
+    # Row 0 (nothing before it in the window) and row 2 (an episode start) read "no previous step".
+    for t in (0, 2):
+        np.testing.assert_array_equal(inputs[t, o : o + w], obs[t, 0, :w])
+        assert inputs[t, o + w :].argmax() == a

@@ -41,6 +41,30 @@ def test_gae_matches_hand_computation_with_truncation_and_termination():
     np.testing.assert_allclose(targets[:, 0], np.array([a0, a1, a2, a3]) + np.array([0.5, 1.0, 2.0, 4.0]), rtol=1e-6)
 
 
+def test_network_inputs_one_hot_heights_and_the_previous_step():
+    env, params = make("1d-static-sin")  # window of 5, 3 actions, tallest design cell 30
+    layout = ObsLayout.from_env(env, params, previous_step=True)
+    obs = jnp.array([-1.0, 0.0, 20.0, 31.0, 57.0, 7.0, 9.0])  # window, N_b, N_s
+    previous = jnp.array([0.0, 20.0, 31.0, 57.0, 3.0, 6.0, 8.0])
+    classes = np.asarray(layout.height_classes(obs[:5]))
+    # classes: landmark -2, padding -1, heights 0..30, one "taller" class shared by 31 and 57
+    assert classes.shape == (5, 34) and (classes.sum(-1) == 1).all()
+    assert [int(c.argmax()) for c in classes] == [1, 2, 22, 33, 33]
+
+    later = layout.with_previous_step(obs, previous, jnp.int32(1), jnp.bool_(False))
+    assert later.shape == (layout.obs_size,) == (7 + 5 + 4,)
+    np.testing.assert_array_equal(later[7:12], previous[:5])
+    np.testing.assert_array_equal(later[12:], [0, 1, 0, 0])
+    # An episode's first observation has no previous step: its own window and action "none".
+    first = layout.with_previous_step(obs, previous, jnp.int32(1), jnp.bool_(True))
+    np.testing.assert_array_equal(first[7:12], obs[:5])
+    np.testing.assert_array_equal(first[12:], [0, 0, 0, 1])
+    parts = layout.split(later)
+    np.testing.assert_allclose(parts["previous_window"][0], previous[:5] / 30.0)
+    np.testing.assert_array_equal(parts["last_action"], [0, 1, 0, 0])
+    assert ObsLayout.from_env(env, params).obs_size == 7
+
+
 def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     env, params = make("1d-static-step")
     net = ActorCritic(ObsLayout.from_env(env, params), env.num_actions, hidden_size=16, rnn_size=8)
@@ -85,10 +109,15 @@ def test_train_is_vmappable_over_seeds_and_seeds_differ():
     assert not np.allclose(first[0], first[1])
 
 
+# 40 steps place at most 40 of the step design's 600 bricks: IoU <= 40 / 600 = 0.067. Dropping
+# every step on the start column (the untrained greedy policy may) scores 25 / 615 = 0.041.
+SHORT_EPISODE_BAR = 0.85 * 40 / 600
+
+
 def test_ppo_learns_on_a_short_episode_task():
     """A learning-threshold check: with 40-step episodes on the 1D step design, a few hundred
-    thousand steps must clearly beat the untrained policy's IoU."""
-    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=None, total_steps=300_000, num_envs=64, rollout_steps=40,
+    thousand steps must come close to the best IoU 40 steps allow (SHORT_EPISODE_BAR)."""
+    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=0.01, total_steps=300_000, num_envs=64, rollout_steps=40,
                          hidden_size=32, learning_rate=3e-3, max_steps=40)
     ppo = PPO(config)
 
@@ -101,7 +130,7 @@ def test_ppo_learns_on_a_short_episode_task():
     before = greedy_iou(state.params)
     state, metrics = jax.jit(lambda s: ppo.train_chunk(s, ppo.env_params, config.num_updates))(state)
     after = greedy_iou(state.params)
-    assert after > before + 0.05, (before, after)
+    assert after > SHORT_EPISODE_BAR and after > before, (before, after)
 
 
 def test_policy_runs_in_the_evaluator_with_recurrent_state():
@@ -123,7 +152,7 @@ def test_policy_runs_in_the_evaluator_with_recurrent_state():
         (dict(total_steps=0), "total_steps must be an int >= 1"),
         (dict(recurrent="yes"), "recurrent must be True or False"),
         (dict(rollout_length=3), "unknown ppo option"),
-        (dict(ent_coef_end=-0.1), "ent_coef_end must be a number >= 0 or None"),
+        (dict(ent_coef_end=-1.5), "ent_coef_end must be a number >= -1 or None"),
     ],
 )
 def test_config_errors_are_clear(options, message):
@@ -136,7 +165,7 @@ def test_entropy_coefficient_anneals_linearly_to_its_end_value():
     ppo = PPO(config)
     coefs = [float(ppo.ent_coef(u)) for u in range(config.num_updates)]
     np.testing.assert_allclose(coefs, [0.02, 0.015, 0.01, 0.005, 0.0], atol=1e-7)
-    constant = PPO(make_config("ppo", "1d-static-sin", **TINY, ent_coef=0.02))
+    constant = PPO(make_config("ppo", "1d-static-sin", **TINY, ent_coef=0.02, ent_coef_end=0.02))
     assert float(constant.ent_coef(0)) == float(constant.ent_coef(constant.config.num_updates - 1)) == pytest.approx(0.02)
 
 
