@@ -69,6 +69,16 @@ def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
         train(config, tmp_path / "empty", resume=True, progress=False)
 
 
+def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path):
+    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
+    train(config, tmp_path, progress=False)
+    saved = json.loads((tmp_path / checkpoint.CONFIG_FILE).read_text())
+    saved["hidden_size"] = 2 * saved["hidden_size"]
+    (tmp_path / checkpoint.CONFIG_FILE).write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match="does not match the network"):
+        checkpoint.load_trained(tmp_path)
+
+
 TWO_DEVICES = textwrap.dedent(
     """
     import json, sys
@@ -80,7 +90,7 @@ TWO_DEVICES = textwrap.dedent(
     import numpy as np
 
     devices = int(sys.argv[1])
-    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=None, total_steps=200_000, num_envs=64, rollout_steps=40,
+    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=0.01, total_steps=200_000, num_envs=64, rollout_steps=40,
                          hidden_size=32, learning_rate=3e-3, max_steps=40, chunks=2)
     mesh = env_mesh(devices)
     algorithm, state = train(config, sys.argv[2], progress=False, mesh=mesh)
@@ -115,7 +125,8 @@ def test_two_device_run_matches_one_device_shapes_and_learns(tmp_path):
     assert two["devices"] == 2 and one["devices"] == 1
     assert two["shapes"] == one["shapes"]
     assert two["world_specs"] == [[None, "envs"]]
-    assert two["iou_after"] > two["iou_before"] + 0.05, two
+    # The bar of tests/test_ppo.py's short-episode run: 85% of the best IoU 40 steps allow.
+    assert two["iou_after"] > 0.85 * 40 / 600 and two["iou_after"] > two["iou_before"], two
 
 
 def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):

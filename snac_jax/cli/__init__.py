@@ -31,6 +31,10 @@ def use_cpu_devices_from(argv: list[str]) -> None:
         count = int(known.devices) if known.devices is not None else None
     except ValueError:
         count = None  # the subcommand's own parser rejects it
+    if known.devices is None and argv[:1] == ["train"]:
+        # Training: one CPU device unless told otherwise. The learner's minibatch shuffles become
+        # cross-device copies, and 1 device measured faster than 2 (bench/results/ppo.md).
+        count = 1
     try:
         devices.use_cpu_devices(count if count is None or count >= 1 else None)
     except RuntimeError:

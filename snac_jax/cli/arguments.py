@@ -34,11 +34,11 @@ def task_id(text: str) -> str:
     return text
 
 
-def add_devices_argument(parser: argparse.ArgumentParser) -> None:
+def add_devices_argument(parser: argparse.ArgumentParser, cpu_default: str = "one per core") -> None:
     """`--devices N`: how many devices the worlds are split over (`snac_jax.devices`)."""
     parser.add_argument(
         "--devices",
         type=positive_int,
         default=None,
-        help="devices to split the worlds over (default: all; on a CPU one per core); 1 turns sharding off",
+        help=f"devices to split the worlds over (default: all; on a CPU {cpu_default}); 1 turns sharding off",
     )

@@ -38,7 +38,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help="episodes per design for the final evaluation (default: the paper's protocol)")
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_devices_argument(parser)
+    parser.add_argument("--previous-step", action=argparse.BooleanOptionalAction, default=None,
+                        help="the network also reads the previous window and its last action (default: yes)")
+    add_devices_argument(parser, cpu_default="1, measured faster for training")
 
 
 def add_parser(subparsers) -> None:
@@ -47,7 +49,8 @@ def add_parser(subparsers) -> None:
 
     ppo = algorithms.add_parser("ppo", help="PPO (feed-forward, or recurrent with --recurrent)")
     _common(ppo)
-    ppo.add_argument("--recurrent", action="store_true", default=None, help="GRU actor-critic")
+    ppo.add_argument("--recurrent", action=argparse.BooleanOptionalAction, default=None,
+                     help="GRU actor-critic (default: tuned per task; recurrent on 1D)")
     ppo.add_argument("--learning-rate", type=_positive_float, default=None)
     ppo.add_argument("--rollout-steps", type=positive_int, default=None)
     ppo.add_argument("--update-epochs", type=positive_int, default=None)
@@ -56,10 +59,13 @@ def add_parser(subparsers) -> None:
     ppo.add_argument("--rnn-size", type=positive_int, default=None, help="GRU units (with --recurrent)")
     ppo.add_argument("--gamma", type=_positive_float, default=None)
     ppo.add_argument("--ent-coef", type=_non_negative_float, default=None, help="entropy coefficient (at the first update)")
-    ppo.add_argument("--ent-coef-end", type=_non_negative_float, default=None,
-                     help="entropy coefficient at the last update, annealed linearly (default: constant)")
+    ppo.add_argument("--ent-coef-end", type=bounded_number(float, -1), default=None,
+                     help="entropy coefficient at the last update, annealed linearly (default: tuned; "
+                          "below 0 it pushes the policy toward its greedy version)")
+    ppo.add_argument("--reward-scale", type=_positive_float, default=None, help="rewards are multiplied by this for learning")
     ppo.set_defaults(func=run, algorithm_options=("recurrent", "learning_rate", "rollout_steps", "update_epochs", "num_minibatches",
-                                                  "hidden_size", "rnn_size", "gamma", "ent_coef", "ent_coef_end"))
+                                                  "hidden_size", "rnn_size", "gamma", "ent_coef", "ent_coef_end",
+                                                  "reward_scale"))
 
     value_based = ("learning_rate", "rollout_steps", "gradient_steps", "batch_size", "buffer_size", "max_buffer_mb",
                    "n_step", "target_update_interval", "learning_starts", "hidden_size", "frame_stack", "max_steps")
@@ -83,7 +89,7 @@ def add_parser(subparsers) -> None:
 def build_config(args: argparse.Namespace):
     from agents.config import make_config
 
-    options = {name: getattr(args, name) for name in ("total_steps", "num_envs", "seeds", "seed", "chunks")}
+    options = {name: getattr(args, name) for name in ("total_steps", "num_envs", "seeds", "seed", "chunks", "previous_step")}
     options.update({name: getattr(args, name) for name in args.algorithm_options})
     return make_config(args.algorithm, args.task or DEFAULT_TASK, **options)
 
