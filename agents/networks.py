@@ -93,8 +93,9 @@ class ObsLayout:
 
         Why: the robot localises by how its window shifted after a move (SPEC §11). A recurrent
         policy that samples its actions cannot tell from its own state which one was drawn, and
-        comparing two windows is far easier side by side than through a recurrent state: with
-        both, PPO on 1d-static-sin went from greedy IoU 0.816 to 0.855 (last action alone).
+        comparing two windows is far easier side by side than through a recurrent state. PPO on
+        1d-static-sin, same settings and budget: greedy IoU 0.816 without, 0.855 with the last
+        action, 0.907 with both (bench/results/ppo.md).
         """
         if not self.num_actions:
             return obs
