@@ -1,29 +1,35 @@
 """Training throughput: env steps per second of PPO *including learning* (rollout, GAE and the
-update epochs), per task and network, on every local device (one CPU device per core).
+update epochs), per task and network, with the tuned defaults of `agents.config.TUNED`.
 
-    python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense --recurrent both
+    python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
 
-Each configuration is compiled first (compile time reported apart), then timed over `--updates`
-updates; the load average is printed beside each timing because a shared CPU skews them.
+Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
+over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
+same rollouts without learning. The load average is printed because a shared CPU skews both.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import time
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=["1d-static-sin", "2d-static-dense"])
-    parser.add_argument("--recurrent", choices=("yes", "no", "both"), default="both")
-    parser.add_argument("--updates", type=int, default=10, help="timed updates per configuration")
+    parser.add_argument("--recurrent", choices=("yes", "no", "both"), default="yes")
+    parser.add_argument("--updates", type=int, default=10, help="timed updates per repeat")
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats per configuration (the median is reported)")
     parser.add_argument("--num-envs", type=int, default=None, help="default: the tuned value per task")
-    parser.add_argument("--devices", type=int, default=None, help="default: one CPU device per core")
+    parser.add_argument("--devices", type=int, default=1, help="CPU devices (default 1, as `snac train` uses)")
     for option in ("hidden-size", "rnn-size", "update-epochs", "num-minibatches", "rollout-steps"):
         parser.add_argument("--" + option, type=int, default=None, help="default: the tuned value per task")
     args = parser.parse_args()
+    for name in ("updates", "repeats", "devices"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
 
     from snac_jax import devices
 
@@ -35,9 +41,11 @@ def main() -> None:
     from agents.networks import param_count
 
     variants = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
-    print(f"jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s)")
-    print("| task | network | worlds | steps x epochs x minibatches | params | compile s | env-steps/s (with learning) | load avg |")
-    print("|---|---|---:|---|---:|---:|---:|---|")
+    print(f"jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
+          f"median of {args.repeats} repeats of {args.updates} updates")
+    print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
+          "env-steps/s with learning | acting only (same run) | learning's share of the time | load avg |")
+    print("|---|---|---:|---|---:|---:|---:|---:|---:|---|")
     for task in args.tasks:
         for recurrent in variants:
             config = make_config("ppo", task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
@@ -46,20 +54,31 @@ def main() -> None:
             algorithm = build_algorithm(config)
             mesh = devices.env_mesh(args.devices, config.num_envs)
             state = initial_state(algorithm, mesh)
-            fn = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates), in_axes=(0, None)))
+            steps = args.updates * config.steps_per_update
+
+            def acting_only(s, p):  # the baseline: the same rollouts, no learning
+                return jax.lax.scan(lambda s, _: (algorithm._rollout(s, p)[0], None), s, None, length=args.updates)[0]
+
+            train = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates)[0], in_axes=(0, None)))
+            act = jax.jit(jax.vmap(acting_only, in_axes=(0, None)))
             start = time.perf_counter()
-            compiled = fn.lower(state, algorithm.env_params).compile()
+            train = train.lower(state, algorithm.env_params).compile()
             compile_s = time.perf_counter() - start
-            state, _ = jax.block_until_ready(compiled(state, algorithm.env_params))  # warm-up
+            act = act.lower(state, algorithm.env_params).compile()
+            state = jax.block_until_ready(train(state, algorithm.env_params))  # warm-up
             load = os.getloadavg()
-            start = time.perf_counter()
-            jax.block_until_ready(compiled(state, algorithm.env_params))
-            elapsed = time.perf_counter() - start
-            rate = args.updates * algorithm.config.steps_per_update / elapsed
+            rates = {"train": [], "act": []}
+            for _ in range(args.repeats):
+                for name, fn in (("train", train), ("act", act)):
+                    start = time.perf_counter()
+                    jax.block_until_ready(fn(state, algorithm.env_params))
+                    rates[name].append(steps / (time.perf_counter() - start))
+            rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
             params = param_count(jax.tree.map(lambda x: x[0], state.params))
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
-            print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x {config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | "
-                  f"{rate:,.0f} | {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+            print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x "
+                  f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
+                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

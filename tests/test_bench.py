@@ -48,3 +48,19 @@ def test_quick_run_covers_every_task(tmp_path):
     assert sorted(r["task"] for r in rows) == sorted(TASKS)
     e2e = json.loads((tmp_path / "snac_rollout_e2e.json").read_text())
     assert e2e and all(item["wall_s"] > 0 and "env-steps/s" in item["output"] for item in e2e)
+
+
+def test_training_throughput_bench_prints_median_and_baseline():
+    script = ROOT / "bench" / "train_throughput.py"
+    done = subprocess.run([sys.executable, str(script), "--tasks", "1d-static-step", "--updates", "1", "--repeats", "2",
+                           "--num-envs", "8", "--rollout-steps", "4", "--hidden-size", "8", "--rnn-size", "8"],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "median of 2 repeats of 1 updates" in done.stdout
+    row = next(line for line in done.stdout.splitlines() if line.startswith("| 1d-static-step"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "GRU 8, hidden 8" and cells[2] == "8"
+    with_learning, acting_only = (float(c.replace(",", "")) for c in cells[6:8])
+    assert 0 < with_learning < acting_only  # learning costs time on top of the same rollouts
+    bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
