@@ -301,3 +301,29 @@ def test_replayed_windows_read_the_previous_step_from_the_row_before():
     for t in (0, 2):
         np.testing.assert_array_equal(inputs[t, o : o + w], obs[t, 0, :w])
         assert inputs[t, o + w :].argmax() == a
+
+
+@pytest.mark.parametrize("algorithm", ["dqn", "drqn", "drqn-her"])
+def test_cli_trains_each_value_based_agent_and_evaluates_it(algorithm, tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", algorithm, "--task", "1d-static-step", "--total-steps", "512",
+           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
+           "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out), "--eval-episodes", "2",
+           "--no-progress"]
+    if algorithm != "dqn":
+        cmd += ["--lstm-size", "8", "--burn-in", "2", "--sequence-length", "4"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "replay on device" in result.stderr
+    for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
+        assert (out / name).is_file(), name
+    assert json.loads((out / "config.json").read_text())["algorithm"] == algorithm
+    assert "| 1d-static-step |" in result.stdout
+    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
+                           capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
