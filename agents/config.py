@@ -235,6 +235,8 @@ _PPO_1D = dict(recurrent=True, total_steps=30_000_000, num_envs=1024, rollout_st
                update_epochs=2, num_minibatches=2, ent_coef=0.03, ent_coef_end=-0.01, reward_scale=0.01)
 for _task in ("1d-static-sin", "1d-static-gauss", "1d-static-step", "1d-dynamic"):
     TUNED[("ppo", _task)] = dict(_PPO_1D)
+# 1d-static-sin, seed 0: greedy 0.907 with the bonus annealed 0.01 -> 0, 0.834 with 0.03 -> -0.01.
+TUNED[("ppo", "1d-static-sin")].update(ent_coef=0.01, ent_coef_end=0.0)
 for _task in ("2d-static-dense", "2d-static-sparse", "2d-dynamic-dense", "2d-dynamic-sparse"):
     TUNED[("ppo", _task)] = dict(_PPO_1D, total_steps=40_000_000, num_envs=512, hidden_size=128, rnn_size=128,
                                  ent_coef=0.01, ent_coef_end=0.0)
