@@ -145,9 +145,10 @@ class DQNConfig(TrainConfig):
 
     @property
     def context(self) -> int:
-        """Steps before the first learning step of a sampled sequence (frame stack context; the
-        recurrent configs add their burn-in)."""
-        return self.frame_stack - 1
+        """Steps before the first learning step of a sampled sequence: one whose observation is
+        read only as the next step's previous step (with `previous_step`), the frame stack's
+        context, and in the recurrent configs the burn-in."""
+        return int(self.previous_step) + self.frame_stack - 1
 
     @property
     def sample_length(self) -> int:
@@ -194,7 +195,7 @@ class DRQNConfig(DQNConfig):
 
     @property
     def context(self) -> int:
-        return self.frame_stack - 1 + self.burn_in
+        return int(self.previous_step) + self.frame_stack - 1 + self.burn_in
 
     def validate(self) -> None:
         _positive_int("lstm_size", self.lstm_size)

@@ -433,9 +433,8 @@ class DQN:
 
     def network_inputs(self, obs: jax.Array, actions: jax.Array, resets: jax.Array) -> jax.Array:
         """What the network reads along a replayed window `(L, S, O)`: each observation with the
-        previous step (window and action) taken from the row before it. The window's first step
-        has no row before it and reads as an episode start (it lies in the burn-in or the frame
-        stack's context whenever those are configured)."""
+        previous step (window and action) taken from the row before it. The first row has none
+        and reads as an episode start; `loss` drops it (`DQNConfig.context` counts it)."""
         previous_obs = jnp.concatenate([obs[:1], obs[:-1]], axis=0)
         last_action = jnp.concatenate([actions[:1], actions[:-1]], axis=0).astype(jnp.int32)
         first = jnp.zeros_like(resets).at[0].set(True)
@@ -454,8 +453,10 @@ class DQN:
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
         cfg = self.config
         k, length, c = cfg.frame_stack, cfg.sequence_length, cfg.context
-        frames = stack_frames(self.network_inputs(obs, batch.action, batch.reset), batch.reset, k)
-        resets = batch.reset[k - 1 :]
+        p = int(cfg.previous_step)  # the first row only lends its window and action to the second
+        inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
+        frames = stack_frames(inputs, batch.reset[p:], k)
+        resets = batch.reset[p + k - 1 :]
         q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target

@@ -158,7 +158,7 @@ class PPO:
             final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
             transition = Transition(
                 net_obs, worlds.reset, action, pi.log_prob(action), value[0], reward,
-                                terminated, done, final_obs, new_carry,
+                terminated, done, final_obs, new_carry,
             )
             stats = {
                 "episodes": done.sum(),

@@ -100,17 +100,17 @@ def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart():
 def test_burn_in_steps_carry_no_gradient(her_1d):
     agent, state = her_1d
     batch, obs, rewards, mask = agent.sample(state, jax.random.key(3))
-    burn_in = agent.burn_in
+    burn_in, first_trained = agent.burn_in, agent.config.context  # rows: previous step, burn-in, trained
+    assert agent.layout.num_actions and first_trained == 1 + burn_in, "the fixture should read the previous step"
     loss = lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0]
     grad = np.asarray(jax.grad(loss)(obs))
-    assert np.abs(grad[: burn_in - 1]).max() == 0.0
+    assert np.abs(grad[: first_trained - 1]).max() == 0.0
     # The last burn-in observation reaches the first trained step only as its previous window.
-    assert agent.layout.num_actions, "the fixture's agent should read the previous step"
-    assert np.abs(grad[burn_in - 1, ..., agent.layout.window_size :]).max() == 0.0
-    assert np.abs(np.asarray(grad[burn_in:])).max() > 0.0
+    assert np.abs(grad[first_trained - 1, ..., agent.layout.window_size :]).max() == 0.0
+    assert np.abs(np.asarray(grad[first_trained:])).max() > 0.0
     # The burn-in does warm the state: changing its observations changes the loss (in windows
     # without a reset right after the burn-in).
-    bumped = obs.at[:burn_in].add(3.0)
+    bumped = obs.at[1:first_trained - 1].add(3.0)
     assert float(loss(bumped)) != float(loss(obs))
 
 
