@@ -518,17 +518,14 @@ class DQN:
 
         def init(key, design):
             history = jnp.zeros((k - 1, layout.obs_size), jnp.float32) if k > 1 else None
-            return {"carry": network.initial_carry(1)[0], "history": history, "reset": jnp.ones((), bool),
-                    "previous_obs": jnp.zeros((layout.env_obs_size,), jnp.float32), "last_action": jnp.zeros((), jnp.int32)}
+            return {"carry": network.initial_carry(1)[0], "history": history, **layout.episode_start_memory()}
 
         def act(params, policy_state, obs, key):
-            net_obs = layout.with_previous_step(obs, policy_state["previous_obs"], policy_state["last_action"], policy_state["reset"])
-            frames = _frames(policy_state["history"], net_obs)
+            frames = _frames(policy_state["history"], layout.acting_inputs(obs, policy_state))
             carry, q = network.apply(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
             history = frames[1:] if k > 1 else None
             action = jnp.argmax(q[0, 0]).astype(jnp.int32)
-            return action, {"carry": carry[0], "history": history, "reset": jnp.zeros((), bool),
-                            "previous_obs": obs.astype(jnp.float32), "last_action": action}
+            return action, {"carry": carry[0], "history": history, **layout.remember(obs, action)}
 
         return Policy(init, act, params, self.config.algorithm)
 

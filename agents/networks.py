@@ -105,6 +105,23 @@ class ObsLayout:
         action = jax.nn.one_hot(last_action, self.num_actions + 1, dtype=obs.dtype)
         return jnp.concatenate([obs, previous_window.astype(obs.dtype), action], axis=-1)
 
+    def episode_start_memory(self) -> dict[str, jax.Array]:
+        """What a `Policy` keeps between steps to build its inputs, at an episode's start (the
+        `reset` flag also zeroes a recurrent carry)."""
+        return {
+            "reset": jnp.ones((), bool),
+            "previous_obs": jnp.zeros((self.env_obs_size,), jnp.float32),
+            "last_action": jnp.zeros((), jnp.int32),
+        }
+
+    def acting_inputs(self, obs: jax.Array, memory: dict[str, jax.Array]) -> jax.Array:
+        """The network's input for one observation, given the memory of the steps before it."""
+        return self.with_previous_step(obs, memory["previous_obs"], memory["last_action"], memory["reset"])
+
+    def remember(self, obs: jax.Array, action: jax.Array) -> dict[str, jax.Array]:
+        """The memory after acting `action` on `obs`: what the next step reads as its previous one."""
+        return {"reset": jnp.zeros((), bool), "previous_obs": obs.astype(jnp.float32), "last_action": action.astype(jnp.int32)}
+
     @property
     def num_height_classes(self) -> int:
         """Landmark (-2), padding (-1), heights 0..tallest, and one class for anything taller."""

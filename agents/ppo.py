@@ -4,6 +4,8 @@ the clipped-objective updates are one pure function of a key, vmappable over see
 `PPO(config)` holds the static pieces (environment, network, optimiser); its methods are pure:
 
 - `init(key) -> RunnerState` for one seed;
+- `rollout(state, env_params) -> (state, batch, stats)`: `rollout_steps` sampled steps in every
+  world, no learning (the training benchmark times it as its baseline);
 - `update(state, env_params) -> (state, metrics)`: one rollout of `rollout_steps` in every
   world, then `update_epochs` passes over `num_minibatches` minibatches of worlds;
 - `train_chunk(state, env_params, n)`: `n` updates in a `lax.scan` (the driver runs chunks);
@@ -139,7 +141,7 @@ class PPO:
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
 
-    def _rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
+    def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         n = self.config.num_envs
         step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
 
@@ -214,7 +216,7 @@ class PPO:
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
         carry0 = state.worlds.carry
-        state, batch, stats = self._rollout(state, env_params)
+        state, batch, stats = self.rollout(state, env_params)
         # The final observations are only needed for the bootstrap values.
         advantages, targets = self._advantages(state.params, batch, state.worlds)
         batch = batch._replace(final_obs=None, carry_after=None)
@@ -266,18 +268,13 @@ class PPO:
         network, layout = self.network, self.layout
 
         def init(key, design):
-            return {
-                "carry": network.initial_carry(1)[0],
-                "reset": jnp.ones((), bool),
-                "previous_obs": jnp.zeros((layout.env_obs_size,), jnp.float32),
-                "last_action": jnp.zeros((), jnp.int32),
-            }
+            return {"carry": network.initial_carry(1)[0], **layout.episode_start_memory()}
 
         def act(params, policy_state, obs, key):
-            net_obs = layout.with_previous_step(obs, policy_state["previous_obs"], policy_state["last_action"], policy_state["reset"])
+            net_obs = layout.acting_inputs(obs, policy_state)
             carry, logits, _ = network.apply(params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None])
             action = jnp.argmax(logits[0, 0]).astype(jnp.int32)
-            return action, {"carry": carry[0], "reset": jnp.zeros((), bool), "previous_obs": obs.astype(jnp.float32), "last_action": action}
+            return action, {"carry": carry[0], **layout.remember(obs, action)}
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
         return Policy(init, act, params, f"ppo-{kind}")

@@ -57,7 +57,7 @@ def main() -> None:
             steps = args.updates * config.steps_per_update
 
             def acting_only(s, p):  # the baseline: the same rollouts, no learning
-                return jax.lax.scan(lambda s, _: (algorithm._rollout(s, p)[0], None), s, None, length=args.updates)[0]
+                return jax.lax.scan(lambda s, _: (algorithm.rollout(s, p)[0], None), s, None, length=args.updates)[0]
 
             train = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates)[0], in_axes=(0, None)))
             act = jax.jit(jax.vmap(acting_only, in_axes=(0, None)))

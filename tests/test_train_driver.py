@@ -140,6 +140,7 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
         assert (out / name).is_file(), name
     assert "| 1d-static-sin |" in result.stdout
+    assert "worlds split over 1 cpu device(s)" in result.stderr  # training's CPU default
     evaluation = json.loads((out / "eval.json").read_text())
     assert 0.0 <= evaluation["1d-static-sin"]["mean"] <= 1.0
 

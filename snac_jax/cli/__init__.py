@@ -9,6 +9,10 @@ import sys
 
 # One module per subcommand; each defines `add_parser(subparsers)`.
 COMMAND_MODULES = ("rollout", "render", "eval", "play", "train")
+# CPU devices a subcommand gets without `--devices` (others: one per core). Training: the
+# learner's minibatch shuffles become cross-device copies, and 1 device measured faster than 2
+# (bench/results/ppo.md).
+CPU_DEVICES_BY_COMMAND = {"train": 1}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,21 +24,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def use_cpu_devices_from(argv: list[str]) -> None:
-    """Honour `--devices N` (default: one CPU device per core) before any subcommand module
-    imports JAX: the CPU device count is fixed once JAX starts (see `snac_jax.devices`)."""
+    """Honour `--devices N` (default: `CPU_DEVICES_BY_COMMAND`, else one CPU device per core)
+    before any subcommand module imports JAX: the CPU device count is fixed once JAX starts
+    (see `snac_jax.devices`)."""
     from snac_jax import devices
 
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--devices", default=None)
     known, _ = pre.parse_known_args(argv)
-    try:
-        count = int(known.devices) if known.devices is not None else None
-    except ValueError:
-        count = None  # the subcommand's own parser rejects it
-    if known.devices is None and argv[:1] == ["train"]:
-        # Training: one CPU device unless told otherwise. The learner's minibatch shuffles become
-        # cross-device copies, and 1 device measured faster than 2 (bench/results/ppo.md).
-        count = 1
+    if known.devices is None:
+        count = CPU_DEVICES_BY_COMMAND.get(argv[0] if argv else None)
+    else:
+        try:
+            count = int(known.devices)
+        except ValueError:
+            count = None  # the subcommand's own parser rejects it
     try:
         devices.use_cpu_devices(count if count is None or count >= 1 else None)
     except RuntimeError:
