@@ -178,22 +178,41 @@ class PPO:
 
     def _advantages(self, params, batch: Transition, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
         cfg = self.config
-        t, n = batch.reward.shape
         _, _, last_value = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
-        # Score every step's final observation in one batched call (T folded into the batch).
-        _, _, final_value = self.network.apply(
-            params,
-            batch.carry_after.reshape(t * n, -1),
-            batch.final_obs.reshape(1, t * n, -1),
-            jnp.zeros((1, t * n), bool),
-        )
-        final_value = final_value.reshape(t, n)
         following = jnp.concatenate([batch.value[1:], last_value], axis=0)
-        next_values = jnp.where(batch.done, final_value, following)
+        next_values = jnp.where(batch.done, self._final_values(params, batch), following)
         return gae(
             batch.reward * cfg.reward_scale, batch.value, next_values,
             batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
         )
+
+    def _final_values(self, params, batch: Transition) -> jax.Array:
+        """`(T, B)` values of the final observations where an episode was truncated (0 elsewhere:
+        a termination bootstraps nothing).
+
+        Why not score every step: truncations are rare (one per step limit per world), and a
+        forward pass over all `T * B` final observations cost as much as the rollout's own. The
+        first `B` truncations are gathered and scored; a batch with more (a step limit shorter
+        than the rollout) takes the all-steps path, so the result is exact either way.
+        """
+        t, n = batch.reward.shape
+        truncated = (batch.done & ~batch.terminated).reshape(-1)
+        final_obs = batch.final_obs.reshape(t * n, -1)
+        carry_after = batch.carry_after.reshape(t * n, -1)
+
+        def score(carry, obs):
+            _, _, value = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
+            return value[0]
+
+        def gathered():
+            (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
+            values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index]), 0.0)
+            return jnp.zeros((t * n,), values.dtype).at[index].add(values)
+
+        def every_step():
+            return jnp.where(truncated, score(carry_after, final_obs), 0.0)
+
+        return jax.lax.cond(truncated.sum() <= n, gathered, every_step).reshape(t, n)
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
         cfg = self.config

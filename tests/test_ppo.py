@@ -41,6 +41,32 @@ def test_gae_matches_hand_computation_with_truncation_and_termination():
     np.testing.assert_allclose(targets[:, 0], np.array([a0, a1, a2, a3]) + np.array([0.5, 1.0, 2.0, 4.0]), rtol=1e-6)
 
 
+@pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
+def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry_that_saw_them(truncations):
+    ppo = PPO(make_config("ppo", "1d-static-sin", recurrent=True, **dict(TINY, num_envs=4, rollout_steps=6)))
+    state = ppo.init(jax.random.key(0))
+    _, batch, _ = jax.jit(ppo.rollout)(state, ppo.env_params)
+    t, n = batch.reward.shape
+    chosen = np.random.default_rng(truncations).choice(t * n, size=truncations + 2, replace=False)
+    done = np.zeros(t * n, bool)
+    done[chosen] = True
+    terminated = np.zeros(t * n, bool)
+    terminated[chosen[:2]] = True  # two terminations: no bootstrap value
+    batch = batch._replace(done=jnp.asarray(done.reshape(t, n)), terminated=jnp.asarray(terminated.reshape(t, n)))
+
+    got = np.asarray(jax.jit(ppo._final_values)(state.params, batch)).reshape(-1)
+
+    expected = np.zeros(t * n, np.float32)
+    for i in chosen[2:]:
+        step, world = divmod(int(i), n)
+        _, _, value = ppo.network.apply(
+            state.params, batch.carry_after[step, world][None], batch.final_obs[step, world][None, None], jnp.zeros((1, 1), bool)
+        )
+        expected[i] = float(value[0, 0])
+    assert np.count_nonzero(expected) == truncations
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+
+
 def test_network_inputs_one_hot_heights_and_the_previous_step():
     env, params = make("1d-static-sin")  # window of 5, 3 actions, tallest design cell 30
     layout = ObsLayout.from_env(env, params, previous_step=True)
