@@ -252,6 +252,10 @@ for _task in ("1d-static-sin", "1d-static-gauss", "1d-static-step", "1d-dynamic"
     TUNED[("dqn", _task)] = dict(total_steps=6_000_000, num_envs=64, gradient_steps=2, buffer_size=1_000_000)
     for _algorithm in ("drqn", "drqn-her"):
         TUNED[(_algorithm, _task)] = dict(total_steps=2_500_000, num_envs=32, learning_rate=1e-3, sequence_length=20, burn_in=10)
+    # A static task's design is not observed, so a relabelled episode teaches rewards for a design
+    # the policy cannot see: half of each batch relabelled gave 0.724 on 1d-static-sin, a fifth 0.893.
+    if "static" in _task:
+        TUNED[("drqn-her", _task)]["hindsight_fraction"] = 0.2
 TUNED[("dqn", "2d-static-dense")] = dict(total_steps=6_000_000, num_envs=64, gradient_steps=2)
 TUNED[("dqn", "2d-static-sparse")] = dict(total_steps=10_000_000, num_envs=64, gradient_steps=2)
 
