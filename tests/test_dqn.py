@@ -327,3 +327,12 @@ def test_cli_trains_each_value_based_agent_and_evaluates_it(algorithm, tmp_path)
     again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
                            capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
     assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
+
+
+def test_hindsight_share_is_smaller_where_the_design_is_not_observed():
+    # Static tasks hide the design, so relabelled episodes are kept to a fifth of each batch;
+    # dynamic tasks, which observe the design, keep the class default of half.
+    assert make_config("drqn-her", "1d-static-gauss").hindsight_fraction == 0.2
+    assert make_config("drqn-her", "2d-static-sparse").hindsight_fraction == 0.2
+    assert make_config("drqn-her", "1d-dynamic").hindsight_fraction == 0.5
+    assert make_config("drqn-her", "1d-static-gauss", hindsight_fraction=0.7).hindsight_fraction == 0.7
