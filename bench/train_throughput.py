@@ -6,6 +6,13 @@ update epochs), per task and network, with the tuned defaults of `agents.config.
 Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
 over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
 same rollouts without learning. The load average is printed because a shared CPU skews both.
+
+To tell a slow implementation from a busy processor, each row also converts its rate into the
+arithmetic the network does: a dense or recurrent layer does one multiply-add per weight per
+sample, so one env step costs about `2 * params * (1 + 3 * epochs)` FLOPs (the acting forward
+pass, then a forward and a twice-as-costly backward pass per epoch). That is set beside the rate
+of a plain float32 matrix product of the network's width, timed in the same run: when the two
+are close, the learner is compute-bound and only a smaller network or fewer epochs go faster.
 """
 
 from __future__ import annotations
@@ -44,8 +51,9 @@ def main() -> None:
     print(f"jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
           f"median of {args.repeats} repeats of {args.updates} updates")
     print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
-          "env-steps/s with learning | acting only (same run) | learning's share of the time | load avg |")
-    print("|---|---|---:|---|---:|---:|---:|---:|---:|---|")
+          "env-steps/s with learning | acting only (same run) | learning's share of the time | "
+          "network GFLOP/s (estimate) | matmul GFLOP/s (same width, same run) | load avg |")
+    print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for task in args.tasks:
         for recurrent in variants:
             config = make_config("ppo", task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
@@ -75,10 +83,31 @@ def main() -> None:
                     rates[name].append(steps / (time.perf_counter() - start))
             rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
             params = param_count(jax.tree.map(lambda x: x[0], state.params))
+            network_gflops = rate * 2 * params * (1 + 3 * config.update_epochs) / 1e9
+            width = config.rnn_size if recurrent else config.hidden_size
+            matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
             print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x "
                   f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
-                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {network_gflops:.1f} | {matmul_gflops:.1f} | "
+                  f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+
+
+def _matmul_gflops(rows: int, width: int, repeats: int) -> float:
+    """Median GFLOP/s of `(rows, width) @ (width, width)` in float32, ten products per call."""
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.ones((rows, width), jnp.float32)
+    w = jnp.full((width, width), 1.0 / width, jnp.float32)
+    chain = jax.jit(lambda x: jax.lax.fori_loop(0, 10, lambda _, y: y @ w, x))
+    jax.block_until_ready(chain(x))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(chain(x))
+        times.append(time.perf_counter() - start)
+    return 10 * 2 * rows * width * width / statistics.median(times) / 1e9
 
 
 if __name__ == "__main__":

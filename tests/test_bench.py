@@ -62,5 +62,10 @@ def test_training_throughput_bench_prints_median_and_baseline():
     assert cells[1] == "GRU 8, hidden 8" and cells[2] == "8"
     with_learning, acting_only = (float(c.replace(",", "")) for c in cells[6:8])
     assert 0 < with_learning < acting_only  # learning costs time on top of the same rollouts
+    params = int(cells[4].replace(",", ""))
+    network_gflops, matmul_gflops = float(cells[9]), float(cells[10])
+    # Two epochs (the tuned value): an acting forward pass plus two forward-and-backward passes.
+    assert network_gflops == pytest.approx(with_learning * 2 * params * (1 + 3 * 2) / 1e9, abs=0.051)
+    assert matmul_gflops > 0
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
