@@ -179,13 +179,14 @@ class DesignEncoder(nn.Module):
     @nn.compact
     def __call__(self, design: jax.Array) -> jax.Array:
         lead, plan = design.shape[:-2], design.shape[-2:]
-        x = design.reshape((-1,) + plan + (1,))
         if plan[0] == 1:  # 1D: the row of column heights through a dense layer
-            x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x.reshape((x.shape[0], -1))))
+            x = design.reshape((-1, plan[1]))
+            x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x))
         else:
+            x = design.reshape((-1,) + plan + (1,))
             x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
             x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
-        x = x.reshape((x.shape[0], -1))
+            x = x.reshape((x.shape[0], -1))
         x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x))
         return x.reshape(lead + (self.features,))
 

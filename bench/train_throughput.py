@@ -11,7 +11,8 @@ To tell a slow implementation from a busy processor, each row also converts its 
 arithmetic the network does: a dense or recurrent layer does one multiply-add per weight per
 sample, so one env step costs about `2 * params * (1 + 3 * epochs)` FLOPs (the acting forward
 pass, then a forward and a twice-as-costly backward pass per epoch). That is set beside the rate
-of a plain float32 matrix product of the network's width, timed in the same run: when the two
+of a plain float32 matrix product as wide as the recurrent core (the hidden layers for a
+feed-forward network), one minibatch of rows, timed in the same run: when the two
 are close, the learner is compute-bound and only a smaller network or fewer epochs go faster.
 """
 
@@ -52,7 +53,7 @@ def main() -> None:
           f"median of {args.repeats} repeats of {args.updates} updates")
     print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
           "env-steps/s with learning | acting only (same run) | learning's share of the time | "
-          "network GFLOP/s (estimate) | matmul GFLOP/s (same width, same run) | load avg |")
+          "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |")
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for task in args.tasks:
         for recurrent in variants:
@@ -78,9 +79,7 @@ def main() -> None:
             rates = {"train": [], "act": []}
             for _ in range(args.repeats):
                 for name, fn in (("train", train), ("act", act)):
-                    start = time.perf_counter()
-                    jax.block_until_ready(fn(state, algorithm.env_params))
-                    rates[name].append(steps / (time.perf_counter() - start))
+                    rates[name].append(steps / _seconds(fn, state, algorithm.env_params))
             rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
             params = param_count(jax.tree.map(lambda x: x[0], state.params))
             network_gflops = rate * 2 * params * (1 + 3 * config.update_epochs) / 1e9
@@ -101,13 +100,17 @@ def _matmul_gflops(rows: int, width: int, repeats: int) -> float:
     x = jnp.ones((rows, width), jnp.float32)
     w = jnp.full((width, width), 1.0 / width, jnp.float32)
     chain = jax.jit(lambda x: jax.lax.fori_loop(0, 10, lambda _, y: y @ w, x))
-    jax.block_until_ready(chain(x))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(chain(x))
-        times.append(time.perf_counter() - start)
-    return 10 * 2 * rows * width * width / statistics.median(times) / 1e9
+    _seconds(chain, x)  # compile
+    return 10 * 2 * rows * width * width / statistics.median(_seconds(chain, x) for _ in range(repeats)) / 1e9
+
+
+def _seconds(fn, *args) -> float:
+    """Wall seconds of one call of `fn(*args)`, waiting for its device work."""
+    import jax
+
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
 
 
 if __name__ == "__main__":

@@ -53,7 +53,8 @@ def test_quick_run_covers_every_task(tmp_path):
 def test_training_throughput_bench_prints_median_and_baseline():
     script = ROOT / "bench" / "train_throughput.py"
     done = subprocess.run([sys.executable, str(script), "--tasks", "1d-static-step", "--updates", "1", "--repeats", "2",
-                           "--num-envs", "8", "--rollout-steps", "4", "--hidden-size", "8", "--rnn-size", "8"],
+                           "--num-envs", "8", "--rollout-steps", "4", "--hidden-size", "8", "--rnn-size", "8",
+                           "--update-epochs", "2"],
                           capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "median of 2 repeats of 1 updates" in done.stdout
@@ -64,7 +65,7 @@ def test_training_throughput_bench_prints_median_and_baseline():
     assert 0 < with_learning < acting_only  # learning costs time on top of the same rollouts
     params = int(cells[4].replace(",", ""))
     network_gflops, matmul_gflops = float(cells[9]), float(cells[10])
-    # Two epochs (the tuned value): an acting forward pass plus two forward-and-backward passes.
+    # Two epochs: an acting forward pass plus two forward-and-backward passes.
     assert network_gflops == pytest.approx(with_learning * 2 * params * (1 + 3 * 2) / 1e9, abs=0.051)
     assert matmul_gflops > 0
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
