@@ -242,6 +242,7 @@ def test_tiny_run_of_each_agent_completes(algorithm, task, options):
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
+@pytest.mark.slow  # three compilations of a whole run: ~100 s on a 2-core CPU (PPO's resume test stays in the default suite)
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
     from agents.checkpoint import checkpoint_policy
     from agents.driver import train
@@ -303,7 +304,10 @@ def test_replayed_windows_read_the_previous_step_from_the_row_before():
         assert inputs[t, o + w :].argmax() == a
 
 
-@pytest.mark.parametrize("algorithm", ["dqn", "drqn", "drqn-her"])
+# Each is a training and an evaluation subprocess (~45 s); drqn stays in the default suite.
+@pytest.mark.parametrize(
+    "algorithm", [pytest.param("dqn", marks=pytest.mark.slow), "drqn", pytest.param("drqn-her", marks=pytest.mark.slow)]
+)
 def test_cli_trains_each_value_based_agent_and_evaluates_it(algorithm, tmp_path):
     import json
     import os
