@@ -260,18 +260,22 @@ for _task in ("3d-static-dense", "3d-static-sparse", "3d-dynamic-dense", "3d-dyn
 # see: relabelling half of each batch gave 0.724 on 1d-static-sin, a fifth 0.893.
 _DRQN = dict(num_envs=32, learning_rate=1e-3, sequence_length=20, burn_in=10)
 _STATIC_HINDSIGHT_FRACTION = 0.2
-for _task in ("1d-static-sin", "1d-static-gauss", "1d-static-step", "1d-dynamic"):
+# DRQN on 1D, per task: (LSTM units, env steps). LSTM 128 runs 2x the env-steps/s of 256, so 5M
+# steps fit 12-13 minutes on the slower CPU. Measured there: gauss 0.898 at 5M (every other learner
+# stopped at ~0.87) and 0.910 at 7M (16 minutes), step 0.845, 1d-dynamic 0.835; LSTM 256 at 2.5M
+# scored 0.875 / 0.816 / 0.813 on the older CPU (1d-dynamic with the older conv encoder). On sin,
+# 256 stays: 0.933 there against 0.883 for 128 here (bench/results/dqn.md).
+_DRQN_1D = {
+    "1d-static-sin": (256, 2_500_000),
+    "1d-static-gauss": (128, 7_000_000),
+    "1d-static-step": (128, 5_000_000),
+    "1d-dynamic": (128, 5_000_000),
+}
+for _task, (_lstm_size, _steps) in _DRQN_1D.items():
     TUNED[("dqn", _task)] = dict(total_steps=6_000_000, num_envs=64, gradient_steps=2, buffer_size=1_000_000)
-    TUNED[("drqn", _task)] = dict(_DRQN, total_steps=2_500_000)
-    TUNED[("drqn-her", _task)] = dict(TUNED[("drqn", _task)])
-# LSTM 128 runs 2x the env-steps/s of 256, so 5M steps fit 12-13 minutes on the slower CPU.
-# Measured there: gauss 0.898 (every other learner stopped at ~0.87; 7M steps, 16 minutes: 0.910),
-# step 0.845, 1d-dynamic 0.835; LSTM 256 at 2.5M scored 0.875 / 0.816 / 0.813 on the older CPU
-# (1d-dynamic with the older conv encoder). On sin, 256 stays: 0.933 there against 0.883 for 128
-# here (bench/results/dqn.md).
-for _task in ("1d-static-gauss", "1d-static-step", "1d-dynamic"):
-    TUNED[("drqn", _task)].update(lstm_size=128, total_steps=5_000_000)
-TUNED[("drqn", "1d-static-gauss")].update(total_steps=7_000_000)
+    TUNED[("drqn", _task)] = dict(_DRQN, lstm_size=_lstm_size, total_steps=_steps)
+    # DRQN+HER keeps the settings its rows were measured with (LSTM 256, 2.5M steps).
+    TUNED[("drqn-her", _task)] = dict(_DRQN, total_steps=2_500_000)
 TUNED[("dqn", "2d-static-dense")] = dict(total_steps=6_000_000, num_envs=64, gradient_steps=2)
 TUNED[("dqn", "2d-static-sparse")] = dict(total_steps=10_000_000, num_envs=64, gradient_steps=2)
 # 2D: 5M steps took 10 minutes (8k env-steps/s) on the older CPU, about 2.4x that on the slower
