@@ -260,15 +260,16 @@ for _task in ("3d-static-dense", "3d-static-sparse", "3d-dynamic-dense", "3d-dyn
 # see: relabelling half of each batch gave 0.724 on 1d-static-sin, a fifth 0.893.
 _DRQN = dict(num_envs=32, learning_rate=1e-3, sequence_length=20, burn_in=10)
 _STATIC_HINDSIGHT_FRACTION = 0.2
-# DRQN on 1D, per task: (LSTM units, env steps). LSTM 128 runs 2x the env-steps/s of 256, so 5M
-# steps fit 12-13 minutes on the slower CPU. Measured there: gauss 0.898 at 5M (every other learner
-# stopped at ~0.87) and 0.910 at 7M (16 minutes), step 0.845, 1d-dynamic 0.835; LSTM 256 at 2.5M
-# scored 0.875 / 0.816 / 0.813 on the older CPU (1d-dynamic with the older conv encoder). On sin,
-# 256 stays: 0.933 there against 0.883 for 128 here (bench/results/dqn.md).
+# DRQN on 1D, per task: (LSTM units, env steps). The learner is compute-bound, so a smaller LSTM
+# buys more experience per minute (env-steps/s on the slower CPU: ~3.4k with 256, ~7k with 128,
+# ~13k with 64). Measured there: gauss 0.910 with 128 at 7M (16 minutes; every other learner
+# stopped at ~0.87); step 0.894 with 64 at 13.5M (17 minutes) against 0.845 with 128 at 5M;
+# 1d-dynamic 0.835 with 128 at 5M against 0.820 with 64 at 12M. On sin, 256 stays: 0.933 on the
+# older CPU against 0.883 for 128 here (bench/results/dqn.md, sessions 7 and 8).
 _DRQN_1D = {
     "1d-static-sin": (256, 2_500_000),
     "1d-static-gauss": (128, 7_000_000),
-    "1d-static-step": (128, 5_000_000),
+    "1d-static-step": (64, 13_500_000),
     "1d-dynamic": (128, 5_000_000),
 }
 for _task, (_lstm_size, _steps) in _DRQN_1D.items():
