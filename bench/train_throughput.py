@@ -88,11 +88,11 @@ def main() -> None:
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
             print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x "
                   f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
-                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {_rate(network_gflops)} | {_rate(matmul_gflops)} | "
+                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
                   f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
 
 
-def _rate(gflops: float) -> str:
+def _gflops_text(gflops: float) -> str:
     """One decimal, or three significant figures below 100 so that a tiny network's rate does
     not print as 0.0."""
     return f"{gflops:.1f}" if gflops >= 100 else f"{gflops:.3g}"
