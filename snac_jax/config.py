@@ -89,13 +89,3 @@ class EnvConfig:
     def design_size(self) -> int:
         h, w = self.plan_shape
         return h * w
-
-    @property
-    def obs_size(self) -> int:
-        wr, wc = self.window_shape
-        size = wr * wc + 2
-        if self.dynamic:
-            size += self.design_size
-        if self.gps:
-            size += 1 if self.dim == 1 else 2
-        return size

@@ -214,6 +214,11 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         info = {"final_iou": metrics.iou(state), "stride": jnp.asarray(stride, jnp.int32)}
         return self.get_obs(state, params), state, reward, terminated, info
 
+    @property
+    def observation_layout(self) -> observation.ObservationLayout:
+        """Where the window, counters, design and position sit in the flat observation."""
+        return observation.layout(self.config)
+
     def get_obs(self, state: EnvState, params: EnvParams | None = None, key: jax.Array | None = None) -> jax.Array:
         return observation.observe(self.config, state)
 
@@ -236,4 +241,4 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         params = params or self.default_params
         # Counters and cell heights never exceed the brick budget or the step limit.
         high = float(max(int(np.max(params.design_max_bricks)), int(params.max_steps_in_episode)))
-        return spaces.Box(-2.0, high, (self.config.obs_size,), jnp.float32)
+        return spaces.Box(-2.0, high, (self.observation_layout.size,), jnp.float32)

@@ -42,6 +42,7 @@ import numpy as np
 from snac_jax.atomic import atomic_write
 from snac_jax.config import EnvConfig
 from snac_jax.observation import LANDMARK_VALUE
+from snac_jax.observation import layout as observation_layout
 from snac_jax.state import EnvParams, EnvState
 from snac_jax.transition import PADDING
 
@@ -233,10 +234,11 @@ def render_observation(env, obs, *, cell: int = 44, design_cell: int | None = No
     """
     config = _config_of(env)
     obs = np.asarray(obs, dtype=np.float32)
-    if obs.shape != (config.obs_size,):
-        raise ValueError(f"expected one observation of shape ({config.obs_size},), got {obs.shape}")
+    layout = observation_layout(config)
+    if obs.shape != (layout.size,):
+        raise ValueError(f"expected one observation of shape ({layout.size},), got {obs.shape}")
     wr, wc = config.window_shape
-    window = obs[: wr * wc].reshape(wr, wc)
+    window = layout.window_cells(obs)
     if config.dim == 1:
         view = _observation_columns(window[0], cell)
     else:
@@ -248,8 +250,7 @@ def render_observation(env, obs, *, cell: int = 44, design_cell: int | None = No
         view = draw_text(view, items, size=14)
     if not config.dynamic:
         return view
-    start = wr * wc + 2
-    design = obs[start : start + config.design_size].reshape(config.plan_shape)
+    design = layout.design_cells(obs)
     design_view = _design_thumbnail(config, design, design_cell)
     return _hstack([view, design_view], gap=16)
 

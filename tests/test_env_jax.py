@@ -4,6 +4,8 @@ import jax
 import numpy as np
 import pytest
 
+import snac_jax
+import snac_jax.observation
 from snac_jax import TASKS, make
 from snac_jax.env import SNACEnv
 from tests.helpers import random_episode
@@ -86,7 +88,7 @@ def test_spaces_match_observations(task):
     env, params = make(task, design_bank_size=16) if "dynamic" in task else make(task)
     obs, state = env.reset(jax.random.key(0), params)
     space = env.observation_space(params)
-    assert obs.shape == space.shape == (env.config.obs_size,)
+    assert obs.shape == space.shape == (env.observation_layout.size,)
     assert obs.dtype == np.float32
     assert env.action_space(params).n == env.num_actions == {1: 3, 2: 5, 3: 8}[env.config.dim]
     assert np.all(obs >= space.low) and np.all(obs <= space.high)
@@ -96,3 +98,27 @@ def test_1d_reset_observation():
     env, params = make("1d-static-sin")
     obs, _ = env.reset(jax.random.key(0), params)
     np.testing.assert_array_equal(obs, [-1, -1, 0, 0, 0, 0, 0])
+
+
+@pytest.mark.parametrize("task,overrides", [("1d-static-sin", {"gps": True}), ("1d-dynamic", {}),
+                                            ("2d-dynamic-sparse", {"gps": True}), ("3d-static-dense", {})])
+def test_observation_layout_reads_back_each_part(task, overrides):
+    """The layout is the one definition of the flat observation: each slice holds its part."""
+    env, params = snac_jax.make(task, **overrides)
+    _, state = env.reset(jax.random.key(3), params)
+    for action in (1, 0, env.num_actions - 1):
+        _, state, *_ = env.step(jax.random.key(action), state, action, params)
+    obs = np.asarray(env.get_obs(state, params))
+    layout = env.observation_layout
+    assert obs.shape == (layout.size,)
+    np.testing.assert_array_equal(layout.window_cells(obs), np.asarray(snac_jax.observation.window(env.config, state)))
+    assert obs[layout.bricks_used] == int(state.bricks_used) and obs[layout.time] == int(state.time)
+    if env.config.dynamic:
+        np.testing.assert_array_equal(layout.design_cells(obs), np.asarray(state.design))
+    else:
+        assert layout.design is None
+    if env.config.gps:
+        expected = state.position[1:] if env.config.dim == 1 else state.position
+        np.testing.assert_array_equal(obs[layout.position], np.asarray(expected))
+    else:
+        assert layout.position is None

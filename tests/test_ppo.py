@@ -96,7 +96,7 @@ def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     net = ActorCritic(ObsLayout.from_env(env, params), env.num_actions, hidden_size=16, rnn_size=8)
     t, b = 7, 3
     key_obs, key_reset, key_init = jax.random.split(jax.random.key(0), 3)
-    obs = jax.random.uniform(key_obs, (t, b, env.config.obs_size), minval=-1, maxval=40)
+    obs = jax.random.uniform(key_obs, (t, b, env.observation_layout.size), minval=-1, maxval=40)
     resets = jax.random.bernoulli(key_reset, 0.3, (t, b)).at[0].set(True)
     carry0 = jax.random.normal(key_init, (b, 8))  # a stale carry: step 0's reset must clear it
     variables = net.init(jax.random.key(1), carry0, obs, resets)

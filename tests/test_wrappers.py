@@ -34,7 +34,7 @@ def test_log_and_flatten_wrappers(task):
     base, params = make(task, design_bank_size=16) if "dynamic" in task else make(task, max_steps=50)
     env = gymnax.wrappers.LogWrapper(gymnax.wrappers.FlattenObservationWrapper(base))
     obs, state, reward, terminated, truncated, info = _purejaxrl_rollout(env, params)
-    assert obs.shape == (200, 16, base.config.obs_size)
+    assert obs.shape == (200, 16, base.observation_layout.size)
     done = np.asarray(terminated | truncated)
     assert done.any()
     returned = np.asarray(info["returned_episode"])

@@ -51,6 +51,7 @@ from flax import struct
 
 from snac_jax.config import MAX_STRIDE, EnvConfig
 from snac_jax.env import SNACEnv
+from snac_jax.observation import layout as observation_layout
 from snac_jax.policy import Policy
 from snac_jax.transition import PADDING
 
@@ -110,8 +111,7 @@ def _clip_to_plan(config: EnvConfig, position: jax.Array) -> jax.Array:
 
 
 def _window_from_obs(config: EnvConfig, obs: jax.Array) -> jax.Array:
-    rows, cols = config.window_shape
-    return obs[: rows * cols].reshape(config.window_shape)
+    return observation_layout(config).window_cells(obs)
 
 
 # --- 1D ------------------------------------------------------------------------------------------
