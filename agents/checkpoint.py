@@ -1,5 +1,5 @@
-"""Run directories: atomic text writes, orbax checkpoints of the runner state, and loading a
-trained policy back from a run directory (`snac eval --checkpoint DIR`).
+"""Run directories: orbax checkpoints of the runner state and the run's config.json
+(`agents.trained` loads a trained policy back from one).
 
 A run directory holds `config.json`, `metrics.jsonl`, `checkpoints/<chunk>/` (orbax, written to
 a temporary folder and renamed when complete, so a crash never leaves a half checkpoint),
@@ -12,36 +12,16 @@ restore, guided by the structure of a freshly initialised state.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import jax
 
+from agents.registry import config_from_json
+
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_DIR = "checkpoints"
-
-
-def atomic_replace(path: str | Path, write) -> None:
-    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it over `path`:
-    a crash leaves the old file (or none), never half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    atomic_replace(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def _is_key(x: Any) -> bool:
@@ -116,47 +96,9 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
 
 
 def read_config(directory: str | Path):
-    from agents.config import config_from_json
+    """The config of run directory `directory` (its config.json)."""
 
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"{directory} is not a training run directory: {CONFIG_FILE} is missing")
     return config_from_json(json.loads(path.read_text()))
-
-
-def load_trained(directory: str | Path):
-    """`(algorithm object, runner state with a leading seed axis, chunk)` of a run directory."""
-    from agents.driver import build_algorithm, initial_state
-
-    config = read_config(directory)
-    algorithm = build_algorithm(config)
-    like = initial_state(algorithm)
-    chunk, state = restore_state(directory, like)
-    return algorithm, state, chunk
-
-
-def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
-    """Policy builder for the evaluator: the greedy policy of run `checkpoint`, seed `seed_index`.
-
-    `env` must be the task the run trained on (the evaluator passes each environment task)."""
-    algorithm, state, _ = load_trained(checkpoint)
-    if env.config.task_id != algorithm.config.task:
-        raise ValueError(
-            f"checkpoint {checkpoint} was trained on {algorithm.config.task!r}, cannot evaluate it on {env.config.task_id!r}"
-        )
-    seeds = algorithm.config.seeds
-    if not 0 <= seed_index < seeds:
-        raise ValueError(f"seed_index must be in 0..{seeds - 1} for {checkpoint}, got {seed_index}")
-    params = jax.tree.map(lambda x: x[seed_index], state.params)
-    return algorithm.policy(params)
-
-
-def checkpoint_builder(directory: str | Path):
-    """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
-    of its algorithm)`. The 1D static shapes are scored on the shape the run trained on."""
-    config = read_config(directory)
-
-    def builder(env, **options):
-        return checkpoint_policy(env, directory, **options)
-
-    return builder, config.task, getattr(config, "paper_method", config.algorithm)

@@ -1,7 +1,7 @@
-"""DQN, DRQN and DRQN + hindsight relabelling, acting and learning in one jitted loop.
+"""DQN acting and learning in one jitted loop, with replay on device. DRQN (`agents.drqn`) and
+DRQN + hindsight (`agents.hindsight`) extend the `DQN` class here through its hooks.
 
-`DQN(config)` serves the three algorithms (`agents.config.DQNConfig`, `DRQNConfig`,
-`DRQNHERConfig`); its methods are pure and plug into the shared driver (`agents.driver`):
+`DQN(config)`'s methods are pure and plug into the shared driver (`agents.driver`):
 
 - `init(key) -> RunnerState` for one seed;
 - `update(state, env_params)`: every world acts epsilon-greedily for `rollout_steps` steps, the
@@ -19,75 +19,77 @@ cross episode boundaries: `reset` (this observation starts an episode) zeroes th
 the frame stack there, and `done` (the episode ended at this step) cuts the n-step return.
 Reaching the step limit is an end like any other: the step counter N_s is in the observation, so
 the limit is part of the observed state and nothing lies beyond it to bootstrap from.
-
-Hindsight (drqn-her, paper: "the transitions ... relabeled with D replaced by the grid at the
-terminal step; both stored"): each step also records where its brick landed and the cell's
-height (`drop_record`), and when a world's episode ends its final grid goes into a small ring per
-world (`FinalGrids`). A sampled window read as the relabelled copy (a `hindsight_fraction` of
-each batch) gets its rewards recomputed against its episode's final grid with the environment's
-own `snac_jax.transition.drop_reward`, and on dynamic tasks the design part of its observations
-replaced by that grid. Steps of an episode that has not ended yet have no relabelled copy yet and
-are left out of that window's loss. Keeping one grid per episode instead of a second copy of
-every step makes the relabelled copy nearly free in memory.
 """
 
 from __future__ import annotations
 
-import math
-from typing import Any
+import dataclasses
+from typing import Any, ClassVar
 
 import flashbax as fbx
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
 
-from agents.config import DQNConfig
-from agents.networks import ObsLayout, ObservationEncoder, ScannedRNN, mlp_head
-from snac_jax.config import EnvConfig
+from agents.config import TrainConfig, option
+from agents.networks import ObsLayout, QNetwork, frames_with_history, stack_frames
+from agents.targets import n_step_targets
 from snac_jax.policy import Policy
-from snac_jax.transition import drop_reward
-
-# --- network ---------------------------------------------------------------------------------------
 
 
-class QNetwork(nn.Module):
-    """Q-values from a stack of observations, with an optional LSTM core and a dueling head.
+@dataclasses.dataclass(frozen=True)
+class DQNConfig(TrainConfig):
+    """DQN with double Q-learning, a dueling head, n-step returns and an optional stack of the
+    last `frame_stack` observations."""
 
-    Time-major like every network of `agents.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
-    last k observations, oldest first, zeros before the episode start), `resets (T, B)`.
-    """
+    algorithm: ClassVar[str] = "dqn"
+    paper_method: ClassVar[str] = "dqn"
 
-    layout: ObsLayout
-    num_actions: int
-    hidden_size: int = 128
-    lstm_size: int = 0  # 0: feed-forward
-    dueling: bool = True
+    rollout_steps: int = option(8, "steps per world between learning phases", low=1)
+    gradient_steps: int = option(1, "gradient steps per learning phase", low=1)
+    batch_size: int = option(256, "sampled sequences per gradient step", low=1)
+    sequence_length: int = option(1, "steps per sampled sequence that get a loss", low=1)
+    buffer_size: int = option(500_000, "replay capacity in env steps, over all worlds of a seed", low=1)
+    max_buffer_mb: float = option(2048.0, "the config is refused when the replay memory would exceed this",
+                                  low=0, low_open=True)
+    learning_rate: float = option(3e-4, "Adam step size", low=0, low_open=True)
+    gamma: float = option(0.99, "discount", low=0, high=1)
+    n_step: int = option(3, "steps of reward before the bootstrap", low=1)
+    huber_delta: float = option(1.0, "Huber loss threshold", low=0, low_open=True)
+    max_grad_norm: float = option(10.0, "global gradient norm clip", low=0, low_open=True)
+    eps_start: float = option(1.0, "exploration rate at the start", low=0, high=1)
+    eps_end: float = option(0.05, "exploration rate after the decay", low=0, high=1)
+    exploration_fraction: float = option(0.3, "share of total_steps over which epsilon decays linearly", low=0, high=1)
+    learning_starts: int = option(20_000, "env steps per seed before the first gradient step", low=0)
+    target_update_interval: int = option(250, "gradient steps between copies into the target network", low=1)
+    hidden_size: int = option(128, "width of the encoder and the heads", low=1)
+    dueling: bool = option(True, "separate value and advantage heads")
+    double_q: bool = option(True, "the online network picks the bootstrap action")
+    frame_stack: int = option(1, "observations the network reads at once (the newest and those before it)", low=1)
+    reward_scale: float = option(0.1, "rewards are multiplied by this for learning (not for reporting)",
+                                 low=0, low_open=True)
 
     @property
-    def carry_size(self) -> int:
-        return 2 * self.lstm_size if self.lstm_size else 1
+    def context(self) -> int:
+        """Steps before the first learning step of a sampled sequence: one whose observation is
+        read only as the next step's previous step (with `previous_step`), and the frame stack's
+        context (DRQN adds its burn-in)."""
+        return int(self.previous_step) + self.frame_stack - 1
 
-    def initial_carry(self, batch: int) -> jax.Array:
-        return jnp.zeros((batch, self.carry_size), jnp.float32)
+    @property
+    def sample_length(self) -> int:
+        """Steps per sampled sequence: context, learning steps, and n more to bootstrap from."""
+        return self.context + self.sequence_length + self.n_step
 
-    @nn.compact
-    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
-        x = ObservationEncoder(self.layout, self.hidden_size)(frames)  # (T, B, k, H)
-        if frames.shape[-2] > 1:
-            x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))
-        else:
-            x = x[..., 0, :]
-        if self.lstm_size:
-            carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
-        if self.dueling:
-            value = mlp_head(x, self.hidden_size, 1, 1.0)
-            advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)
-            return carry, value + advantage - advantage.mean(axis=-1, keepdims=True)
-        return carry, mlp_head(x, self.hidden_size, self.num_actions, 1.0)
-
+    def check(self) -> None:
+        per_world = self.buffer_size // self.num_envs
+        if per_world < self.sample_length + self.rollout_steps:
+            raise ValueError(
+                f"buffer_size ({self.buffer_size}) holds {per_world} steps per world; it must hold at least "
+                f"sample_length + rollout_steps = {self.sample_length + self.rollout_steps} (raise buffer_size or lower num_envs)"
+            )
 
 # --- replay contents ---------------------------------------------------------------------------------
 
@@ -102,21 +104,6 @@ class Step:
     action: jax.Array  # int8
     reward: jax.Array  # float32, the environment's reward
     done: jax.Array  # bool, the episode ended at this step (terminated or truncated)
-    # Hindsight only (None otherwise):
-    world: jax.Array | None = None  # int32, the world (buffer row) the step came from
-    episode: jax.Array | None = None  # int32, that world's episode counter
-    drop_cell: jax.Array | None = None  # int32, flat plan cell a rewarded brick landed on, -1 if none
-    drop_height: jax.Array | None = None  # int16, the height that brick brought its cell to
-    stride: jax.Array | None = None  # int8, the stride drawn (lets a relabelled episode be replayed)
-
-
-@struct.dataclass
-class FinalGrids:
-    """Per world, the final plan-area grids of its last `M` episodes (a ring indexed by episode
-    counter modulo M); `episode` says which episode a slot holds (-1: none yet)."""
-
-    grids: jax.Array  # int16 (B, M, *plan_shape)
-    episode: jax.Array  # int32 (B, M)
 
 
 @struct.dataclass
@@ -133,7 +120,6 @@ class Worlds:
     carry: jax.Array  # (B, C) LSTM state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,)
     episode: jax.Array  # (B,) int32, episodes started so far in this world
-    final_grids: FinalGrids | None  # hindsight only
 
 
 @struct.dataclass
@@ -152,84 +138,16 @@ class RunnerState:
 # --- pure pieces the tests check one by one --------------------------------------------------------
 
 
-def plan_area(config: EnvConfig, grid: jax.Array) -> jax.Array:
-    """The design-area part of a padded grid."""
-    (pr, pc), (h, w) = config.pad, config.plan_shape
-    return jax.lax.dynamic_slice(grid, (pr, pc), (h, w))
-
-
-def drop_record(config: EnvConfig, grid_before: jax.Array, grid_after: jax.Array, terminated: jax.Array):
-    """`(flat plan cell, height)` of the brick this step was rewarded for, cell -1 if none.
-
-    Read from the grid change rather than re-deriving the action rule: a rewarded drop is one
-    that changed a cell and did not end the episode (the ending drop scores 0, SPEC §5). In 2D a
-    brick on a filled cell changes nothing and scores 0 against any binary design, as it would
-    in the relabelled episode, so it needs no record either.
-    """
-    changed = (plan_area(config, grid_after) != plan_area(config, grid_before)).reshape(-1)
-    cell = jnp.argmax(changed)
-    height = plan_area(config, grid_after).reshape(-1)[cell]
-    rewarded = changed.any() & ~terminated
-    return jnp.where(rewarded, cell, -1).astype(jnp.int32), height.astype(jnp.int16)
-
-
-def hindsight_rewards(config: EnvConfig, drop_cell: jax.Array, drop_height: jax.Array, design: jax.Array) -> jax.Array:
-    """Rewards of recorded drops against another design (`design (..., *plan_shape)` with the
-    leading shape of `drop_cell`), through the environment's one reward function."""
-    flat = design.reshape(drop_cell.shape + (-1,)).astype(jnp.int32)
-    wanted = jnp.take_along_axis(flat, jnp.maximum(drop_cell, 0)[..., None], axis=-1)[..., 0]
-    reward = drop_reward(config, drop_height.astype(jnp.int32), wanted)
-    return jnp.where(drop_cell >= 0, reward, 0.0).astype(jnp.float32)
-
-
-def n_step_targets(rewards: jax.Array, dones: jax.Array, values: jax.Array, gamma: float, n: int, length: int) -> jax.Array:
-    """n-step return targets for the first `length` steps of time-major `(length + n, ...)` arrays.
-
-    `values[t]` is the bootstrap value of the observation at t; `dones[t]` means the episode ended
-    at step t, so neither later rewards nor a bootstrap value count past it.
-    """
-    target = jnp.zeros_like(rewards[:length])
-    alive = jnp.ones_like(rewards[:length])
-    for i in range(n):
-        target = target + (gamma**i) * alive * rewards[i : i + length]
-        alive = alive * (1.0 - dones[i : i + length].astype(rewards.dtype))
-    return target + (gamma**n) * alive * values[n : n + length]
-
-
-def stack_frames(obs: jax.Array, resets: jax.Array, k: int) -> jax.Array:
-    """`(T, B, O)` observations -> `(T - k + 1, B, k, O)` stacks of the last k, oldest first;
-    a frame from before the episode of the newest one (a reset in between) is zeros, as when acting."""
-    t = obs.shape[0] - k + 1
-    frames = []
-    for j in range(k):
-        frame = obs[j : j + t]
-        # Frame j of output i is obs[i + j]; it belongs to the newest frame's episode unless a
-        # reset lies in (i + j, i + k - 1].
-        later_reset = jnp.zeros_like(resets[:t])
-        for m in range(j + 1, k):
-            later_reset = later_reset | resets[m : m + t]
-        frames.append(jnp.where(later_reset[..., None], 0.0, frame))
-    return jnp.stack(frames, axis=2)
-
-
-def _frames(history: jax.Array | None, obs: jax.Array) -> jax.Array:
-    """`(..., k, O)`: the stored earlier frames (if any) followed by `obs (..., O)`."""
-    obs = obs[..., None, :].astype(jnp.float32)
-    return obs if history is None else jnp.concatenate([history, obs], axis=-2)
-
-
-def _select(mask: jax.Array, on_true: Any, on_false: Any) -> Any:
-    """Per-world choice between two pytrees with a leading world axis."""
-    return jax.tree.map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b), on_true, on_false
-    )
-
-
 # --- the algorithm -----------------------------------------------------------------------------------
 
 
 class DQN:
-    """Static pieces of a DQN / DRQN / DRQN+HER run; see the module docstring."""
+    """Static pieces of a DQN run; see the module docstring. Subclasses change the network core
+    (`lstm_size`, `burn_in`), what a stored step records (`_example_step`, `_world_step`) and how
+    a sampled batch is read (`sample`)."""
+
+    lstm_size = 0  # feed-forward
+    burn_in = 0
 
     def __init__(self, config: DQNConfig):
         config.validate()
@@ -240,10 +158,9 @@ class DQN:
             layout=self.layout,
             num_actions=self.env.num_actions,
             hidden_size=config.hidden_size,
-            lstm_size=config.lstm_size if config.uses_lstm else 0,
+            lstm_size=self.lstm_size,
             dueling=config.dueling,
         )
-        self.burn_in = config.burn_in if config.uses_lstm else 0
         self.per_world = config.buffer_size // config.num_envs
         self.buffer = fbx.make_trajectory_buffer(
             add_batch_size=config.num_envs,
@@ -259,120 +176,87 @@ class DQN:
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.total_steps))
         )
-        # An episode lasts at least min(brick budget, step limit) steps (3D can end sooner when
-        # stuck; a ring slot overwritten too early only drops that episode's relabelled copy).
-        shortest = max(1, min(int(np.min(np.asarray(self.env_params.design_max_bricks))),
-                              int(self.env_params.max_steps_in_episode)))
-        self.ring_size = self.per_world // shortest + 2 if config.hindsight else 0
         high = self.env.observation_space(self.env_params).high
         if np.max(high) >= np.iinfo(np.int16).max:
             raise ValueError(f"observations reach {np.max(high)}, beyond the int16 the replay stores them in")
-        self.memory_bytes = self._memory_bytes()
-        limit = config.max_buffer_mb * 2**20
-        if sum(self.memory_bytes.values()) > limit:
+        self.check_memory()
+
+    def check_memory(self) -> None:
+        """Refuse a config whose replay memory exceeds `max_buffer_mb`, before anything is allocated."""
+        total = sum(self.memory_bytes().values())
+        if total > self.config.max_buffer_mb * 2**20:
             raise ValueError(
-                f"replay memory {sum(self.memory_bytes.values()) / 2**20:.1f} MiB per seed exceeds max_buffer_mb "
-                f"({config.max_buffer_mb}); lower buffer_size or raise max_buffer_mb"
+                f"replay memory {total / 2**20:.1f} MiB per seed exceeds max_buffer_mb "
+                f"({self.config.max_buffer_mb}); lower buffer_size or raise max_buffer_mb"
             )
 
     def _example_step(self) -> Step:
-        obs_size = self.layout.env_obs_size
-        step = Step(
-            obs=jnp.zeros((obs_size,), jnp.int16),
+        return Step(
+            obs=jnp.zeros((self.layout.env_obs_size,), jnp.int16),
             reset=jnp.zeros((), bool),
             action=jnp.zeros((), jnp.int8),
             reward=jnp.zeros((), jnp.float32),
             done=jnp.zeros((), bool),
         )
-        if self.config.hindsight:
-            step = step.replace(
-                world=jnp.zeros((), jnp.int32),
-                episode=jnp.zeros((), jnp.int32),
-                drop_cell=jnp.zeros((), jnp.int32),
-                drop_height=jnp.zeros((), jnp.int16),
-                stride=jnp.zeros((), jnp.int8),
-            )
-        return step
 
-    def _memory_bytes(self) -> dict[str, int]:
-        """Bytes per seed of the replay buffer and of the hindsight ring of final grids."""
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes per seed of what the learner keeps on device beside the networks."""
         buffer = jax.eval_shape(self.buffer.init, self._example_step())
-        sizes = {"buffer": sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(buffer))}
-        if self.config.hindsight:
-            plan = math.prod(self.env.config.plan_shape)
-            sizes["final_grids"] = self.config.num_envs * self.ring_size * (plan * 2 + 4)
-        return sizes
+        return {"buffer": sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(buffer))}
 
     def describe_memory(self) -> str:
-        parts = ", ".join(f"{name} {size / 2**20:.1f} MiB" for name, size in self.memory_bytes.items())
+        parts = ", ".join(f"{name} {size / 2**20:.1f} MiB" for name, size in self.memory_bytes().items())
         return (f"replay on device: {self.per_world} steps x {self.config.num_envs} worlds per seed; {parts} "
                 f"(limit {self.config.max_buffer_mb:g} MiB)")
 
     # --- pure functions ----------------------------------------------------------------------------
 
-    def init(self, key: jax.Array) -> RunnerState:
+    def _initial_worlds(self, env_state, obs: jax.Array) -> Worlds:
         cfg, n = self.config, self.config.num_envs
-        key, key_params, key_reset = jax.random.split(key, 3)
-        obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
         history = jnp.zeros((n, cfg.frame_stack - 1, self.layout.obs_size), jnp.float32) if cfg.frame_stack > 1 else None
-        carry = self.network.initial_carry(n)
-        no_action, resets = jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool)
-        frames = _frames(history, self.layout.with_previous_step(obs, obs, no_action, resets))
-        params = self.network.init(key_params, carry[:1], frames[None, :1], jnp.ones((1, 1), bool))
-        final_grids = None
-        if cfg.hindsight:
-            final_grids = FinalGrids(
-                grids=jnp.zeros((n, self.ring_size) + self.env.config.plan_shape, jnp.int16),
-                episode=jnp.full((n, self.ring_size), -1, jnp.int32),
-            )
-        worlds = Worlds(
-            env_state, obs, obs, no_action, history, resets, carry, jnp.zeros((n,), jnp.float32),
-            jnp.zeros((n,), jnp.int32), final_grids,
+        return Worlds(
+            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32), history=history,
+            reset=jnp.ones((n,), bool), carry=self.network.initial_carry(n),
+            episode_return=jnp.zeros((n,), jnp.float32), episode=jnp.zeros((n,), jnp.int32),
         )
+
+    def init(self, key: jax.Array) -> RunnerState:
+        key, key_params, key_reset = jax.random.split(key, 3)
+        reset = jax.vmap(self.env.reset, in_axes=(0, None))
+        obs, env_state = reset(jax.random.split(key_reset, self.config.num_envs), self.env_params)
+        worlds = self._initial_worlds(env_state, obs)
+        net_obs = self.layout.with_previous_step(obs, obs, worlds.last_action, worlds.reset)
+        frames = frames_with_history(worlds.history, net_obs)
+        params = self.network.init(key_params, worlds.carry[:1], frames[None, :1], jnp.ones((1, 1), bool))
         zero = jnp.zeros((), jnp.int32)
         return RunnerState(
-            params, params, self.optimizer.init(params), worlds, self.buffer.init(self._example_step()),
-            key, zero, zero, zero,
+            params=params, target_params=params, opt_state=self.optimizer.init(params), worlds=worlds,
+            buffer=self.buffer.init(self._example_step()), key=key, update=zero, gradient_step=zero, env_steps=zero,
         )
 
-    def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
-        """One epsilon-greedy step in every world, with the auto-reset done here so that the
-        episode's final grid is at hand for hindsight."""
-        n, env, cfg = self.config.num_envs, self.env, self.config
-        key_explore, key_random, key_step = jax.random.split(key, 3)
-        net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
-        frames = _frames(worlds.history, net_obs)
-        carry, q = self.network.apply(params, worlds.carry, frames[None], worlds.reset[None])
-        explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
-        action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, env.num_actions), jnp.argmax(q[0], -1))
-
-        keys = jax.random.split(key_step, n)
-        obs_stepped, stepped, reward, terminated, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(
+    def _world_step(self, worlds: Worlds, keys: jax.Array, action: jax.Array, env_params):
+        """Every world steps with the environment's own auto-reset; returns the new environment
+        state and observation, reward, done, `info` and the `Step` to store."""
+        obs, env_state, reward, terminated, truncated, info = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))(
             keys, worlds.env_state, action, env_params
         )
-        done = terminated | jax.vmap(env.is_truncated, in_axes=(0, None))(stepped, env_params)
-        obs_reset, state_reset = jax.vmap(env.reset_env, in_axes=(0, None))(keys, env_params)
-        env_state = _select(done, state_reset, stepped)
-        obs = jnp.where(done[:, None], obs_reset, obs_stepped)
+        done = terminated | truncated
+        step = Step(obs=worlds.obs.astype(jnp.int16), reset=worlds.reset, action=action.astype(jnp.int8),
+                    reward=reward, done=done)
+        return env_state, obs, reward, done, info, step, worlds
 
-        step = Step(worlds.obs.astype(jnp.int16), worlds.reset, action.astype(jnp.int8), reward, done)
-        final_grids = worlds.final_grids
-        if cfg.hindsight:
-            drop_cell, drop_height = jax.vmap(lambda b, a, t: drop_record(env.config, b, a, t))(
-                worlds.env_state.grid, stepped.grid, terminated
-            )
-            step = step.replace(
-                world=jnp.arange(n, dtype=jnp.int32), episode=worlds.episode, drop_cell=drop_cell,
-                drop_height=drop_height, stride=info["stride"].astype(jnp.int8),
-            )
-            rows, slot = jnp.arange(n), worlds.episode % self.ring_size
-            final = jax.vmap(lambda g: plan_area(env.config, g))(stepped.grid).astype(jnp.int16)
-            final_grids = FinalGrids(
-                grids=final_grids.grids.at[rows, slot].set(
-                    jnp.where(done[:, None, None], final, final_grids.grids[rows, slot])),
-                episode=final_grids.episode.at[rows, slot].set(
-                    jnp.where(done, worlds.episode, final_grids.episode[rows, slot])),
-            )
+    def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
+        """One epsilon-greedy step in every world."""
+        n, cfg = self.config.num_envs, self.config
+        key_explore, key_random, key_step = jax.random.split(key, 3)
+        net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
+        frames = frames_with_history(worlds.history, net_obs)
+        carry, q = self.network.apply(params, worlds.carry, frames[None], worlds.reset[None])
+        explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
+        action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, self.env.num_actions), jnp.argmax(q[0], -1))
+        env_state, obs, reward, done, info, step, worlds = self._world_step(
+            worlds, jax.random.split(key_step, n), action, env_params
+        )
 
         history = worlds.history
         if cfg.frame_stack > 1:
@@ -384,9 +268,10 @@ class DQN:
             "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
             "return_sum": jnp.where(done, episode_return, 0.0).sum(),
         }
-        worlds = Worlds(
-            env_state, obs, worlds.obs, action.astype(jnp.int32), history, done, carry, jnp.where(done, 0.0, episode_return),
-            worlds.episode + done.astype(jnp.int32), final_grids,
+        worlds = worlds.replace(
+            env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32),
+            history=history, reset=done, carry=carry, episode_return=jnp.where(done, 0.0, episode_return),
+            episode=worlds.episode + done.astype(jnp.int32),
         )
         return worlds, step, stats
 
@@ -404,32 +289,10 @@ class DQN:
         return state, steps, jax.tree.map(jnp.sum, stats)
 
     def sample(self, state: RunnerState, key: jax.Array) -> tuple[Step, jax.Array, jax.Array, jax.Array]:
-        """A training batch, time-major: `(steps (L, S), float observations, rewards, loss mask)`.
-
-        With hindsight the first `hindsight_fraction` of the S windows are read as the relabelled
-        copy: rewards against the episode's final grid (and, on dynamic tasks, that grid as the
-        observed design), their steps masked out where the episode has not ended yet.
-        """
-        cfg = self.config
+        """A training batch, time-major: `(steps (L, S), float observations, rewards, loss mask)`."""
         batch = self.buffer.sample(state.buffer, key).experience
         batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), batch)
-        obs = batch.obs.astype(jnp.float32)
-        rewards = batch.reward
-        mask = jnp.ones_like(rewards)
-        if cfg.hindsight:
-            ring = state.worlds.final_grids
-            slot = batch.episode % self.ring_size
-            grids = ring.grids[batch.world, slot]  # (L, S, *plan_shape)
-            ended = ring.episode[batch.world, slot] == batch.episode
-            relabelled = (jnp.arange(rewards.shape[1]) < round(cfg.hindsight_fraction * cfg.batch_size))[None, :]
-            use = relabelled & ended
-            rewards = jnp.where(use, hindsight_rewards(self.env.config, batch.drop_cell, batch.drop_height, grids), rewards)
-            mask = jnp.where(relabelled, ended, True).astype(rewards.dtype)
-            if self.layout.dynamic:
-                start = self.layout.window_size + 2
-                design = jnp.where(use[..., None], grids.reshape(grids.shape[:2] + (-1,)), obs[..., start : start + self.layout.design_size])
-                obs = obs.at[..., start : start + self.layout.design_size].set(design)
-        return batch, obs, rewards, mask
+        return batch, batch.obs.astype(jnp.float32), batch.reward, jnp.ones_like(batch.reward)
 
     def network_inputs(self, obs: jax.Array, actions: jax.Array, resets: jax.Array) -> jax.Array:
         """What the network reads along a replayed window `(L, S, O)`: each observation with the
@@ -521,20 +384,10 @@ class DQN:
             return {"carry": network.initial_carry(1)[0], "history": history, **layout.episode_start_memory()}
 
         def act(params, policy_state, obs, key):
-            frames = _frames(policy_state["history"], layout.acting_inputs(obs, policy_state))
+            frames = frames_with_history(policy_state["history"], layout.acting_inputs(obs, policy_state))
             carry, q = network.apply(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
             history = frames[1:] if k > 1 else None
             action = jnp.argmax(q[0, 0]).astype(jnp.int32)
             return action, {"carry": carry[0], "history": history, **layout.remember(obs, action)}
 
         return Policy(init, act, params, self.config.algorithm)
-
-
-def make_train(config: DQNConfig):
-    """The whole run as a pure function of a key: `jax.jit(jax.vmap(make_train(c)))(keys)`."""
-    agent = DQN(config)
-
-    def train(key: jax.Array) -> tuple[RunnerState, dict[str, jax.Array]]:
-        return agent.train_chunk(agent.init(key), agent.env_params, agent.config.num_updates)
-
-    return train

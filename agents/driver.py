@@ -14,7 +14,6 @@ remaining chunks with the same compiled function, so the result equals an uninte
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import time
@@ -27,16 +26,9 @@ import numpy as np
 
 from agents import checkpoint
 from agents.config import TrainConfig, save_config
+from agents.registry import build_algorithm
 from agents.sharding import check_divisible, env_mesh, state_shardings
-
-ALGORITHM_CLASSES = {"ppo": "agents.ppo:PPO", "dqn": "agents.dqn:DQN", "drqn": "agents.dqn:DQN", "drqn-her": "agents.dqn:DQN"}
-"""Algorithm name (a key of `agents.config.ALGORITHMS`) -> "module:class" built from its config."""
-
-
-def build_algorithm(config: TrainConfig):
-    module, name = ALGORITHM_CLASSES[config.algorithm].split(":")
-    return getattr(importlib.import_module(module), name)(config)
-
+from snac_jax.atomic import atomic_write_text
 
 def seed_keys(config: TrainConfig) -> jax.Array:
     base = jax.random.key(config.seed)
@@ -120,7 +112,7 @@ def train(
         _, state = checkpoint.restore_state(out_dir, state)
         done_chunks = last + 1
         history = _read_metrics(metrics_path, last)
-        checkpoint.atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
+        atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
 
     sizes = chunk_sizes(config.num_updates, config.chunks)
     compiled: dict[int, Callable] = {}

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from snac_jax.env import SNACEnv
+from snac_jax.observation import ObservationLayout
 from snac_jax.state import EnvParams
 
 
@@ -33,28 +34,22 @@ def scaled_init(gain: float) -> nn.initializers.Initializer:
 
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
-    """Where each part of the flat observation (SPEC §6) sits, and how to scale it to ~[-1, 1]."""
+    """What a network reads: the environment's observation, laid out as `env` (the library's
+    `snac_jax.observation.ObservationLayout`) says, optionally followed by the previous step
+    (`with_previous_step`), and how to scale each part to about [-1, 1]."""
 
-    window_shape: tuple[int, int]
-    plan_shape: tuple[int, int]
-    dynamic: bool
-    gps: bool
+    env: ObservationLayout
     height_scale: float  # the tallest design cell (1 in 2D)
     brick_scale: float  # the largest brick budget
     step_scale: float  # the step limit
     # > 0: the learner appends the previous step to the environment's observation: the window
-    # before the last action, and that action one-hot in `num_actions + 1` entries
-    # (`with_previous_step`).
+    # before the last action, and that action one-hot in `num_actions + 1` entries.
     num_actions: int = 0
 
     @classmethod
     def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> "ObsLayout":
-        config = env.config
         return cls(
-            window_shape=config.window_shape,
-            plan_shape=config.plan_shape,
-            dynamic=config.dynamic,
-            gps=config.gps,
+            env=env.observation_layout,
             height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
             brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
             step_scale=float(int(params.max_steps_in_episode)),
@@ -62,18 +57,28 @@ class ObsLayout:
         )
 
     @property
+    def window_shape(self) -> tuple[int, int]:
+        return self.env.window_shape
+
+    @property
+    def plan_shape(self) -> tuple[int, int]:
+        return self.env.plan_shape
+
+    @property
+    def dynamic(self) -> bool:
+        return self.env.design is not None
+
+    @property
     def window_size(self) -> int:
-        return self.window_shape[0] * self.window_shape[1]
+        return self.env.window_size
 
     @property
     def design_size(self) -> int:
-        return self.plan_shape[0] * self.plan_shape[1]
+        return self.env.design_size
 
     @property
     def env_obs_size(self) -> int:
-        """The environment's observation (SPEC §6)."""
-        gps_size = (1 if self.plan_shape[0] == 1 else 2) if self.gps else 0
-        return self.window_size + 2 + (self.design_size if self.dynamic else 0) + gps_size
+        return self.env.size
 
     @property
     def previous_step_size(self) -> int:
@@ -93,9 +98,8 @@ class ObsLayout:
 
         Why: the robot localises by how its window shifted after a move (SPEC §11). A recurrent
         policy that samples its actions cannot tell from its own state which one was drawn, and
-        comparing two windows is far easier side by side than through a recurrent state. PPO on
-        1d-static-sin, same settings and budget: greedy IoU 0.816 without, 0.855 with the last
-        action, 0.907 with both (bench/results/ppo.md).
+        comparing two windows is far easier side by side than through a recurrent state; each of
+        the two inputs raised recurrent PPO's score (bench/results/ppo.md).
         """
         if not self.num_actions:
             return obs
@@ -143,20 +147,18 @@ class ObsLayout:
         (..., wr * wc, classes), counters (..., 2),
         with the switches design (..., *plan_shape) and position (..., 1 or 2), and with
         `num_actions` the previous window (scaled and one-hot) and the last action."""
-        lead = obs.shape[:-1]
-        w = self.window_size
+        lead, layout = obs.shape[:-1], self.env
+        window = obs[..., layout.window]
         parts = {
-            "window": obs[..., :w].reshape(lead + self.window_shape) / self.height_scale,
-            "window_classes": self.height_classes(obs[..., :w]),
-            "counters": obs[..., w : w + 2] / jnp.array([self.brick_scale, self.step_scale]),
+            "window": window.reshape(lead + self.window_shape) / self.height_scale,
+            "window_classes": self.height_classes(window),
+            "counters": obs[..., layout.counters] / jnp.array([self.brick_scale, self.step_scale]),
         }
-        offset = w + 2
-        if self.dynamic:
-            parts["design"] = obs[..., offset : offset + self.design_size].reshape(lead + self.plan_shape) / self.height_scale
-            offset += self.design_size
-        if self.gps:
-            gps_size = self.env_obs_size - offset
-            parts["position"] = obs[..., offset : offset + gps_size] / max(self.plan_shape)
+        if layout.design is not None:
+            parts["design"] = layout.design_cells(obs[..., : layout.size]) / self.height_scale
+        if layout.position is not None:
+            parts["position"] = obs[..., layout.position] / max(self.plan_shape)
+        w = self.window_size
         if self.num_actions:
             previous_window = obs[..., self.env_obs_size : self.env_obs_size + w]
             parts["previous_window"] = previous_window.reshape(lead + self.window_shape) / self.height_scale
@@ -170,9 +172,7 @@ class DesignEncoder(nn.Module):
     strided conv over a 2D/3D plan.
 
     Why dense in 1D: the encoder runs on every step the learner trains on, and a 1D conv over
-    the 30 columns made PPO's 1d-dynamic training 1.7x slower on the CPU (35.6k vs 60.2k
-    env-steps/s, bench/results/ppo.md); greedy IoU 0.805 with the conv (and GRU 64), 0.795
-    with the dense layer (and GRU 32): one seed each, on different machines."""
+    the 30 columns made training much slower for no clear gain in score (bench/results/ppo.md)."""
 
     features: int
 
@@ -286,3 +286,61 @@ def param_count(params) -> int:
 
 
 __all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedRNN", "ActorCritic", "scaled_init")
+
+
+class QNetwork(nn.Module):
+    """Q-values from a stack of observations, with an optional LSTM core and a dueling head.
+
+    Time-major like every network of `agents.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
+    last k observations, oldest first, zeros before the episode start), `resets (T, B)`.
+    """
+
+    layout: ObsLayout
+    num_actions: int
+    hidden_size: int = 128
+    lstm_size: int = 0  # 0: feed-forward
+    dueling: bool = True
+
+    @property
+    def carry_size(self) -> int:
+        return 2 * self.lstm_size if self.lstm_size else 1
+
+    def initial_carry(self, batch: int) -> jax.Array:
+        return jnp.zeros((batch, self.carry_size), jnp.float32)
+
+    @nn.compact
+    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
+        x = ObservationEncoder(self.layout, self.hidden_size)(frames)  # (T, B, k, H)
+        if frames.shape[-2] > 1:
+            x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))
+        else:
+            x = x[..., 0, :]
+        if self.lstm_size:
+            carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
+        if self.dueling:
+            value = mlp_head(x, self.hidden_size, 1, 1.0)
+            advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)
+            return carry, value + advantage - advantage.mean(axis=-1, keepdims=True)
+        return carry, mlp_head(x, self.hidden_size, self.num_actions, 1.0)
+
+
+def stack_frames(obs: jax.Array, resets: jax.Array, k: int) -> jax.Array:
+    """`(T, B, O)` observations -> `(T - k + 1, B, k, O)` stacks of the last k, oldest first;
+    a frame from before the episode of the newest one (a reset in between) is zeros, as when acting."""
+    t = obs.shape[0] - k + 1
+    frames = []
+    for j in range(k):
+        frame = obs[j : j + t]
+        # Frame j of output i is obs[i + j]; it belongs to the newest frame's episode unless a
+        # reset lies in (i + j, i + k - 1].
+        later_reset = jnp.zeros_like(resets[:t])
+        for m in range(j + 1, k):
+            later_reset = later_reset | resets[m : m + t]
+        frames.append(jnp.where(later_reset[..., None], 0.0, frame))
+    return jnp.stack(frames, axis=2)
+
+
+def frames_with_history(history: jax.Array | None, obs: jax.Array) -> jax.Array:
+    """`(..., k, O)`: the stored earlier frames (if any) followed by `obs (..., O)`."""
+    obs = obs[..., None, :].astype(jnp.float32)
+    return obs if history is None else jnp.concatenate([history, obs], axis=-2)

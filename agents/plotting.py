@@ -8,14 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from snac_jax.evaluation import load_paper_results
+from snac_jax.paper import paper_column
 
 RL_METHODS = ("dqn", "drqn", "drqn_her", "sac", "ppo", "rainbow")
 """The paper's learned methods (not the human or handcrafted rows)."""
-
-
-def paper_column(task: str) -> str:
-    """The paper's column for an environment task: the three 1D shapes share `1d-static`."""
-    return "1d-static" if task.startswith("1d-static") else task
 
 
 def best_rl_result(task: str, paper: dict | None = None) -> tuple[str, float] | None:
@@ -37,7 +33,7 @@ def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from agents.checkpoint import atomic_replace
+    from snac_jax.atomic import atomic_write
 
     steps = np.array([r["env_steps"] for r in records], dtype=float)
     fig, (ax_iou, ax_return) = plt.subplots(1, 2, figsize=(11, 4))
@@ -56,5 +52,5 @@ def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> 
     ax_iou.legend(loc="lower right", fontsize="small")
     fig.suptitle(title)
     fig.tight_layout()
-    atomic_replace(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     plt.close(fig)

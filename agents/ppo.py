@@ -19,7 +19,8 @@ of the episode, before the auto-reset), computed with the hidden state that saw 
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import dataclasses
+from typing import Any, ClassVar, NamedTuple
 
 import distrax
 import jax
@@ -27,9 +28,45 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.config import PPOConfig
+from agents.config import TrainConfig, option
 from agents.networks import ActorCritic, ObsLayout
+from agents.targets import gae
 from snac_jax.policy import Policy
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig(TrainConfig):
+    """PPO with the clipped objective, GAE, and an optional recurrent (GRU) core."""
+
+    algorithm: ClassVar[str] = "ppo"
+    paper_method: ClassVar[str] = "ppo"
+
+    recurrent: bool = option(False, "GRU actor-critic instead of a feed-forward one")
+    rollout_steps: int = option(64, "steps per world between updates", low=1)
+    update_epochs: int = option(4, "passes over each rollout", low=1)
+    num_minibatches: int = option(4, "minibatches per pass; they split the worlds (whole sequences for the GRU)", low=1)
+    learning_rate: float = option(1e-3, "Adam step size", low=0, low_open=True)
+    anneal_lr: bool = option(True, "decay the learning rate linearly to 0 over the run")
+    gamma: float = option(0.99, "discount", low=0, high=1)
+    gae_lambda: float = option(0.95, "GAE lambda", low=0, high=1)
+    clip_eps: float = option(0.2, "PPO clip range of the ratio and the value", low=0, low_open=True)
+    ent_coef: float = option(0.01, "entropy coefficient at the first update", low=0)
+    ent_coef_end: float | None = option(
+        None, "entropy coefficient at the last update, annealed linearly from ent_coef (None: constant); "
+        "below 0 it pushes the policy toward the deterministic one the protocol scores", low=-1)
+    vf_coef: float = option(0.5, "value loss weight", low=0)
+    max_grad_norm: float = option(0.5, "global gradient norm clip", low=0, low_open=True)
+    hidden_size: int = option(64, "width of the encoder and the heads", low=1)
+    rnn_size: int = option(64, "GRU units (recurrent only)", low=1)
+    reward_scale: float = option(0.1, "rewards are multiplied by this for learning (not for reporting)",
+                                 low=0, low_open=True)
+
+    def check(self) -> None:
+        if self.num_envs % self.num_minibatches:
+            raise ValueError(
+                f"num_envs ({self.num_envs}) must be a multiple of num_minibatches ({self.num_minibatches}): "
+                "minibatches split the worlds"
+            )
 
 
 @struct.dataclass
@@ -65,35 +102,6 @@ class Transition(NamedTuple):
     done: jax.Array
     final_obs: jax.Array  # the episode's last observation where `done`
     carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
-
-
-def gae(
-    rewards: jax.Array,
-    values: jax.Array,
-    next_values: jax.Array,
-    terminated: jax.Array,
-    done: jax.Array,
-    gamma: float,
-    gae_lambda: float,
-) -> tuple[jax.Array, jax.Array]:
-    """Generalised advantage estimation over time-major `(T, ...)` arrays.
-
-    `next_values[t]` is the value of the state after step t: the next observation's, or the
-    final observation's where the episode ended at t. A termination bootstraps nothing; a
-    truncation bootstraps from `next_values[t]`; either ends the advantage trace (`done`).
-    Returns `(advantages, value targets)`.
-    """
-    deltas = rewards + gamma * (1.0 - terminated) * next_values - values
-
-    def backward(advantage, step):
-        delta, ended = step
-        advantage = delta + gamma * gae_lambda * (1.0 - ended) * advantage
-        return advantage, advantage
-
-    _, advantages = jax.lax.scan(
-        backward, jnp.zeros_like(deltas[-1]), (deltas, done.astype(deltas.dtype)), reverse=True
-    )
-    return advantages, advantages + values
 
 
 class PPO:
@@ -133,10 +141,15 @@ class PPO:
         key, key_params, key_reset = jax.random.split(key, 3)
         carry = self.network.initial_carry(n)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
-        worlds = Worlds(env_state, obs, obs, jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool), carry, jnp.zeros((n,), jnp.float32))
+        worlds = Worlds(
+            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
+            reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
+        )
         net_obs = self._network_obs(worlds)
         params = self.network.init(key_params, carry[:1], net_obs[None, :1], jnp.ones((1, 1), bool))
-        return RunnerState(params, self.optimizer.init(params), worlds, key, jnp.zeros((), jnp.int32))
+        return RunnerState(
+            params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
+        )
 
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
@@ -159,15 +172,18 @@ class PPO:
             episode_return = worlds.episode_return + reward
             final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
             transition = Transition(
-                net_obs, worlds.reset, action, pi.log_prob(action), value[0], reward,
-                terminated, done, final_obs, new_carry,
+                obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
+                reward=reward, terminated=terminated, done=done, final_obs=final_obs, carry_after=new_carry,
             )
             stats = {
                 "episodes": done.sum(),
                 "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
                 "return_sum": jnp.where(done, episode_return, 0.0).sum(),
             }
-            worlds = Worlds(env_state, obs, worlds.obs, action.astype(jnp.int32), done, new_carry, jnp.where(done, 0.0, episode_return))
+            worlds = Worlds(
+                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32), reset=done,
+                carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
+            )
             return (worlds, key), (transition, stats)
 
         (worlds, key), (batch, stats) = jax.lax.scan(

@@ -1,5 +1,5 @@
 """Training throughput: env steps per second of PPO *including learning* (rollout, GAE and the
-update epochs), per task and network, with the tuned defaults of `agents.config.TUNED`.
+update epochs), per task and network, with the tuned defaults of `agents/tuned/ppo.toml`.
 
     python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
 
@@ -44,8 +44,8 @@ def main() -> None:
     devices.use_cpu_devices(args.devices)
     import jax
 
-    from agents.config import make_config
-    from agents.driver import build_algorithm, initial_state
+    from agents.driver import initial_state
+    from agents.registry import build_algorithm, make_config
     from agents.networks import param_count
 
     variants = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]

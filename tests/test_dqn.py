@@ -12,8 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.config import make_config
-from agents.dqn import DQN, hindsight_rewards, n_step_targets, stack_frames
+from agents.hindsight import hindsight_rewards
+from agents.networks import stack_frames
+from agents.registry import build_algorithm, make_config
+from agents.targets import n_step_targets
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
 TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
@@ -23,7 +25,7 @@ RECURRENT = dict(lstm_size=16, burn_in=4, sequence_length=6)
 
 def _agent(algorithm, task="1d-static-sin", **options):
     extra = RECURRENT if algorithm != "dqn" else {}
-    return DQN(make_config(algorithm, task, **{**TINY, **extra, **options}))
+    return build_algorithm(make_config(algorithm, task, **{**TINY, **extra, **options}))
 
 
 def _run(agent, updates, seed=0):
@@ -244,7 +246,7 @@ def test_tiny_run_of_each_agent_completes(algorithm, task, options):
 
 @pytest.mark.slow  # three compilations of a whole run: ~100 s on a 2-core CPU (PPO's resume test stays in the default suite)
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
-    from agents.checkpoint import checkpoint_policy
+    from agents.trained import checkpoint_policy
     from agents.driver import train
     from snac_jax.evaluation import evaluate_task
 
@@ -279,11 +281,11 @@ def test_config_errors_are_clear(algorithm, options, message):
 
 def test_replay_memory_is_bounded_by_the_config():
     with pytest.raises(ValueError, match="exceeds max_buffer_mb"):
-        DQN(make_config("drqn", "2d-dynamic-dense", buffer_size=2_000_000, max_buffer_mb=100.0))
-    agent = DQN(make_config("drqn", "1d-static-sin", buffer_size=100_000, num_envs=100))
+        build_algorithm(make_config("drqn", "2d-dynamic-dense", buffer_size=2_000_000, max_buffer_mb=100.0))
+    agent = build_algorithm(make_config("drqn", "1d-static-sin", buffer_size=100_000, num_envs=100))
     # int16 observations (7) + reset + action + float32 reward + done per step
     per_step = 7 * 2 + 1 + 1 + 4 + 1
-    assert 100_000 * per_step <= agent.memory_bytes["buffer"] <= 100_000 * per_step + 16
+    assert 100_000 * per_step <= agent.memory_bytes()["buffer"] <= 100_000 * per_step + 16
 
 
 def test_replayed_windows_read_the_previous_step_from_the_row_before():

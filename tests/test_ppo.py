@@ -8,9 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.config import PPOConfig, config_from_json, make_config
+from agents.registry import config_from_json, make_config
 from agents.networks import ActorCritic, ObsLayout
-from agents.ppo import PPO, gae, make_train
+from agents.ppo import PPO, PPOConfig, make_train
+from agents.targets import gae
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
 

@@ -13,8 +13,8 @@ import jax
 import numpy as np
 import pytest
 
-from agents import checkpoint
-from agents.config import make_config
+from agents import checkpoint, trained
+from agents.registry import make_config
 from agents.driver import chunk_sizes, initial_state, read_metrics, train
 
 TINY = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
@@ -33,7 +33,7 @@ def test_chunk_sizes_cover_the_run():
 
 def test_checkpoint_round_trip(tmp_path):
     config = make_config("ppo", "1d-static-sin", recurrent=True, seeds=2, total_steps=128, **TINY)
-    from agents.driver import build_algorithm
+    from agents.registry import build_algorithm
 
     algorithm = build_algorithm(config)
     state = initial_state(algorithm)
@@ -76,14 +76,14 @@ def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path):
     saved["hidden_size"] = 2 * saved["hidden_size"]
     (tmp_path / checkpoint.CONFIG_FILE).write_text(json.dumps(saved))
     with pytest.raises(ValueError, match="does not match the network"):
-        checkpoint.load_trained(tmp_path)
+        trained.load_trained(tmp_path)
 
 
 TWO_DEVICES = textwrap.dedent(
     """
     import json, sys
     import jax
-    from agents.config import make_config
+    from agents.registry import make_config
     from agents.driver import train
     from snac_jax.evaluation import run_episodes
     from snac_jax.devices import env_mesh
@@ -146,7 +146,7 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
 
     from snac_jax.evaluation import evaluate_task
 
-    again = evaluate_task("1d-static-sin", lambda env: checkpoint.checkpoint_policy(env, out), static_episodes=4)
+    again = evaluate_task("1d-static-sin", lambda env: trained.checkpoint_policy(env, out), static_episodes=4)
     assert again.mean == pytest.approx(evaluation["1d-static-sin"]["mean"])
 
 
@@ -157,4 +157,4 @@ def test_checkpoint_policy_rejects_another_task(tmp_path):
 
     env, _ = make("1d-static-step")
     with pytest.raises(ValueError, match="trained on '1d-static-sin'"):
-        checkpoint.checkpoint_policy(env, tmp_path)
+        trained.checkpoint_policy(env, tmp_path)

@@ -1,5 +1,7 @@
-"""The `snac` command line. Each subcommand lives in its own module of this package and
-registers itself through `add_parser(subparsers)`; this module only dispatches."""
+"""The `snac` command line. Each subcommand lives in its own module of this package, or in a
+package that extends the library (`snac train` comes from `agents`, through the entry points of
+`snac_jax.plugins`), and registers itself through `add_parser(subparsers)`; this module only
+dispatches."""
 
 from __future__ import annotations
 
@@ -7,8 +9,10 @@ import argparse
 import importlib
 import sys
 
+from snac_jax import plugins
+
 # One module per subcommand; each defines `add_parser(subparsers)`.
-COMMAND_MODULES = ("rollout", "render", "eval", "play", "train")
+COMMAND_MODULES = ("rollout", "render", "eval", "play")
 # CPU devices a subcommand gets without `--devices` (others: one per core). Training: the
 # learner's minibatch shuffles become cross-device copies, and 1 device measured faster than 2
 # (bench/results/ppo.md).
@@ -20,6 +24,8 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"snac_jax.cli.{name}").add_parser(subparsers)
+    for module in plugins.command_modules().values():
+        module.add_parser(subparsers)
     return parser
 
 

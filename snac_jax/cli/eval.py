@@ -67,29 +67,9 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _fmt(value, digits: int = 3) -> str:
-    return "—" if value is None else f"{value:.{digits}f}"
-
-
-def markdown_table(results, paper: dict) -> str:
-    lines = [
-        "| task | episodes | mean IoU | 95% CI | min IoU | std | paper mean | paper min | Δ mean | mean length | mean bricks |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in results:
-        row = paper.get(r.task, {})
-        paper_mean, paper_min = row.get("avg"), row.get("min")
-        delta = None if paper_mean is None else r.mean - paper_mean
-        lines.append(
-            f"| {r.task} | {r.episodes} | {r.mean:.3f} | [{r.ci95[0]:.3f}, {r.ci95[1]:.3f}] | {r.min:.3f} | "
-            f"{r.std:.3f} | {_fmt(paper_mean)} | {_fmt(paper_min)} | "
-            f"{'—' if delta is None else f'{delta:+.3f}'} | {r.mean_length:.1f} | {r.mean_bricks_used:.1f} |"
-        )
-    return "\n".join(lines)
-
-
 def run(args: argparse.Namespace) -> int:
     from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
+    from snac_jax.paper import markdown_table
     from snac_jax.policies import policy_builder
 
     sources = [args.policy, args.checkpoint, args.human]
@@ -101,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
         print(human_report(args.human, paper_results=args.paper_results))
         return 0
     if args.checkpoint is not None:
-        from agents.checkpoint import checkpoint_builder
+        from snac_jax.plugins import checkpoint_loader
 
-        builder, run_task, method = checkpoint_builder(args.checkpoint)
+        builder, run_task, method = checkpoint_loader()(args.checkpoint)
         args.task = args.task or run_task
         policy_name = f"checkpoint {args.checkpoint}"
     else:

@@ -9,10 +9,6 @@ import time
 from snac_jax.cli.arguments import positive_int, task_id
 from snac_jax.tasks import TASKS
 
-LEARNED_DEFAULT = "ppo"
-"""The registry entry `--checkpoint` loads when `--policy` is not given."""
-
-
 def _policy_names() -> list[str]:
     from snac_jax.policies import POLICIES
 
@@ -32,7 +28,7 @@ def add_parser(subparsers) -> None:
         "--policy",
         choices=names,
         default=None,
-        help=f"a registered policy (default: random, or {LEARNED_DEFAULT!r} with --checkpoint)",
+        help="a registered policy (default: random; with --checkpoint, the trained agent)",
     )
     parser.add_argument("--checkpoint", default=None, metavar="DIR", help="a trained agent's checkpoint directory")
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
@@ -67,14 +63,21 @@ def run(args: argparse.Namespace) -> int:
     if args.hold < 0:
         print(f"snac render: error: --hold must be >= 0 seconds, got {args.hold}", file=sys.stderr)
         return 2
-    name = args.policy or (LEARNED_DEFAULT if args.checkpoint else "random")
+    if args.policy is not None and args.checkpoint is not None:
+        print("snac render: error: give --policy NAME or --checkpoint DIR, not both", file=sys.stderr)
+        return 2
+    name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
     try:
         env, params = make(args.task, **overrides)
-        options = {} if args.checkpoint is None else {"checkpoint": args.checkpoint}
-        policy = build_policy(name, env, **options)
-    except (ValueError, TypeError, FileNotFoundError) as error:
-        # TypeError: the builder takes no checkpoint (e.g. --policy handcrafted --checkpoint DIR).
+        if args.checkpoint is None:
+            policy = build_policy(name, env)
+        else:
+            from snac_jax.plugins import checkpoint_loader
+
+            builder, _, _ = checkpoint_loader()(args.checkpoint)
+            policy = builder(env)
+    except (ValueError, FileNotFoundError) as error:
         print(f"snac render: error: policy {name!r}: {error}", file=sys.stderr)
         return 2
 

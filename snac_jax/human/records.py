@@ -17,6 +17,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from snac_jax.atomic import atomic_write
+from snac_jax.paper import paper_column
 from snac_jax.tasks import TASKS
 
 RECORD_VERSION = 1
@@ -122,11 +123,6 @@ def replay_iou(record: EpisodeRecord) -> float:
     return replay(env, params, record.actions, record.strides)["final_iou"]
 
 
-def paper_task(task: str) -> str:
-    """The paper's table column of an environment task (`1d-static-sin` -> `1d-static`)."""
-    return "1d-static" if task.startswith("1d-static") else task
-
-
 def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = None, verify: bool = True):
     """Human episodes summarised per paper task as `snac_jax.evaluation.TaskResult`s.
 
@@ -146,7 +142,7 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
                 raise ValueError(f"record of {r.task} seed {r.seed} claims IoU {r.iou}, its replay gives {replayed}")
     groups: dict[str, list[EpisodeRecord]] = {}
     for r in chosen:
-        groups.setdefault(paper_task(r.task), []).append(r)
+        groups.setdefault(paper_column(r.task), []).append(r)
     results = []
     for task, group in groups.items():
         strata: dict[str, list[float]] = {}
@@ -171,7 +167,7 @@ def human_report(path: str | os.PathLike, *, mode: str | None = None, paper_resu
                  verify: bool = True) -> str:
     """What `snac eval --human FILE` prints: the summary of a record file as the evaluator's
     markdown table, beside the paper's human row. Every record is replayed first (`verify`)."""
-    from snac_jax.cli.eval import markdown_table
+    from snac_jax.paper import markdown_table
     from snac_jax.evaluation import load_paper_results, paper_row
 
     records = load_records(path)

@@ -1,0 +1,145 @@
+"""`snac train ALGORITHM`: train an agent end-to-end on device, then score it with the protocol.
+
+Plugged into the `snac` command through the `snac_jax.commands` entry point. Every field of an
+algorithm's config (`agents.config.option`) becomes a flag of its sub-subcommand, with the field's
+type, bounds and help: nothing here lists hyperparameters. Each run writes `DIR/config.json`,
+`DIR/metrics.jsonl`, `DIR/checkpoints/`, `DIR/curve.png`, and after the evaluation protocol
+`DIR/eval.json` (the evaluator's format; one row per seed when several).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
+from snac_jax.tasks import TASKS
+
+DEFAULT_TASK = "1d-static-sin"
+
+
+def _flag_type(spec):
+    """An argparse type that parses a field's value and checks it against its declaration."""
+    def parse(text: str):
+        try:
+            value = spec.kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {spec.describe()}, got {text!r}") from None
+        try:
+            spec.check(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {spec.describe()}, got {text!r}") from None
+        return value
+
+    parse.__name__ = spec.describe()
+    return parse
+
+
+def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, ...]:
+    """One flag per command-line field of `config_cls`; returns the field names."""
+    from agents.config import field_specs
+
+    names = []
+    for spec in field_specs(config_cls).values():
+        if not spec.cli:
+            continue
+        flag = "--" + spec.name.replace("_", "-")
+        help_text = f"{spec.help} (default: tuned per task, else {spec.default!r})"
+        if spec.kind is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        else:
+            parser.add_argument(flag, type=_flag_type(spec), default=None, metavar=spec.kind.__name__.upper(),
+                                help=help_text)
+        names.append(spec.name)
+    return tuple(names)
+
+
+def add_parser(subparsers) -> None:
+    from agents.registry import ALGORITHMS, config_class
+
+    parser = subparsers.add_parser("train", help="train an agent end-to-end on device, then evaluate it")
+    algorithms = parser.add_subparsers(dest="algorithm", required=True)
+    for name, entry in ALGORITHMS.items():
+        sub = algorithms.add_parser(name, help=entry.summary)
+        sub.add_argument("--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}")
+        sub.add_argument("--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)")
+        sub.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the run in DIR (other options ignored)")
+        sub.add_argument("--eval-episodes", type=positive_int, default=None,
+                         help="episodes per design for the final evaluation (default: the paper's protocol)")
+        sub.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+        sub.add_argument("--no-progress", action="store_true", help="no progress bar")
+        add_devices_argument(sub, cpu_default="1, measured faster for training")
+        options = add_config_flags(sub, config_class(name))
+        sub.set_defaults(func=run, config_options=options)
+
+
+def build_config(args: argparse.Namespace):
+    from agents.registry import make_config
+
+    options = {name: getattr(args, name) for name in args.config_options}
+    return make_config(args.algorithm, args.task or DEFAULT_TASK, **options)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents import checkpoint
+    from agents.driver import read_metrics, train
+    from agents.plotting import plot_curve
+    from agents.registry import build_algorithm
+    from snac_jax import devices
+
+    if args.resume is not None:
+        out_dir = args.resume
+        config = checkpoint.read_config(out_dir)
+        if config.algorithm != args.algorithm:
+            raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
+    else:
+        config = build_config(args)
+        kind = "-rnn" if getattr(config, "recurrent", False) else ""
+        out_dir = args.out or Path("runs") / f"{config.algorithm}{kind}-{config.task}-{time.strftime('%Y%m%d-%H%M%S')}"
+    print(f"{config.algorithm} on {config.task}: {config.total_steps:,} env steps x {config.seeds} seed(s), "
+          f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
+
+    memory = getattr(build_algorithm(config), "describe_memory", None)  # replay learners: say the buffer's size
+    if memory is not None:
+        print(memory(), file=sys.stderr)
+    mesh = devices.env_mesh(args.devices, config.num_envs)
+    devices.check_divisible(config.num_envs, mesh)
+    print(f"worlds split over {mesh.devices.size} {mesh.devices.flat[0].platform} device(s)", file=sys.stderr)
+    algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress, mesh=mesh)
+    config = algorithm.config
+    kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
+    plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
+    print(f"wrote {out_dir / 'curve.png'}", file=sys.stderr)
+    if not args.no_eval:
+        evaluate_run(algorithm, state, out_dir, args.eval_episodes)
+    return 0
+
+
+def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
+    """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`."""
+    import jax
+
+    from snac_jax.atomic import atomic_write_json
+    from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
+    from snac_jax.paper import markdown_table, paper_column
+
+    config = algorithm.config
+    counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
+    results = []
+    for seed in range(config.seeds):
+        params = jax.tree.map(lambda x: x[seed], state.params)
+        result = evaluate_task(config.task, algorithm.policy(params), **counts)
+        if config.seeds > 1:
+            result = dataclasses.replace(result, task=f"{config.task} (seed {seed})")
+        results.append(result)
+    paper = paper_row(load_paper_results(), config.paper_method)
+    paper = {r.task: paper.get(paper_column(config.task), {}) for r in results}
+    print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
+          f"(the paper's {paper_column(config.task)} column)")
+    print()
+    print(markdown_table(results, paper))
+    atomic_write_json(out_dir / "eval.json", {r.task: r.to_json() for r in results})
+    print(f"\nwrote {out_dir / 'eval.json'}")

@@ -1,0 +1,106 @@
+"""The one table from an algorithm's name to its module, config class and algorithm class, and
+the resolution of a config: class defaults, then the task's tuned entry, then the caller's values.
+
+Tuned values are data, `agents/tuned/<algorithm>.toml`: one table per task, each naming in
+`result` the page under `bench/results/` that records the runs it was chosen from.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from agents.config import TrainConfig
+from snac_jax.tasks import TASKS
+
+TUNED_DIR = Path(__file__).parent / "tuned"
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    module: str
+    config: str  # the config class's name in `module`
+    algorithm: str  # the algorithm class's name in `module`
+    summary: str  # one line for `snac train --help`
+
+
+ALGORITHMS: dict[str, Entry] = {
+    "ppo": Entry("agents.ppo", "PPOConfig", "PPO", "PPO (feed-forward, or recurrent with --recurrent)"),
+    "dqn": Entry("agents.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"),
+    "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
+    "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
+                      "DRQN + hindsight relabelling with the episode's final grid as the design"),
+}
+
+
+def _check_algorithm(algorithm: Any) -> Entry:
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
+    return ALGORITHMS[algorithm]
+
+
+def config_class(algorithm: str) -> type[TrainConfig]:
+    entry = _check_algorithm(algorithm)
+    return getattr(importlib.import_module(entry.module), entry.config)
+
+
+def build_algorithm(config: TrainConfig):
+    """The algorithm object (pure functions the driver runs) of a config."""
+    entry = _check_algorithm(config.algorithm)
+    return getattr(importlib.import_module(entry.module), entry.algorithm)(config)
+
+
+@functools.cache
+def tuned_table(algorithm: str) -> dict[str, dict[str, Any]]:
+    """Task -> tuned values of `algorithm` (without `result`), checked against its config's fields."""
+    cls = config_class(algorithm)
+    path = TUNED_DIR / f"{algorithm}.toml"
+    if not path.is_file():
+        return {}
+    fields = {f.name for f in dataclasses.fields(cls)} - {"task"}
+    table = {}
+    for task, entry in tomllib.loads(path.read_text()).items():
+        entry = dict(entry)
+        if task not in TASKS:
+            raise ValueError(f"{path}: unknown task {task!r}; allowed: {', '.join(TASKS)}")
+        if "result" not in entry:
+            raise ValueError(f"{path}: [{task}] must name the result it was tuned for (`result = \"bench/results/...\"`)")
+        entry.pop("result")
+        unknown = sorted(set(entry) - fields)
+        if unknown:
+            raise ValueError(f"{path}: [{task}] has unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+        table[task] = entry
+    return table
+
+
+def make_config(algorithm: str, task: str = TrainConfig.task, **overrides: Any) -> TrainConfig:
+    """The tuned config of `algorithm` on `task`, updated with `overrides` (None values are
+    ignored), validated."""
+    cls = config_class(algorithm)
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; allowed: {', '.join(TASKS)}")
+    fields = {f.name for f in dataclasses.fields(cls)}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise ValueError(f"unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+    config = cls(**{**tuned_table(algorithm).get(task, {}), **overrides, "task": task})
+    config.validate()
+    return config
+
+
+def config_from_json(data: dict[str, Any]) -> TrainConfig:
+    """Inverse of `TrainConfig.to_json` (a run's `config.json`)."""
+    data = dict(data)
+    cls = config_class(data.pop("algorithm", None))
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - fields)
+    if unknown:
+        raise ValueError(f"config.json has unknown {cls.algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+    config = cls(**data)
+    config.validate()
+    return config

@@ -1,0 +1,31 @@
+"""Extension points of the `snac` command, found through package entry points.
+
+The library never imports the packages that extend it: `agents` (the learners) declares in
+pyproject.toml a `train` subcommand (group `snac_jax.commands`: a module with
+`add_parser(subparsers)`) and a loader of trained policies (group `snac_jax.checkpoint_loaders`:
+`loader(run_directory) -> (builder(env, **options) -> Policy, the run's task, its paper row)`),
+and `snac eval --checkpoint` / `snac render --checkpoint` reach them here by name.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+from typing import Any, Callable
+
+COMMANDS = "snac_jax.commands"
+CHECKPOINT_LOADERS = "snac_jax.checkpoint_loaders"
+
+
+def command_modules() -> dict[str, Any]:
+    """Subcommand name -> its module, for every installed extension."""
+    return {ep.name: importlib.import_module(ep.value) for ep in entry_points(group=COMMANDS)}
+
+
+def checkpoint_loader() -> Callable:
+    """The installed loader of trained policies; a clear error if no package provides one."""
+    loaders = list(entry_points(group=CHECKPOINT_LOADERS))
+    if not loaders:
+        raise ValueError(f"no package provides a checkpoint loader (entry point group {CHECKPOINT_LOADERS!r}); "
+                         "install the project with `pip install -e .`, which includes the agents")
+    return loaders[0].load()

@@ -1,0 +1,127 @@
+"""Facts about the code's structure that anyone can check with grep and the import graph: the
+library never imports the learners, no module imports itself back through others, modules stay
+short, and code comments do not narrate measurements (those live in bench/results/*.md)."""
+
+from __future__ import annotations
+
+import ast
+import io
+import re
+import tokenize
+from pathlib import Path
+
+ROOT = Path(__file__).parents[1]
+PACKAGES = ("snac_jax", "agents")
+MAX_LINES = 400
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for package in PACKAGES for p in sorted((ROOT / package).rglob("*.py"))}
+
+
+def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
+    """Project modules `path` imports anywhere in its body (function-level imports included)."""
+    found = set()
+    package = _module_name(path) if path.name == "__init__.py" else _module_name(path).rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+            names = [base] + [f"{base}.{alias.name}" for alias in node.names]
+        else:
+            continue
+        for name in names:
+            while name and name not in modules:
+                name = name.rpartition(".")[0]
+            if name:
+                found.add(name)
+    return found - {_module_name(path)}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {name: _imports(path, modules) for name, path in modules.items()}
+
+
+def test_the_library_never_imports_the_learners():
+    offenders = {m: sorted(i for i in deps if i.split(".")[0] == "agents")
+                 for m, deps in _graph().items() if m.split(".")[0] == "snac_jax"}
+    assert not {m: d for m, d in offenders.items() if d}
+
+
+def test_no_import_circles():
+    graph = _graph()
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(node):  # Tarjan's strongly connected components
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for dep in graph[node]:
+            if dep not in index:
+                visit(dep)
+                low[node] = min(low[node], low[dep])
+            elif dep in on_stack:
+                low[node] = min(low[node], index[dep])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for node in graph:
+        if node not in index:
+            visit(node)
+    # A package's __init__ that re-exports its submodules is not a circle of logic.
+    cycles = [c for c in cycles if not all(m == c[0] or m.startswith(c[0] + ".") for m in c)]
+    assert not cycles
+
+
+def test_no_module_is_over_the_line_limit():
+    long = {str(p.relative_to(ROOT)): n for package in (*PACKAGES, "bench")
+            for p in (ROOT / package).rglob("*.py") if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long
+
+
+# Phrases of a lab notebook: sessions, machines, measured scores and speeds.
+NARRATION = re.compile(
+    r"\bsession \d|\b(older|slower|faster|busy) (cpu|machine|vm)\b|\bgreedy (protocol )?iou\b|"
+    r"\d[\d.,]*\s?[kM]? env-steps/s|\bmeasured (at|on|in)\b|\b0\.\d{3}\b",
+    re.IGNORECASE,
+)
+
+
+def test_code_comments_do_not_narrate_measurements():
+    found = []
+    for package in (*PACKAGES, "bench"):
+        for path in (ROOT / package).rglob("*.py"):
+            tokens = tokenize.generate_tokens(io.StringIO(path.read_text()).readline)
+            for token in tokens:
+                if token.type == tokenize.COMMENT and NARRATION.search(token.string):
+                    found.append(f"{path.relative_to(ROOT)}:{token.start[0]}: {token.string.strip()}")
+    assert not found, "\n".join(found)
+
+
+def test_docstrings_do_not_narrate_measurements():
+    found = []
+    for package in PACKAGES:
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                    doc = ast.get_docstring(node) or ""
+                    if match := NARRATION.search(doc):
+                        found.append(f"{path.relative_to(ROOT)}:{getattr(node, 'lineno', 1)}: ...{match.group(0)}...")
+    assert not found, "\n".join(found)

@@ -1,0 +1,89 @@
+"""Configurations: every tuned (algorithm, task) resolves to the values it had when the tuned
+table moved into `agents/tuned/*.toml` (tests/data/resolved_configs.json, dumped from the code
+before the move), and bad values are refused from the fields' declarations."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from agents.config import field_specs
+from agents.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_table
+from snac_jax.tasks import TASKS
+
+RESOLVED = json.loads((Path(__file__).parent / "data" / "resolved_configs.json").read_text())
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHMS))
+def test_every_task_resolves_to_the_recorded_configuration(algorithm):
+    for task in TASKS:
+        assert make_config(algorithm, task).to_json() == RESOLVED[f"{algorithm}/{task}"], (algorithm, task)
+
+
+def test_the_fixture_covers_every_algorithm_and_task():
+    assert set(RESOLVED) == {f"{a}/{t}" for a in ALGORITHMS for t in TASKS}
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHMS))
+def test_config_json_round_trips(algorithm):
+    config = make_config(algorithm, "2d-static-dense", seeds=3)
+    assert config_from_json(config.to_json()) == config
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHMS))
+def test_every_tuned_entry_names_the_result_page_it_was_tuned_for(algorithm):
+    import tomllib
+
+    from agents.registry import TUNED_DIR
+
+    root = Path(__file__).parents[1]
+    for task, entry in tomllib.loads((TUNED_DIR / f"{algorithm}.toml").read_text()).items():
+        assert (root / entry["result"]).is_file(), (algorithm, task, entry["result"])
+    assert tuned_table(algorithm)  # loads and checks the keys against the config's fields
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHMS))
+def test_every_field_declares_help_and_a_known_type(algorithm):
+    for spec in field_specs(config_class(algorithm)).values():
+        assert spec.kind in (bool, int, float, str), spec
+        assert spec.help, spec.name
+
+
+@pytest.mark.parametrize("name,value,message", [
+    ("total_steps", 0, "total_steps must be an int >= 1, got 0"),
+    ("learning_rate", 0.0, "learning_rate must be a number > 0, got 0.0"),
+    ("gamma", 1.5, r"gamma must be a number in \[0, 1\], got 1.5"),
+    ("recurrent", 1, "recurrent must be True or False, got 1"),
+    ("ent_coef_end", -2.0, "ent_coef_end must be a number >= -1 or None, got -2.0"),
+    ("seed", 2**64, "seed must be an int in"),
+    ("max_steps", float("nan"), "max_steps must be an int in"),
+])
+def test_bad_values_are_refused_with_the_allowed_range(name, value, message):
+    with pytest.raises(ValueError, match=message):
+        make_config("ppo", "1d-static-sin", **{name: value})
+
+
+def test_cross_field_rules_and_unknown_names():
+    with pytest.raises(ValueError, match="multiple of num_minibatches"):
+        make_config("ppo", "1d-static-sin", num_envs=6, num_minibatches=4)
+    with pytest.raises(ValueError, match="unknown ppo option"):
+        make_config("ppo", "1d-static-sin", lstm_size=3)
+    with pytest.raises(ValueError, match="unknown algorithm 'a2c'; allowed: ppo, dqn, drqn, drqn-her"):
+        make_config("a2c", "1d-static-sin")
+    with pytest.raises(ValueError, match="unknown task"):
+        make_config("dqn", "4d-static")
+
+
+def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
+    from agents import registry
+
+    (tmp_path / "ppo.toml").write_text('["1d-static-sin"]\nresult = "bench/results/ppo.md"\nlearning_rat = 0.1\n')
+    monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
+    registry.tuned_table.cache_clear()
+    try:
+        with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['learning_rat'\]"):
+            registry.tuned_table("ppo")
+    finally:
+        registry.tuned_table.cache_clear()
