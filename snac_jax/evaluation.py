@@ -7,10 +7,10 @@
   the policy acts as given (a learned agent passes its greedy policy).
 
 One environment task is one jitted, vmapped call (`run_episodes`): all its episodes advance
-together in a `lax.while_loop` until the last one ends. The call is compiled once per
-(environment configuration, policy functions, episode count): `policy.init` and `policy.act`
-are static arguments, so build them once per configuration (a new closure recompiles), while
-`policy.params` is an ordinary argument, so new weights do not recompile.
+together in the loop of `snac_jax.episodes.run_to_end` until the last one ends. The call is
+compiled once per (environment configuration, policy functions, episode count): `policy.init`
+and `policy.act` are static arguments, so build them once per configuration (a new closure
+recompiles), while `policy.params` is an ordinary argument, so new weights do not recompile.
 
 The reported interval is a 95% normal confidence interval of the mean. Designs (or shapes) are
 fixed strata with equal weight, so the standard error is the stratified one,
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax import designs, devices, metrics
+from snac_jax import designs, devices, episodes, metrics
 from snac_jax.env import SNACEnv
 from snac_jax.policy import Policy
 from snac_jax.state import EnvParams
@@ -88,32 +88,19 @@ class Episodes:
     design_index: jax.Array  # int32, index into the params' designs
 
 
-@struct.dataclass
-class _Carry:
-    key: jax.Array
-    obs: jax.Array
-    state: Any
-    policy_state: Any
-    episode_return: jax.Array
-    done: jax.Array
-
-
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, design_indices) -> Episodes:
-    def episode(key, design_index):
+    def decide(episode: episodes.Episode, _):
+        key, policy_state = episode.agent
+        key, key_act, key_step = jax.random.split(key, 3)
+        action, policy_state = act(policy_params, policy_state, episode.obs, key_act)
+        return episodes.Move(action, key=key_step), (key, policy_state)
+
+    def run(key, design_index):
         key_reset, key_init, key_run = jax.random.split(key, 3)
         obs, state = env.reset_to_design(key_reset, env_params, design_index)
-        carry = _Carry(key_run, obs, state, init(key_init, state.design), jnp.zeros(()), jnp.asarray(False))
-
-        def step(carry: _Carry) -> _Carry:
-            key, key_act, key_step = jax.random.split(carry.key, 3)
-            action, policy_state = act(policy_params, carry.policy_state, carry.obs, key_act)
-            obs, state, reward, terminated, _ = env.step_env(key_step, carry.state, action, env_params)
-            done = terminated | env.is_truncated(state, env_params)
-            return _Carry(key, obs, state, policy_state, carry.episode_return + reward, done)
-
-        # Under vmap the loop runs until the last episode ends; ended ones are left unchanged.
-        final = jax.lax.while_loop(lambda c: ~c.done, step, carry)
+        first = episodes.start(obs, state, (key_run, init(key_init, state.design)))
+        final = episodes.run_to_end(env, env_params, decide, first)
         return Episodes(
             iou=metrics.iou(final.state),
             length=final.state.time,
@@ -122,7 +109,7 @@ def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, de
             design_index=design_index,
         )
 
-    return jax.vmap(episode)(keys, design_indices)
+    return jax.vmap(run)(keys, design_indices)
 
 
 @partial(jax.jit, static_argnames=("env", "init", "act", "mesh"))

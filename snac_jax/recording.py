@@ -1,8 +1,8 @@
 """One episode of any `Policy`, kept step by step so that it can be drawn or inspected.
 
 The evaluator only needs final IoUs; a video needs every intermediate state. `record_episode`
-runs one world for the whole step limit in a single jitted `lax.scan` (no auto-reset: the
-episode's last state is kept), then cuts the stacked states at the step that ended the episode.
+runs one world for the whole step limit in a single jitted scan of `snac_jax.episodes` (no
+auto-reset: the episode stays at its end), then cuts the stacked states at the step that ended it.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from snac_jax import episodes, metrics
 from snac_jax.env import SNACEnv
 from snac_jax.policy import Policy
 from snac_jax.state import EnvParams, EnvState
@@ -45,41 +47,36 @@ class Trajectory:
 def _scan_episode(key, env: SNACEnv, params: EnvParams, init, act, policy_params: Any, num_steps: int):
     key_reset, key_policy, key_run = jax.random.split(key, 3)
     obs, state = env.reset(key_reset, params)
-    policy_state = init(key_policy, state.design)
 
-    def body(carry, step_key):
-        obs, state, policy_state, done = carry
+    def decide(episode: episodes.Episode, step_key):
         key_act, key_step = jax.random.split(step_key)
-        action, policy_state = act(policy_params, policy_state, obs, key_act)
-        # gymnax's step without auto-reset: draws the stride as `env.step` does, keeps the end state.
-        obs, next_state, reward, terminated, info = env.step_env(key_step, state, action, params)
-        stride = info["stride"]
-        truncated = next_state.time >= params.max_steps_in_episode
-        out = (next_state, action, stride, reward, terminated, terminated | truncated)
-        return (obs, next_state, policy_state, done | terminated | truncated), out
+        action, policy_state = act(policy_params, episode.agent, episode.obs, key_act)
+        return episodes.Move(action, key=key_step), policy_state
 
-    _, (states, actions, strides, rewards, terminated, ends) = jax.lax.scan(
-        body, (obs, state, policy_state, jnp.asarray(False)), jax.random.split(key_run, num_steps)
+    def record(step: episodes.Step):
+        return step.state, step.action, step.stride, step.reward, step.terminated, step.live
+
+    first = episodes.start(obs, state, init(key_policy, state.design))
+    final, (states, actions, strides, rewards, terminated, live) = episodes.scan_episode(
+        env, params, decide, first, xs=jax.random.split(key_run, num_steps), record=record
     )
     states = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)
-    return states, actions, strides, rewards, terminated, ends
+    return states, actions, strides, rewards, terminated, live, metrics.iou(final.state)
 
 
 def record_episode(env: SNACEnv, params: EnvParams, policy: Policy, key: jax.Array) -> Trajectory:
     """Run `policy` greedily-or-not (as its `act` decides) through one episode from `env.reset`."""
     num_steps = int(params.max_steps_in_episode)
-    states, actions, strides, rewards, terminated, ends = jax.device_get(
+    states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
         _scan_episode(key, env, params, policy.init, policy.act, policy.params, num_steps)
     )
-    # The step limit guarantees an end within num_steps steps.
-    length = int(np.argmax(ends)) + 1
-    states = jax.tree.map(lambda x: np.asarray(x[: length + 1]), states)
-    last = jax.tree.map(lambda x: x[length], states)
+    # The step limit ends every episode within num_steps steps.
+    length = int(np.sum(live))
     return Trajectory(
-        states=states,
+        states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
         actions=np.asarray(actions[:length]),
         strides=np.asarray(strides[:length]),
         rewards=np.asarray(rewards[:length]),
-        final_iou=float(last.overlap / max(int(last.union), 1)),
+        final_iou=float(final_iou),
         terminated=bool(terminated[length - 1]),
     )

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from snac_jax import episodes, metrics
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 from snac_jax.tasks import make
@@ -43,13 +44,15 @@ REPLAY_CHUNK = 512
 def _replay_scan(env: SNACEnv, params: EnvParams, actions: jax.Array, strides: jax.Array):
     obs0, state0 = env.reset(jax.random.key(0), params)
 
-    def body(state, action_stride):
+    def decide(episode: episodes.Episode, action_stride):
         action, stride = action_stride
-        obs, state, reward, terminated, info = env.step_with_stride(state, action, stride, params)
-        truncated = state.time >= params.max_steps_in_episode
-        return state, (obs, reward, terminated, truncated, info["final_iou"], state.grid)
+        return episodes.Move(action, stride=stride), episode.agent
 
-    _, outputs = jax.lax.scan(body, state0, (actions, strides))
+    def record(step: episodes.Step):
+        return step.obs, step.reward, step.terminated, step.truncated, metrics.iou(step.state), step.state.grid
+
+    first = episodes.start(obs0, state0, None)
+    _, outputs = episodes.scan_episode(env, params, decide, first, xs=(actions, strides), record=record)
     return obs0, outputs
 
 
@@ -57,9 +60,10 @@ def replay(env: SNACEnv, params: EnvParams, actions, strides) -> dict[str, np.nd
     """Run one episode from reset with the given actions and strides, in one jitted scan.
 
     Returns observations (T+1, obs) with the reset observation first, rewards, terminated and
-    truncated flags (T,), the design-area grid after the last action and its IoU. Inputs are
-    padded to a multiple of `REPLAY_CHUNK` steps so one configuration compiles a few times at
-    most; the padding steps are cut off.
+    truncated flags (T,), the design-area grid after the last action and its IoU. Actions after
+    the episode's end are not taken (see `snac_jax.episodes.Step`). Inputs are padded to a
+    multiple of `REPLAY_CHUNK` steps so one configuration compiles a few times at most; the
+    padding steps are cut off.
     """
     steps = len(actions)
     padded = -(-max(steps, 1) // REPLAY_CHUNK) * REPLAY_CHUNK
