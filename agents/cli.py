@@ -123,8 +123,8 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
     import jax
 
     from snac_jax.atomic import atomic_write_json
-    from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
-    from snac_jax.paper import markdown_table, paper_column
+    from snac_jax.evaluation import evaluate_task
+    from snac_jax.paper import load_paper_results, markdown_table, paper_column, paper_row
 
     config = algorithm.config
     counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snac_jax.evaluation import load_paper_results
-from snac_jax.paper import paper_column
+from snac_jax.paper import load_paper_results, paper_column
 
 RL_METHODS = ("dqn", "drqn", "drqn_her", "sac", "ppo", "rainbow")
 """The paper's learned methods (not the human or handcrafted rows)."""

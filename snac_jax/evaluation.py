@@ -20,13 +20,10 @@ sqrt(sum_d s_d^2 / n_d) / D, which for a single design is the usual s / sqrt(n).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import zlib
 from functools import partial
-from importlib import resources
-from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -36,6 +33,7 @@ from flax import struct
 
 from snac_jax import designs, devices, episodes, metrics
 from snac_jax.env import SNACEnv
+from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
 from snac_jax.policy import Policy
 from snac_jax.state import EnvParams
 from snac_jax.tasks import TASKS, make, make_params, task_spec, test_design_names
@@ -44,22 +42,6 @@ STATIC_EPISODES = 500
 EPISODES_PER_TEST_DESIGN = 200
 Z_95 = 1.959963984540054
 
-PAPER_TASKS: tuple[str, ...] = (
-    "1d-static",
-    "1d-dynamic",
-    "2d-static-dense",
-    "2d-static-sparse",
-    "2d-dynamic-dense",
-    "2d-dynamic-sparse",
-    "3d-static-dense",
-    "3d-static-sparse",
-    "3d-dynamic-dense",
-    "3d-dynamic-sparse",
-)
-"""The columns of the paper's table; `1d-static` stands for the three 1D shapes."""
-
-_PAPER_GROUPS = {"1d-static": ("1d-static-sin", "1d-static-gauss", "1d-static-step")}
-
 PolicyLike = Policy | Callable[[SNACEnv], Policy]
 """A `Policy` used as is for every environment task, or a builder `builder(env) -> Policy`
 called once per environment task (a learned agent loads the checkpoint of that task)."""
@@ -67,8 +49,8 @@ called once per environment task (a learned agent loads the checkpoint of that t
 
 def environment_tasks(task: str) -> tuple[str, ...]:
     """The environment tasks behind a task name: the three shapes for `1d-static`."""
-    if task in _PAPER_GROUPS:
-        return _PAPER_GROUPS[task]
+    if task in PAPER_GROUPS:
+        return PAPER_GROUPS[task]
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; allowed: {', '.join(PAPER_TASKS)}, {', '.join(TASKS)}")
     return (task,)
@@ -275,25 +257,3 @@ def evaluate_task(
     return TaskResult.from_episodes(
         task, strata, everything.length, everything.bricks_used, everything.episode_return, seed, wall_s
     )
-
-
-# --- the paper's numbers -------------------------------------------------------------------------
-
-
-def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
-    """The paper's tables: `path`, or the copy shipped in the package."""
-    if path is None:
-        text = resources.files("snac_jax").joinpath("data/paper_results.json").read_text()
-    else:
-        text = Path(path).read_text()
-    results = json.loads(text)
-    if not isinstance(results, dict) or not isinstance(results.get("methods"), dict):
-        raise ValueError(f"{path or 'paper_results.json'}: expected an object with a 'methods' table")
-    return results
-
-
-def paper_row(results: dict[str, Any], method: str | None) -> dict[str, dict[str, float | None]]:
-    """The paper's {task: {"avg", "min"}} for `method`, or {} when the paper has no such row."""
-    if method is None:
-        return {}
-    return results["methods"].get(method, {})

@@ -1,12 +1,56 @@
-"""The paper's table beside ours: which paper column an environment task belongs to, and the
-markdown table `snac eval` and `snac train` print (our protocol results next to the paper's row)."""
+"""The paper's table beside ours: its columns and which environment tasks each stands for, its
+numbers (`data/paper_results.json`), and the markdown table `snac eval` and `snac train` print
+(our protocol results next to the paper's row)."""
 
 from __future__ import annotations
+
+import json
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+PAPER_TASKS: tuple[str, ...] = (
+    "1d-static",
+    "1d-dynamic",
+    "2d-static-dense",
+    "2d-static-sparse",
+    "2d-dynamic-dense",
+    "2d-dynamic-sparse",
+    "3d-static-dense",
+    "3d-static-sparse",
+    "3d-dynamic-dense",
+    "3d-dynamic-sparse",
+)
+"""The columns of the paper's table; `1d-static` stands for the three 1D shapes."""
+
+PAPER_GROUPS = {"1d-static": ("1d-static-sin", "1d-static-gauss", "1d-static-step")}
+"""Paper columns that stand for several environment tasks."""
 
 
 def paper_column(task: str) -> str:
     """The paper's column of an environment task: the three 1D shapes share `1d-static`."""
-    return "1d-static" if task.startswith("1d-static") else task
+    return next((column for column, tasks in PAPER_GROUPS.items() if task in tasks), task)
+
+
+def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
+    """The paper's tables: `path`, or the copy shipped in the package."""
+    if path is None:
+        text = resources.files("snac_jax").joinpath("data/paper_results.json").read_text()
+    else:
+        text = Path(path).read_text()
+    results = json.loads(text)
+    if not isinstance(results, dict) or not isinstance(results.get("methods"), dict):
+        raise ValueError(f"{path or 'paper_results.json'}: expected an object with a 'methods' table")
+    return results
+
+
+def paper_row(results: dict[str, Any], method: str | None) -> dict[str, dict[str, float | None]]:
+    """The paper's {task: {"avg", "min"}} for `method`, or {} when the paper has no such row."""
+    if method is None:
+        return {}
+    return results["methods"].get(method, {})
+
+
 
 
 def _fmt(value, digits: int = 3) -> str:

@@ -162,7 +162,11 @@ def test_bad_input_is_a_value_error(task, kwargs, match):
 
 
 def test_paper_results_are_packaged():
-    paper = evaluation.load_paper_results()
-    row = evaluation.paper_row(paper, "handcrafted")
-    assert set(evaluation.PAPER_TASKS) <= set(row)
-    assert evaluation.paper_row(paper, None) == {}
+    from snac_jax import paper as paper_module
+
+    paper = paper_module.load_paper_results()
+    row = paper_module.paper_row(paper, "handcrafted")
+    assert set(paper_module.PAPER_TASKS) <= set(row)
+    assert paper_module.paper_row(paper, None) == {}
+    assert [paper_module.paper_column(t) for t in ("1d-static-gauss", "1d-dynamic", "3d-static-dense")] == [
+        "1d-static", "1d-dynamic", "3d-static-dense"]

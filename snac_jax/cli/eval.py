@@ -13,7 +13,8 @@ from pathlib import Path
 
 from snac_jax.atomic import atomic_write_json
 from snac_jax.cli.arguments import add_devices_argument, positive_int
-from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, PAPER_TASKS, STATIC_EPISODES
+from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES
+from snac_jax.paper import PAPER_TASKS
 from snac_jax.policies import POLICIES
 from snac_jax.tasks import TASKS
 
@@ -68,8 +69,8 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from snac_jax.evaluation import evaluate_task, load_paper_results, paper_row
-    from snac_jax.paper import markdown_table
+    from snac_jax.evaluation import evaluate_task
+    from snac_jax.paper import load_paper_results, markdown_table, paper_row
     from snac_jax.policies import policy_builder
 
     sources = [args.policy, args.checkpoint, args.human]

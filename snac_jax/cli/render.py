@@ -52,7 +52,7 @@ def frame_indices(length: int, every: int) -> list[int]:
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from snac_jax import make
+    from snac_jax import make, metrics
     from snac_jax.policies import build_policy
     from snac_jax.recording import record_episode
     from snac_jax.rendering import render, save_gif
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         lines = [
             f"{args.task}  policy {policy.name}  seed {args.seed}",
             f"step {int(state.time)}  bricks {int(state.bricks_used)}/{int(state.max_bricks)}  "
-            f"IoU {float(state.overlap) / max(int(state.union), 1):.3f}",
+            f"IoU {float(metrics.iou(state)):.3f}",
         ]
         frames.append(render(env, state, params, cell=args.cell, caption=lines))
     durations = [1000.0 / args.fps] * len(frames)

@@ -168,7 +168,7 @@ def human_report(path: str | os.PathLike, *, mode: str | None = None, paper_resu
     """What `snac eval --human FILE` prints: the summary of a record file as the evaluator's
     markdown table, beside the paper's human row. Every record is replayed first (`verify`)."""
     from snac_jax.paper import markdown_table
-    from snac_jax.evaluation import load_paper_results, paper_row
+    from snac_jax.paper import load_paper_results, paper_row
 
     records = load_records(path)
     results = summarize_records(records, mode=mode, verify=verify)
