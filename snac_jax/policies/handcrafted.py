@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax.config import MAX_STRIDE, EnvConfig
+from snac_jax.config import ACTIONS_1D, DOWN, LEFT, MAX_STRIDE, MOVE_DIRECTIONS, RIGHT, UP, EnvConfig
 from snac_jax.env import SNACEnv
 from snac_jax.observation import layout as observation_layout
 from snac_jax.policy import Policy
@@ -59,6 +59,9 @@ VARIANTS_1D = ("no-map", "map")
 """1D variants of the reference (`slam_1d.py`, `slam_1d_no_map.py`); see the module docstring."""
 
 _FAR = 10_000  # a distance no window cell reaches: "not a candidate"
+
+# Move actions by direction (the same indices in every action table: moves come first).
+_MOVE_LEFT, _MOVE_RIGHT, _MOVE_DOWN, _MOVE_UP = (MOVE_DIRECTIONS.index(d) for d in (LEFT, RIGHT, DOWN, UP))
 
 
 @struct.dataclass
@@ -116,7 +119,7 @@ def _window_from_obs(config: EnvConfig, obs: jax.Array) -> jax.Array:
 
 # --- 1D ------------------------------------------------------------------------------------------
 
-_LEFT, _RIGHT, _DROP_1D = 0, 1, 2
+_LEFT, _RIGHT, _DROP_1D = _MOVE_LEFT, _MOVE_RIGHT, ACTIONS_1D.index((1, 0, 0))
 
 
 def _localise_1d(config: EnvConfig, variant: str, state: HandcraftedState, window: jax.Array) -> jax.Array:
@@ -203,15 +206,15 @@ def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array
 def _update_prior(prior: jax.Array, window: jax.Array) -> jax.Array:
     """The move prior turns away from every wall in view (a whole window edge of padding).
 
-    Moves: 0 col-1, 1 col+1, 2 row+1, 3 row-1. Set in the reference's order (left, top, right,
-    bottom); the robot starts in a corner, so both pairs are set before the prior is first used.
+    Set in the reference's order (left, top, right, bottom walls); the robot starts in a corner,
+    so both pairs are set before the prior is first used.
     """
     wall = window == PADDING
     left, top, right, bottom = (jnp.all(wall[:, 0]), jnp.all(wall[0, :]), jnp.all(wall[:, -1]), jnp.all(wall[-1, :]))
-    prior = jnp.where(left, prior.at[0].set(0.0).at[1].set(0.5), prior)
-    prior = jnp.where(top, prior.at[2].set(0.5).at[3].set(0.0), prior)
-    prior = jnp.where(right, prior.at[0].set(0.5).at[1].set(0.0), prior)
-    prior = jnp.where(bottom, prior.at[2].set(0.0).at[3].set(0.5), prior)
+    prior = jnp.where(left, prior.at[_MOVE_LEFT].set(0.0).at[_MOVE_RIGHT].set(0.5), prior)
+    prior = jnp.where(top, prior.at[_MOVE_DOWN].set(0.5).at[_MOVE_UP].set(0.0), prior)
+    prior = jnp.where(right, prior.at[_MOVE_LEFT].set(0.5).at[_MOVE_RIGHT].set(0.0), prior)
+    prior = jnp.where(bottom, prior.at[_MOVE_DOWN].set(0.0).at[_MOVE_UP].set(0.5), prior)
     return prior
 
 
@@ -228,8 +231,8 @@ def _candidates(config: EnvConfig, state: HandcraftedState, window: jax.Array):
 
 def _move_toward(d_row: jax.Array, d_col: jax.Array, vertical_first: jax.Array) -> jax.Array:
     """The move toward a cell at (d_row, d_col); a diagonal one moves vertically when asked."""
-    horizontal = jnp.where(d_col > 0, 1, 0)
-    vertical = jnp.where(d_row > 0, 2, 3)
+    horizontal = jnp.where(d_col > 0, _MOVE_RIGHT, _MOVE_LEFT)
+    vertical = jnp.where(d_row > 0, _MOVE_DOWN, _MOVE_UP)
     return jnp.where(d_row == 0, horizontal, jnp.where(d_col == 0, vertical, jnp.where(vertical_first, vertical, horizontal)))
 
 
