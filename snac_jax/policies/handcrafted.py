@@ -332,7 +332,7 @@ def _build(config: EnvConfig, variant: str) -> Policy:
         return action, state.replace(last_window=window, last_action=action, preference=preference, built=built)
 
     suffix = "-map" if config.dim == 1 and variant == "map" else ""
-    return Policy(init, act, None, f"handcrafted{suffix}")
+    return Policy(init=init, act=act, params=None, name=f"handcrafted{suffix}")
 
 
 @functools.cache
