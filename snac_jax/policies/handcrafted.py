@@ -9,18 +9,19 @@ Localisation (after each move; a drop keeps the estimate)
   - 2D/3D: if the window did not change, assume one cell moved (odometry). Otherwise the first
     stride of 1, 2, 3 whose shifted previous window matches the new one on their overlap; if
     none matches the estimate is kept (as in the reference; a real move always matches its own
-    stride, so only a hand-made state gets there). Clip to the design area. Then, when a wall (-1) shows at an end of the window's middle column
-    (row) the row (column) is recomputed from the number of wall cells: exact near walls.
+    stride, so only a hand-made state gets there). Clip to the design area. Then, when a wall
+    (-1) shows at an end of the window's middle column (row) the row (column) is recomputed
+    from the number of wall cells: exact near walls.
   - 1D: the strides whose shifted window matches are counted; several matches mean odometry
     (one cell), one match gives the stride, none keeps the estimate. What the new window is
     compared with is the 1D variant:
       * `"no-map"` (`slam_1d_no_map.py`, the one the reference test scripts import): the
         previous window, shifted. Drops are decided from the observed height of the own cell.
-        It reproduces the paper's 1D numbers (1d-static 0.948, 1d-dynamic 0.995); the default.
+        It reproduces the paper's 1D row, so it is the default.
       * `"map"` (`slam_1d.py` with `saved_heights`): the robot's own record of the bricks it
         laid, read at the candidate cells; it also decides drops from that record. It scores
-        lower: 0.93 / 0.94 here, close to the "with map" figures (0.946 / 0.944) written at
-        the end of the reference test scripts.
+        lower, near the "with map" figures written at the end of the reference test scripts.
+    Both variants' scores against the paper: bench/results/handcrafted.md.
     A reference quirk kept: moving 2 cells onto the left end is recognised (strides 2 and 3 both
     end there), the same test on the right end looks one cell past it and never fires.
 
