@@ -15,7 +15,7 @@ the median of `--repeats` timed calls after one warm-up call; compilation is tim
 The policy does not read observations, so XLA drops their computation, as in gymnax's own
 benchmarks; a learning agent pays for them on top.
 
-The baseline is `snac_jax.numpy_engine`: one world stepped in a Python loop with NumPy, reset
+The baseline is `bench/numpy_engine.py`: one world stepped in a Python loop with NumPy, reset
 when an episode ends, the way the reference implementation is written (one process, one core).
 
 Outputs, under `--out` (default bench/results/): `throughput.json` (or `--json PATH`), a list of
@@ -136,7 +136,7 @@ def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repe
 
 
 def measure_numpy(task: str, num_steps: int) -> float:
-    from snac_jax.numpy_engine import random_policy_steps_per_second
+    from bench.numpy_engine import random_policy_steps_per_second
 
     random_policy_steps_per_second(task, min(num_steps, 500))  # warm-up (imports, caches)
     return random_policy_steps_per_second(task, num_steps)
@@ -171,7 +171,7 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
         f"{context['machine']}; {context['cores']} cores; jax {context['jax']}; T = {context['steps']} steps per rollout, "
         f"median of {context['repeats']} runs; load average {context['load_start']} at start, {context['load_end']} at end. "
         "Uniform-random policy, auto-reset included; env-steps/s summed over all worlds. "
-        "NumPy: one world per Python loop (`snac_jax.numpy_engine`), one core.",
+        "NumPy: one world per Python loop (`bench/numpy_engine.py`), one core.",
         "",
     ]
     columns = sorted({(r["devices_requested"], r["step"]) for r in rows}, key=lambda c: (c[1] != "step_batch", c[0]))

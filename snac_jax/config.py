@@ -15,12 +15,19 @@ import dataclasses
 
 import numpy as np
 
+# The four directions (d_row, d_col) on the plan; rows grow downward, as drawn on screen.
+LEFT, RIGHT, DOWN, UP = (0, -1), (0, 1), (1, 0), (-1, 0)
+MOVE_DIRECTIONS = (LEFT, RIGHT, DOWN, UP)
+"""The order of the moves in every action table (actions 0..3; 0..1 in 1D) and of the four
+neighbour drops (actions 4..7). The transition, the handcrafted policy and the human game's
+keys all read directions from here."""
+
 # Action tables (SPEC §3): (is_drop, d_row, d_col) for each action index.
 # Moves are scaled by the stride; drops hit pos + (d_row, d_col) without stride.
-_MOVES = ((0, 0, -1), (0, 0, 1), (0, 1, 0), (0, -1, 0))
-ACTIONS_1D = ((0, 0, -1), (0, 0, 1), (1, 0, 0))
+_MOVES = tuple((0, d_row, d_col) for d_row, d_col in MOVE_DIRECTIONS)
+ACTIONS_1D = _MOVES[:2] + ((1, 0, 0),)
 ACTIONS_2D = _MOVES + ((1, 0, 0),)
-ACTIONS_NEIGHBOUR_DROP = _MOVES + ((1, 0, -1), (1, 0, 1), (1, 1, 0), (1, -1, 0))
+ACTIONS_NEIGHBOUR_DROP = _MOVES + tuple((1, d_row, d_col) for d_row, d_col in MOVE_DIRECTIONS)
 
 REWARD_SCHEMES = ("height", "binary")
 """`height`: the code's -1 (over) / +10 (exact) / +1 (below) for a brick at height h on design D.

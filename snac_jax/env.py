@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from snac_jax import metrics, observation, threefry
+from snac_jax import batched_step, metrics, observation, threefry
 from snac_jax.config import EnvConfig
 from snac_jax.state import EnvParams, EnvState
 from snac_jax.transition import PADDING, is_stuck, transition
@@ -164,37 +164,12 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
     def step_batch(
         self, keys: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams | None = None
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
-        """`jax.vmap(env.step, in_axes=(0, 0, 0, None))`, with the same outputs bit for bit, for
-        rollouts that step a large batch of worlds.
-
-        The auto-reset of `vmap(step)` selects, for every world and every step, between its
-        stepped state and a reset state: a pass over every grid and design, which is most of a
-        step's memory traffic. Here only the worlds whose episode ended are reset, one by one
-        in a loop (a few per step out of thousands).
-
-        Use it for a batch that jit does not split across devices (one device, or each
-        device's share inside `shard_map`, as `snac_jax.rollout` does): with jit's sharding
-        propagation, writing single worlds into a sharded batch makes XLA gather the batch.
-        `vmap(env.step)` is right everywhere.
-        """
+        """`jax.vmap(env.step, in_axes=(0, 0, 0, None))` bit for bit, but resetting only the
+        worlds that ended: the fast path for large batches on one device (`snac_jax.batched_step`
+        says why and when to use it)."""
         if params is None:
             params = self.default_params
-        _, stepped, reward, terminated, info = jax.vmap(self.step_env, in_axes=(0, 0, 0, None))(keys, states, actions, params)
-        truncated = jax.vmap(self.is_truncated, in_axes=(0, None))(stepped, params)
-        done = terminated | truncated
-        ended = jnp.nonzero(done, size=done.shape[0], fill_value=0)[0]
-
-        def reset_one(i, states):
-            world = ended[i]
-            _, fresh = self.reset_env(keys[world], params)
-            return jax.tree.map(
-                lambda batch, leaf: jax.lax.dynamic_update_index_in_dim(batch, leaf.astype(batch.dtype), world, 0), states, fresh
-            )
-
-        states = jax.lax.fori_loop(0, jnp.sum(done, dtype=jnp.int32), reset_one, stepped)
-        observe = jax.vmap(self.get_obs, in_axes=(0, None))
-        info = {**info, "terminated": terminated, "truncated": truncated, "final_observation": observe(stepped, params)}
-        return observe(states, params), states, reward, terminated, truncated, info
+        return batched_step.step_batch(self, keys, states, actions, params)
 
     def step_env(
         self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams

@@ -36,4 +36,4 @@ def uniform_random_policy(num_actions: int) -> Policy:
     def act(params, state, obs, key):
         return jax.random.randint(key, (), 0, num_actions), state
 
-    return Policy(init, act, None, "random")
+    return Policy(init=init, act=act, params=None, name="random")

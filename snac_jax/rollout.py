@@ -28,7 +28,7 @@ class EpisodeStats:
 
     @classmethod
     def empty(cls) -> "EpisodeStats":
-        return cls(jnp.zeros((), jnp.int32), jnp.zeros(()), jnp.ones(()), jnp.zeros(()))
+        return cls(episodes=jnp.zeros((), jnp.int32), iou_sum=jnp.zeros(()), iou_min=jnp.ones(()), iou_max=jnp.zeros(()))
 
     def add(self, done: jax.Array, final_iou: jax.Array) -> "EpisodeStats":
         return EpisodeStats(

@@ -33,14 +33,21 @@ class TaskSpec:
 
 _MAX_STEPS = {1: 750, 2: 600, 3: 1300}
 _SPECS: dict[str, TaskSpec] = {
-    **{f"1d-static-{s}": TaskSpec(1, False, f"1d-static-{s}", 750) for s in ("sin", "gauss", "step")},
-    "1d-dynamic": TaskSpec(1, True, "sine", 750),
+    **{
+        f"1d-static-{s}": TaskSpec(dim=1, dynamic=False, design=f"1d-static-{s}", max_steps=750)
+        for s in ("sin", "gauss", "step")
+    },
+    "1d-dynamic": TaskSpec(dim=1, dynamic=True, design="sine", max_steps=750),
 }
 for _dim in (2, 3):
     for _density in ("dense", "sparse"):
-        _SPECS[f"{_dim}d-static-{_density}"] = TaskSpec(_dim, False, f"{_dim}d-static-{_density}", _MAX_STEPS[_dim])
+        _SPECS[f"{_dim}d-static-{_density}"] = TaskSpec(
+            dim=_dim, dynamic=False, design=f"{_dim}d-static-{_density}", max_steps=_MAX_STEPS[_dim]
+        )
     for _density in ("dense", "sparse"):
-        _SPECS[f"{_dim}d-dynamic-{_density}"] = TaskSpec(_dim, True, _density, 600 if _dim == 2 else 1000)
+        _SPECS[f"{_dim}d-dynamic-{_density}"] = TaskSpec(
+            dim=_dim, dynamic=True, design=_density, max_steps=600 if _dim == 2 else 1000
+        )
 
 TASKS: tuple[str, ...] = tuple(_SPECS)
 """Every task id (SPEC §1)."""
@@ -167,7 +174,7 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
         gps=gps,
         num_landmarks=landmarks,
     )
-    params = make_params(design_stack, spec.dim, stride_probs, max_steps)
+    params = make_params(design_stack, spec.dim, stride_probs=stride_probs, max_steps=max_steps)
     return SNACEnv(config, params), params
 
 

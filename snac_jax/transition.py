@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from snac_jax.config import MAX_STRIDE, EnvConfig
+from snac_jax.config import MAX_STRIDE, MOVE_DIRECTIONS, EnvConfig
 from snac_jax.state import EnvState
 
 PADDING = -1
@@ -25,23 +25,9 @@ def drop_reward(config: EnvConfig, height: jax.Array, design_height: jax.Array) 
     return jnp.where(height <= design_height, 5.0, 0.0)
 
 
-def neighbours_block_moving(grid: jax.Array, padded_position: jax.Array) -> jax.Array:
-    """bool (4,): for left, right, row+1, row-1, whether the neighbour blocks a move (not 0)."""
-    offsets = jnp.asarray([(0, -1), (0, 1), (1, 0), (-1, 0)])
-    cells = grid[padded_position[0] + offsets[:, 0], padded_position[1] + offsets[:, 1]]
-    return cells != 0
-
-
-def is_stuck(config: EnvConfig, state: EnvState) -> jax.Array:
-    """SPEC §4: with obstacles, the robot is stuck when no neighbour is free to move to."""
-    if not config.obstacles:
-        return jnp.asarray(False)
-    padded = state.position + jnp.asarray(config.pad)
-    return jnp.all(neighbours_block_moving(state.grid, padded))
-
-
-# The four directions of moves (actions 0..3) and of neighbour drops (SPEC §3-4), in that order.
-DIRECTIONS = np.asarray([(0, -1), (0, 1), (1, 0), (-1, 0)])
+# `MOVE_DIRECTIONS` as an array: the four directions of moves (actions 0..3) and of neighbour
+# drops, in that order.
+DIRECTIONS = np.asarray(MOVE_DIRECTIONS)
 
 
 def rays(grid: jax.Array, padded_position: jax.Array) -> jax.Array:
@@ -51,6 +37,23 @@ def rays(grid: jax.Array, padded_position: jax.Array) -> jax.Array:
     distances = np.arange(1, MAX_STRIDE + 1)
     offsets = DIRECTIONS[:, None, :] * distances[None, :, None]
     return grid[padded_position[0] + offsets[..., 0], padded_position[1] + offsets[..., 1]]
+
+
+def _surrounded(around: jax.Array) -> jax.Array:
+    """SPEC §4, the stuck rule: no neighbour is free (0) to move to. `around` is `rays(...)`."""
+    return jnp.all(around[:, 0] != 0)
+
+
+def is_stuck(config: EnvConfig, state: EnvState) -> jax.Array:
+    """Whether the robot of `state` is stuck (never without the obstacle rule).
+
+    `transition` applies the same rule to the state before the action and ends the episode on
+    it; this asks it of any state (`SNACEnv.is_terminated`).
+    """
+    if not config.obstacles:
+        return jnp.asarray(False)
+    padded = state.position + jnp.asarray(config.pad)
+    return _surrounded(rays(state.grid, padded))
 
 
 def _advance(along: jax.Array, stride: jax.Array) -> jax.Array:
@@ -84,7 +87,7 @@ def transition(
         # of each ray), the move (the ray in the action's direction) and a neighbour drop
         # (that ray's nearest cell: the obstacle rule comes with the neighbour-drop actions).
         around = rays(state.grid, padded)
-        stuck = jnp.all(around[:, 0] != 0)  # judged before the action
+        stuck = _surrounded(around)  # judged before the action
         heading = jnp.all(direction[None, :] == jnp.asarray(DIRECTIONS), axis=1)
         along = jnp.sum(jnp.where(heading[:, None], around, 0), axis=0, dtype=around.dtype)
         moved = state.position + _advance(along, stride) * direction

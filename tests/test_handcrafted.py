@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from snac_jax import make
+from snac_jax.config import MOVE_DIRECTIONS
 from snac_jax.policies import build_policy
 from snac_jax.policies.handcrafted import handcrafted_policy
 
@@ -75,9 +76,6 @@ def _jitted_act(policy):
     return jax.jit(policy.act)
 
 
-_DIRECTIONS = {0: (0, -1), 1: (0, 1), 2: (1, 0), 3: (-1, 0)}
-
-
 def _after_a_move(env, params, previous_position, action, believed_position):
     """A robot that truly moved one cell from `previous_position` by the move `action` while
     believing it stood at `believed_position`: its policy state and its new observation."""
@@ -85,7 +83,7 @@ def _after_a_move(env, params, previous_position, action, believed_position):
     at = lambda position: env.get_obs(state.replace(position=jnp.asarray(position, jnp.int32)), params)
     rows, cols = env.config.window_shape
     previous_window = at(previous_position)[: rows * cols].reshape(rows, cols)
-    true_position = np.add(previous_position, _DIRECTIONS[action])
+    true_position = np.add(previous_position, MOVE_DIRECTIONS[action])
     policy = handcrafted_policy(env)
     policy_state = policy.init(jax.random.key(0), state.design).replace(
         estimate=jnp.asarray(believed_position, jnp.int32),

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from snac_jax import TASKS, designs, make
-from snac_jax.numpy_engine import NumpyEnv, line_cells, random_sine, random_triangle
+from bench.numpy_engine import NumpyEnv, line_cells, random_sine, random_triangle
 from tests.conftest import _TRACES
 
 

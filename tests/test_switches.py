@@ -6,6 +6,7 @@ import pytest
 
 from snac_jax import make
 from snac_jax.observation import LANDMARK_VALUE
+from snac_jax.transition import is_stuck
 from tests.helpers import random_episode
 
 STEPS = 400
@@ -50,6 +51,16 @@ def test_obstacles_in_2d_use_the_3d_action_set_and_rule():
     assert np.any(term & (rew == 0) & (state.bricks_used < state.max_bricks - 1))  # stuck ends episodes
     plain, _ = make("2d-static-dense")
     assert plain.num_actions == 5
+
+
+def test_is_stuck_is_the_rule_the_transition_ends_episodes_on():
+    env, params, (_, (obs, act, rew, term, trunc, info, state)) = _run("2d-static-dense", seed=1, steps=2000, obstacles=True)
+    stuck = np.asarray(jax.vmap(lambda s: is_stuck(env.config, s))(state))  # of the state before each step
+    terminated = np.asarray(jax.vmap(env.is_terminated, in_axes=(0, None))(state, params))
+    assert stuck.any()
+    bricks_left = state.bricks_used < state.max_bricks - 1  # this step cannot spend the last brick
+    np.testing.assert_array_equal(term[bricks_left], stuck[bricks_left])
+    np.testing.assert_array_equal(terminated, stuck)  # a state before a step is never out of bricks
 
 
 def test_no_obstacles_in_3d_lets_the_robot_stand_on_bricks_and_never_sticks():

@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from snac_jax.human.window import run_window
 
     session = GameSession(
-        args.task, args.mode, args.seed, max_steps=args.max_steps, record_path=args.record, player=args.player
+        args.task, mode=args.mode, seed=args.seed, max_steps=args.max_steps, record_path=args.record, player=args.player
     )
     recorded = run_window(session, max_episodes=args.episodes)
     for record in session.records:

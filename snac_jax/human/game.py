@@ -19,15 +19,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from snac_jax.config import EnvConfig
+from snac_jax.config import DOWN, LEFT, RIGHT, UP, EnvConfig
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.human.records import MODES, EpisodeRecord, append_record
 from snac_jax.rendering import CAPTION_BG, CAPTION_FG, draw_text, render_observation
 from snac_jax.tasks import make, task_spec
 
-_MOVE_KEYS = {(0, -1): "left", (0, 1): "right", (1, 0): "down", (-1, 0): "up"}
-_DROP_KEYS = {(0, 0): "space", (0, -1): "a", (0, 1): "d", (1, 0): "s", (-1, 0): "w"}
-_DIRECTION_WORDS = {(0, -1): "left", (0, 1): "right", (1, 0): "down", (-1, 0): "up"}
+_DIRECTION_WORDS = {LEFT: "left", RIGHT: "right", DOWN: "down", UP: "up"}
+_MOVE_KEYS = _DIRECTION_WORDS  # pygame names the arrow keys by their direction
+_DROP_KEYS = {(0, 0): "space", LEFT: "a", RIGHT: "d", DOWN: "s", UP: "w"}
 NEXT_EPISODE_KEYS = ("return", "enter")
 QUIT_KEYS = ("escape", "q")
 

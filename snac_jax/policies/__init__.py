@@ -2,9 +2,13 @@
 
 Every policy implements the one interface of `snac_jax.policy.Policy`. The registry maps a
 name to a *builder* `builder(env, **options) -> Policy` (for `env`'s task), named as
-"module:function" so that listing the names imports nothing heavy. A learned agent plugs in with
-one line here, e.g. `"ppo": PolicyEntry("snac_jax.agents.ppo:eval_policy", "ppo", "...")`, its
-builder taking the options it needs (such as `checkpoint`).
+"module:function" so that listing the names imports nothing heavy.
+
+Learned agents are not registered by name: a trained run is its checkpoint directory, and
+`snac eval --checkpoint DIR` takes its builder from `agents.checkpoint.checkpoint_builder(DIR)`
+(the run's greedy policy, loaded by `agents.checkpoint.checkpoint_policy`). That builder has the
+same `builder(env, **options)` form, so the evaluator runs a checkpoint exactly as it runs the
+policies listed here.
 """
 
 from __future__ import annotations
@@ -27,16 +31,16 @@ class PolicyEntry:
 
 POLICIES: dict[str, PolicyEntry] = {
     "handcrafted": PolicyEntry(
-        "snac_jax.policies.handcrafted:handcrafted_policy",
-        "handcrafted",
-        "the paper's handcrafted baseline (1D: the variant without a brick map, as the paper's table)",
+        builder="snac_jax.policies.handcrafted:handcrafted_policy",
+        paper_method="handcrafted",
+        help="the paper's handcrafted baseline (1D: the variant without a brick map, as the paper's table)",
     ),
     "handcrafted-map": PolicyEntry(
-        "snac_jax.policies.handcrafted:handcrafted_policy_map",
-        "handcrafted",
-        "the handcrafted baseline, 1D variant with its own brick map (2D/3D unchanged)",
+        builder="snac_jax.policies.handcrafted:handcrafted_policy_map",
+        paper_method="handcrafted",
+        help="the handcrafted baseline, 1D variant with its own brick map (2D/3D unchanged)",
     ),
-    "random": PolicyEntry("snac_jax.policies.random:random_policy", None, "uniformly random actions"),
+    "random": PolicyEntry(builder="snac_jax.policies.random:random_policy", paper_method=None, help="uniformly random actions"),
 }
 
 

@@ -9,18 +9,19 @@ Localisation (after each move; a drop keeps the estimate)
   - 2D/3D: if the window did not change, assume one cell moved (odometry). Otherwise the first
     stride of 1, 2, 3 whose shifted previous window matches the new one on their overlap; if
     none matches the estimate is kept (as in the reference; a real move always matches its own
-    stride, so only a hand-made state gets there). Clip to the design area. Then, when a wall (-1) shows at an end of the window's middle column
-    (row) the row (column) is recomputed from the number of wall cells: exact near walls.
+    stride, so only a hand-made state gets there). Clip to the design area. Then, when a wall
+    (-1) shows at an end of the window's middle column (row) the row (column) is recomputed
+    from the number of wall cells: exact near walls.
   - 1D: the strides whose shifted window matches are counted; several matches mean odometry
     (one cell), one match gives the stride, none keeps the estimate. What the new window is
     compared with is the 1D variant:
       * `"no-map"` (`slam_1d_no_map.py`, the one the reference test scripts import): the
         previous window, shifted. Drops are decided from the observed height of the own cell.
-        It reproduces the paper's 1D numbers (1d-static 0.948, 1d-dynamic 0.995); the default.
+        It reproduces the paper's 1D row, so it is the default.
       * `"map"` (`slam_1d.py` with `saved_heights`): the robot's own record of the bricks it
         laid, read at the candidate cells; it also decides drops from that record. It scores
-        lower: 0.93 / 0.94 here, close to the "with map" figures (0.946 / 0.944) written at
-        the end of the reference test scripts.
+        lower, near the "with map" figures written at the end of the reference test scripts.
+    Both variants' scores against the paper: bench/results/handcrafted.md.
     A reference quirk kept: moving 2 cells onto the left end is recognised (strides 2 and 3 both
     end there), the same test on the right end looks one cell past it and never fires.
 
@@ -49,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax.config import MAX_STRIDE, EnvConfig
+from snac_jax.config import ACTIONS_1D, DOWN, LEFT, MAX_STRIDE, MOVE_DIRECTIONS, RIGHT, UP, EnvConfig
 from snac_jax.env import SNACEnv
 from snac_jax.observation import layout as observation_layout
 from snac_jax.policy import Policy
@@ -59,6 +60,9 @@ VARIANTS_1D = ("no-map", "map")
 """1D variants of the reference (`slam_1d.py`, `slam_1d_no_map.py`); see the module docstring."""
 
 _FAR = 10_000  # a distance no window cell reaches: "not a candidate"
+
+# Move actions by direction (the same indices in every action table: moves come first).
+_MOVE_LEFT, _MOVE_RIGHT, _MOVE_DOWN, _MOVE_UP = (MOVE_DIRECTIONS.index(d) for d in (LEFT, RIGHT, DOWN, UP))
 
 
 @struct.dataclass
@@ -116,7 +120,7 @@ def _window_from_obs(config: EnvConfig, obs: jax.Array) -> jax.Array:
 
 # --- 1D ------------------------------------------------------------------------------------------
 
-_LEFT, _RIGHT, _DROP_1D = 0, 1, 2
+_LEFT, _RIGHT, _DROP_1D = _MOVE_LEFT, _MOVE_RIGHT, ACTIONS_1D.index((1, 0, 0))
 
 
 def _localise_1d(config: EnvConfig, variant: str, state: HandcraftedState, window: jax.Array) -> jax.Array:
@@ -203,15 +207,15 @@ def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array
 def _update_prior(prior: jax.Array, window: jax.Array) -> jax.Array:
     """The move prior turns away from every wall in view (a whole window edge of padding).
 
-    Moves: 0 col-1, 1 col+1, 2 row+1, 3 row-1. Set in the reference's order (left, top, right,
-    bottom); the robot starts in a corner, so both pairs are set before the prior is first used.
+    Set in the reference's order (left, top, right, bottom walls); the robot starts in a corner,
+    so both pairs are set before the prior is first used.
     """
     wall = window == PADDING
     left, top, right, bottom = (jnp.all(wall[:, 0]), jnp.all(wall[0, :]), jnp.all(wall[:, -1]), jnp.all(wall[-1, :]))
-    prior = jnp.where(left, prior.at[0].set(0.0).at[1].set(0.5), prior)
-    prior = jnp.where(top, prior.at[2].set(0.5).at[3].set(0.0), prior)
-    prior = jnp.where(right, prior.at[0].set(0.5).at[1].set(0.0), prior)
-    prior = jnp.where(bottom, prior.at[2].set(0.0).at[3].set(0.5), prior)
+    prior = jnp.where(left, prior.at[_MOVE_LEFT].set(0.0).at[_MOVE_RIGHT].set(0.5), prior)
+    prior = jnp.where(top, prior.at[_MOVE_DOWN].set(0.5).at[_MOVE_UP].set(0.0), prior)
+    prior = jnp.where(right, prior.at[_MOVE_LEFT].set(0.5).at[_MOVE_RIGHT].set(0.0), prior)
+    prior = jnp.where(bottom, prior.at[_MOVE_DOWN].set(0.0).at[_MOVE_UP].set(0.5), prior)
     return prior
 
 
@@ -228,8 +232,8 @@ def _candidates(config: EnvConfig, state: HandcraftedState, window: jax.Array):
 
 def _move_toward(d_row: jax.Array, d_col: jax.Array, vertical_first: jax.Array) -> jax.Array:
     """The move toward a cell at (d_row, d_col); a diagonal one moves vertically when asked."""
-    horizontal = jnp.where(d_col > 0, 1, 0)
-    vertical = jnp.where(d_row > 0, 2, 3)
+    horizontal = jnp.where(d_col > 0, _MOVE_RIGHT, _MOVE_LEFT)
+    vertical = jnp.where(d_row > 0, _MOVE_DOWN, _MOVE_UP)
     return jnp.where(d_row == 0, horizontal, jnp.where(d_col == 0, vertical, jnp.where(vertical_first, vertical, horizontal)))
 
 
@@ -329,7 +333,7 @@ def _build(config: EnvConfig, variant: str) -> Policy:
         return action, state.replace(last_window=window, last_action=action, preference=preference, built=built)
 
     suffix = "-map" if config.dim == 1 and variant == "map" else ""
-    return Policy(init, act, None, f"handcrafted{suffix}")
+    return Policy(init=init, act=act, params=None, name=f"handcrafted{suffix}")
 
 
 @functools.cache

@@ -6,6 +6,10 @@ the JAX environment. It is written from SPEC.md alone and shares no step logic w
 `snac_jax.transition`: only the fixed designs (data, `designs.json`) and the task ids are
 imported. Tests check it against the golden traces and against `SNACEnv`, step for step.
 
+It lives in `bench/`, not in the `snac_jax` package, because the library never runs it: it is
+the throughput benchmark's baseline (`bench/throughput.py`) and the tests' second opinion
+(`from bench.numpy_engine import NumpyEnv`, with the repository root on the path).
+
     env = NumpyEnv("2d-static-dense", seed=0)
     obs = env.reset()
     obs, reward, terminated, truncated, info = env.step(action)        # draws the stride
@@ -34,6 +38,8 @@ MAX_STEPS = {1: 750, 2: 600, 3: 1300}
 MAX_STEPS_3D_DYNAMIC = 1000
 
 # SPEC §3: the move directions (d_row, d_col) of actions 0..3 in 2D/3D, and of 0..1 in 1D.
+# Written out again rather than imported from `snac_jax.config`: an oracle that read the
+# library's table would agree with it even where the table is wrong.
 MOVES = ((0, -1), (0, 1), (1, 0), (-1, 0))
 
 # SPEC §7: the triangle cell-count rules, low < count (< high).
