@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 
 from agents.registry import config_from_json
 
@@ -67,32 +68,84 @@ def latest_chunk(directory: str | Path) -> int | None:
     return step
 
 
+def _key_name(entry: Any) -> str:
+    """One step of a key path as orbax names it (attribute, dict key or sequence index)."""
+    for attribute in ("name", "key", "idx"):
+        if hasattr(entry, attribute):
+            return str(getattr(entry, attribute))
+    return str(entry)
+
+
+def _leaves_by_path(tree: Any) -> dict[tuple[str, ...], Any]:
+    return {tuple(_key_name(k) for k in path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def _metadata_leaves(tree: Any, prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
+    """The stored arrays of an orbax metadata tree by path; empty (None) slots are left out."""
+    if isinstance(tree, dict):
+        items = tree.items()
+    elif isinstance(tree, (list, tuple)):
+        items = enumerate(tree)
+    else:
+        return {} if tree is None else {prefix: tree}
+    leaves = {}
+    for key, value in items:
+        leaves.update(_metadata_leaves(value, prefix + (str(key),)))
+    return leaves
+
+
+def _shaped_like(tree: Any, targets: dict[tuple[str, ...], Any], prefix: tuple[str, ...] = ()) -> Any:
+    """The metadata tree's structure with each stored array replaced by its restore target."""
+    if isinstance(tree, dict):
+        return {k: _shaped_like(v, targets, prefix + (str(k),)) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return [_shaped_like(v, targets, prefix + (str(i),)) for i, v in enumerate(tree)]
+    return None if tree is None else targets[prefix]
+
+
+def _check_matches(directory, chunk: int, stored: dict, wanted: dict) -> None:
+    """Compare what the checkpoint holds with what the config's state needs, before any read."""
+    problems = [f"missing {'/'.join(p)}" for p in sorted(set(wanted) - set(stored))]
+    problems += [f"unexpected {'/'.join(p)}" for p in sorted(set(stored) - set(wanted))]
+    for path in sorted(set(wanted) & set(stored)):
+        have, need = stored[path], wanted[path]
+        if tuple(have.shape) != tuple(need.shape) or np.dtype(have.dtype) != np.dtype(need.dtype):
+            problems.append(f"{'/'.join(path)} is {have.dtype}{list(have.shape)}, the config needs {need.dtype}{list(need.shape)}")
+    if problems:
+        listed = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
+        raise ValueError(
+            f"{directory}: checkpoint {chunk} does not hold the state its {CONFIG_FILE} describes (edited "
+            f"{CONFIG_FILE}, or another algorithm's or version's checkpoint): {listed}"
+        )
+
+
 def restore_state(directory: str | Path, like: Any, chunk: int | None = None) -> tuple[int, Any]:
-    """The latest (or given) checkpoint, shaped, typed and sharded like `like`."""
+    """The latest (or given) checkpoint, shaped, typed and sharded like `like`.
+
+    Restored by key path: the stored metadata is compared with `like` first (a mismatch is one
+    clear error, before anything is read), and slots a checkpoint holds empty (fields that were
+    None when it was written) are ignored, so checkpoints of older versions of a state load."""
     import orbax.checkpoint as ocp
 
     manager = _manager(Path(directory))
-    chunk = manager.latest_step() if chunk is None else chunk
-    if chunk is None:
-        manager.close()
-        raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ to resume from")
-
-    def abstract(x):
-        sharding = getattr(x, "sharding", None)
-        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
-
-    target = jax.tree.map(abstract, to_storable(like))
     try:
-        restored = manager.restore(chunk, args=ocp.args.StandardRestore(target))
-    except (ValueError, KeyError, TypeError) as error:
-        # orbax reports a mismatch as a long tree diff; say first what it means.
-        raise ValueError(
-            f"{directory}: checkpoint {chunk} does not match the network and state its config.json "
-            f"describes (edited config.json, or saved by an older snac-jax?): {str(error)[:500]}"
-        ) from error
+        chunk = manager.latest_step() if chunk is None else chunk
+        if chunk is None:
+            raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ to resume from")
+        metadata = ocp.StandardCheckpointer().metadata(
+            Path(directory).absolute() / CHECKPOINT_DIR / str(chunk) / "default"
+        )
+        stored_tree = getattr(getattr(metadata, "item_metadata", metadata), "tree", metadata)
+        storable = to_storable(like)
+        wanted = {path: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
+                  for path, x in _leaves_by_path(storable).items()}
+        _check_matches(directory, chunk, _metadata_leaves(stored_tree), wanted)
+        restored = manager.restore(chunk, args=ocp.args.StandardRestore(_shaped_like(stored_tree, wanted)))
     finally:
         manager.close()
-    return chunk, from_storable(restored, like)
+    by_path = _metadata_leaves(restored)
+    leaves = [by_path[path] for path in _leaves_by_path(storable)]
+    return chunk, from_storable(jax.tree_util.tree_unflatten(jax.tree.structure(storable), leaves), like)
 
 
 def read_config(directory: str | Path):

@@ -8,8 +8,10 @@ import os
 import subprocess
 import sys
 import textwrap
+from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -75,7 +77,7 @@ def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path):
     saved = json.loads((tmp_path / checkpoint.CONFIG_FILE).read_text())
     saved["hidden_size"] = 2 * saved["hidden_size"]
     (tmp_path / checkpoint.CONFIG_FILE).write_text(json.dumps(saved))
-    with pytest.raises(ValueError, match="does not match the network"):
+    with pytest.raises(ValueError, match=r"does not hold the state its config.json describes .*the config needs"):
         trained.load_trained(tmp_path)
 
 
@@ -158,3 +160,31 @@ def test_checkpoint_policy_rejects_another_task(tmp_path):
     env, _ = make("1d-static-step")
     with pytest.raises(ValueError, match="trained on '1d-static-sin'"):
         trained.checkpoint_policy(env, tmp_path)
+
+
+def test_a_checkpoint_with_empty_slots_restores_into_a_state_without_them(tmp_path):
+    """A state saved when a field held None (as the DQN's hindsight fields did before hindsight
+    got its own module) restores into the same state without that field."""
+    from flax import struct
+
+    @struct.dataclass
+    class Before:
+        weights: jax.Array
+        extra: Any = None
+
+    @struct.dataclass
+    class After:
+        weights: jax.Array
+
+    checkpoint.save_state(tmp_path, 0, Before(weights=jnp.arange(6.0).reshape(2, 3)))
+    chunk, restored = checkpoint.restore_state(tmp_path, After(weights=jnp.zeros((2, 3))))
+    assert chunk == 0 and isinstance(restored, After)
+    np.testing.assert_array_equal(restored.weights, np.arange(6.0).reshape(2, 3))
+
+
+def test_a_checkpoint_of_another_shape_is_refused_before_reading(tmp_path):
+    checkpoint.save_state(tmp_path, 3, {"w": jnp.zeros((2, 3)), "b": jnp.zeros(3)})
+    with pytest.raises(ValueError, match=r"checkpoint 3 does not hold the state .*w is float32\[2, 3\], the config needs float32\[4, 3\]"):
+        checkpoint.restore_state(tmp_path, {"w": jnp.zeros((4, 3)), "b": jnp.zeros(3)})
+    with pytest.raises(ValueError, match="missing c; unexpected b"):
+        checkpoint.restore_state(tmp_path, {"w": jnp.zeros((2, 3)), "c": jnp.zeros(3)})
