@@ -210,10 +210,39 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
     # --- spaces --------------------------------------------------------------------------------
 
     def action_space(self, params: EnvParams | None = None) -> spaces.Discrete:
+        """The `num_actions` discrete actions; static, so it works under `jit` and `vmap`."""
         return spaces.Discrete(self.config.num_actions)
 
     def observation_space(self, params: EnvParams | None = None) -> spaces.Box:
-        params = params or self.default_params
-        # Counters and cell heights never exceed the brick budget or the step limit.
-        high = float(max(int(np.max(params.design_max_bricks)), int(params.max_steps_in_episode)))
-        return spaces.Box(-2.0, high, (self.observation_layout.size,), jnp.float32)
+        """Per-entry bounds of the flat observation, laid out as `observation_layout` says.
+
+        - window cells: from -2 where landmarks can show (-1, the padding, otherwise; the centre
+          cell is the robot's own plan cell and never padding) up to 1 on the binary 2D grid, else
+          up to the most bricks an episode can drop, min(largest brick budget, step limit);
+        - N_b in [0, min(largest brick budget, step limit)], N_s in [0, step limit];
+        - design cells in [0, tallest design value]; the GPS position in [0, plan size - 1].
+
+        `low` is static; `high` is computed from `params` with `jnp` only, so the space can be
+        built inside `jit` and `vmap` with `params` traced (as gymnax's own environments allow).
+        """
+        if params is None:
+            params = self.default_params
+        config, layout = self.config, self.observation_layout
+        floor = observation.LANDMARK_VALUE if config.num_landmarks else float(PADDING)
+        window_low = np.full(layout.window_shape, floor, np.float32)
+        window_low[config.pad] = observation.LANDMARK_VALUE if config.num_landmarks else 0.0
+        low = np.zeros(layout.size, np.float32)
+        low[layout.window] = window_low.reshape(-1)
+
+        steps = jnp.asarray(params.max_steps_in_episode).astype(jnp.float32)
+        bricks = jnp.minimum(jnp.max(params.design_max_bricks).astype(jnp.float32), steps)
+        high = jnp.zeros(layout.size, jnp.float32)
+        high = high.at[layout.window].set(1.0 if config.binary_grid else bricks)
+        high = high.at[layout.bricks_used].set(bricks)
+        high = high.at[layout.time].set(steps)
+        if layout.design is not None:
+            high = high.at[layout.design].set(jnp.max(params.designs).astype(jnp.float32))
+        if layout.position is not None:
+            plan_high = np.asarray(config.plan_shape, np.float32) - 1
+            high = high.at[layout.position].set(plan_high[-(layout.position.stop - layout.position.start):])
+        return spaces.Box(jnp.asarray(low), high, (layout.size,), jnp.float32)
