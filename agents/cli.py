@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
+from snac_jax.cli.arguments import add_devices_argument, add_process_arguments, positive_int, task_id
 from snac_jax.tasks import TASKS
 
 DEFAULT_TASK = "1d-static-sin"
@@ -72,6 +72,7 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
         add_devices_argument(sub, cpu_default="1, measured faster for training")
+        add_process_arguments(sub)
         options = add_config_flags(sub, config_class(name))
         sub.set_defaults(func=run, config_options=options)
 
@@ -84,10 +85,13 @@ def build_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    import jax
+
     from agents import checkpoint
     from agents.driver import read_metrics, train
     from agents.plotting import plot_curve
     from agents.registry import build_algorithm
+    from agents.sharding import host_value, training_mesh
     from snac_jax import devices
 
     if args.resume is not None:
@@ -105,10 +109,13 @@ def run(args: argparse.Namespace) -> int:
     memory = getattr(build_algorithm(config), "describe_memory", None)  # replay learners: say the buffer's size
     if memory is not None:
         print(memory(), file=sys.stderr)
-    mesh = devices.env_mesh(args.devices, config.num_envs)
+    mesh = training_mesh(args.devices, config.num_envs)
     devices.check_divisible(config.num_envs, mesh)
     print(f"worlds split over {mesh.devices.size} {mesh.devices.flat[0].platform} device(s)", file=sys.stderr)
     algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress, mesh=mesh)
+    if jax.process_index() != 0:
+        return 0  # process 0 draws the curve and runs the evaluation
+    state = state.replace(params=host_value(state.params))
     config = algorithm.config
     kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
     plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")

@@ -23,11 +23,12 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from agents import checkpoint
 from agents.config import TrainConfig, save_config
 from agents.registry import build_algorithm
-from agents.sharding import check_divisible, env_mesh, state_shardings
+from agents.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
 from snac_jax.atomic import atomic_write_text
 
 def seed_keys(config: TrainConfig) -> jax.Array:
@@ -38,11 +39,13 @@ def seed_keys(config: TrainConfig) -> jax.Array:
 def initial_state(algorithm, mesh=None) -> Any:
     """The seed-batched initial state, its worlds split over `mesh` (default: as many local
     devices as split the worlds evenly)."""
-    mesh = env_mesh(num_envs=algorithm.config.num_envs) if mesh is None else mesh
+    mesh = training_mesh(num_envs=algorithm.config.num_envs) if mesh is None else mesh
     check_divisible(algorithm.config.num_envs, mesh)
-    init = jax.vmap(algorithm.init)
-    shardings = state_shardings(jax.eval_shape(init, seed_keys(algorithm.config)), mesh)
-    return jax.jit(init, out_shardings=shardings)(seed_keys(algorithm.config))
+
+    def init():  # the keys are made inside the jit: no process-local array enters it
+        return jax.vmap(algorithm.init)(seed_keys(algorithm.config))
+
+    return jax.jit(init, out_shardings=state_shardings(jax.eval_shape(init), mesh))()
 
 
 def chunk_sizes(num_updates: int, chunks: int) -> list[int]:
@@ -91,6 +94,7 @@ def train(
     """
     out_dir = Path(out_dir)
     metrics_path = out_dir / checkpoint.METRICS_FILE
+    writer = jax.process_index() == 0  # across processes, one writes the run's files
     if resume:
         config = checkpoint.read_config(out_dir)
     else:
@@ -98,10 +102,12 @@ def train(
         if (out_dir / checkpoint.CHECKPOINT_DIR).exists():
             raise ValueError(f"{out_dir} already holds a run; pass resume=True (--resume) or choose another directory")
         out_dir.mkdir(parents=True, exist_ok=True)
-        save_config(config, out_dir / checkpoint.CONFIG_FILE)
+        if writer:
+            save_config(config, out_dir / checkpoint.CONFIG_FILE)
     algorithm = build_algorithm(config)
-    mesh = env_mesh(num_envs=config.num_envs) if mesh is None else mesh
+    mesh = training_mesh(num_envs=config.num_envs) if mesh is None else mesh
     state = initial_state(algorithm, mesh)
+    env_params = replicate(algorithm.env_params, mesh)
     shardings = jax.tree.map(lambda x: x.sharding, state)
 
     done_chunks, history = 0, []
@@ -112,7 +118,8 @@ def train(
         _, state = checkpoint.restore_state(out_dir, state)
         done_chunks = last + 1
         history = _read_metrics(metrics_path, last)
-        atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
+        if writer:
+            atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
 
     sizes = chunk_sizes(config.num_updates, config.chunks)
     compiled: dict[int, Callable] = {}
@@ -122,8 +129,9 @@ def train(
         if n not in compiled:
             fn = jax.vmap(lambda s, p: algorithm.train_chunk(s, p, n), in_axes=(0, None))
             start = time.perf_counter()
-            jitted = jax.jit(fn, out_shardings=(shardings, None), donate_argnums=0)
-            compiled[n] = jitted.lower(state, algorithm.env_params).compile()
+            replicated = NamedSharding(mesh, PartitionSpec())  # metrics: every process reads them
+            jitted = jax.jit(fn, out_shardings=(shardings, replicated), donate_argnums=0)
+            compiled[n] = jitted.lower(state, env_params).compile()
             bar.write(f"compiled a chunk of {n} updates in {time.perf_counter() - start:.1f} s")
         return compiled[n]
 
@@ -131,15 +139,15 @@ def train(
     total_steps = sum(sizes) * steps_per_update
     done_steps = sum(sizes[:done_chunks]) * steps_per_update
     wall = history[-1]["wall_s"] if history else 0.0
-    bar = _progress_bar(total_steps * config.seeds, done_steps * config.seeds, config, progress)
+    bar = _progress_bar(total_steps * config.seeds, done_steps * config.seeds, config, progress and writer)
     try:
         for index in range(done_chunks, len(sizes)):
             if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
                 break
             chunk_fn = run_chunk(sizes[index])
             start = time.perf_counter()
-            state, metrics = chunk_fn(state, algorithm.env_params)
-            metrics = jax.device_get(metrics)
+            state, metrics = chunk_fn(state, env_params)
+            metrics = host_value(metrics)
             elapsed = time.perf_counter() - start
             wall += elapsed
             done_steps += sizes[index] * steps_per_update
@@ -152,8 +160,9 @@ def train(
                 **summarize_chunk(metrics),
             }
             # Metrics first, checkpoint second: a resume trims lines past the last checkpoint.
-            with metrics_path.open("a") as f:
-                f.write(json.dumps(record) + "\n")
+            if writer:
+                with metrics_path.open("a") as f:
+                    f.write(json.dumps(record) + "\n")
             checkpoint.save_state(out_dir, index, state)
             bar.update(sizes[index] * steps_per_update * config.seeds)
             postfix = {"steps/s": f"{record['steps_per_s']:,.0f}"}

@@ -35,14 +35,16 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def use_cpu_devices(count: int | None = None) -> int:
+def use_cpu_devices(count: int | None = None, *, start: bool = True) -> int:
     """Expose `count` XLA CPU devices (default: one per available core); returns how many exist.
 
     Call it before the first JAX operation; importing jax or snac_jax first is fine (setting
     `XLA_FLAGS=--xla_force_host_platform_device_count=N` before Python starts does the same).
     Once JAX's backend has started the count is fixed: then the default (None) accepts whatever
     exists, and an explicit count raises `RuntimeError` if fewer devices exist (more is fine: a
-    mesh can use the first `count`). A count < 1 raises `ValueError`.
+    mesh can use the first `count`). A count < 1 raises `ValueError`. With `start=False` it only
+    sets the count and returns it, leaving the backend unstarted (`jax.distributed.initialize`
+    must come before it starts).
     """
     if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
         raise ValueError(f"the device count must be an int >= 1 or None (one per core), got {count!r}")
@@ -54,6 +56,8 @@ def use_cpu_devices(count: int | None = None) -> int:
             jax.config.update("jax_num_cpu_devices", wanted)
         except RuntimeError:
             pass  # the backend already started: the count is what it is
+    if not start:
+        return wanted
     existing = len(jax.devices("cpu"))
     if count is not None and existing < count:
         raise RuntimeError(
@@ -63,24 +67,27 @@ def use_cpu_devices(count: int | None = None) -> int:
     return existing
 
 
-def env_mesh(num_devices: int | None = None, num_envs: int | None = None):
-    """A one-axis mesh (axis `ENV_AXIS`) over the first `num_devices` local devices.
+def env_mesh(num_devices: int | None = None, num_envs: int | None = None, *, global_devices: bool = False):
+    """A one-axis mesh (axis `ENV_AXIS`) over the first `num_devices` devices of this process,
+    or of every process with `global_devices` (training across hosts after
+    `jax.distributed.initialize`; with one process the two are the same).
 
-    By default all local devices; given `num_envs`, the default is the most devices that split
-    the envs evenly (a single env runs on one device). An explicit `num_devices` above the local
-    count raises `ValueError`.
+    By default all of them; given `num_envs`, the default is the most devices that split the
+    envs evenly (a single env runs on one device). An explicit `num_devices` above the count
+    raises `ValueError`.
     """
     import jax
     import numpy as np
 
-    local = jax.local_devices()
+    available = jax.devices() if global_devices else jax.local_devices()
+    which = "devices of all processes" if global_devices else "local devices"
     if num_devices is None:
-        num_devices = len(local)
+        num_devices = len(available)
         while num_envs is not None and num_envs % num_devices:
             num_devices -= 1
-    if not 1 <= num_devices <= len(local):
-        raise ValueError(f"num_devices must be in 1..{len(local)} (the local devices), got {num_devices}")
-    return jax.sharding.Mesh(np.asarray(local[:num_devices]), (ENV_AXIS,))
+    if not 1 <= num_devices <= len(available):
+        raise ValueError(f"num_devices must be in 1..{len(available)} (the {which}), got {num_devices}")
+    return jax.sharding.Mesh(np.asarray(available[:num_devices]), (ENV_AXIS,))
 
 
 def check_divisible(num_envs: int, mesh) -> None:

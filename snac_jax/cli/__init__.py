@@ -32,11 +32,13 @@ def build_parser() -> argparse.ArgumentParser:
 def use_cpu_devices_from(argv: list[str]) -> None:
     """Honour `--devices N` (default: `CPU_DEVICES_BY_COMMAND`, else one CPU device per core)
     before any subcommand module imports JAX: the CPU device count is fixed once JAX starts
-    (see `snac_jax.devices`)."""
+    (see `snac_jax.devices`). A command that joins other processes (`--coordinator`) must start
+    JAX itself, after `jax.distributed.initialize`, so here the count is only set."""
     from snac_jax import devices
 
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--devices", default=None)
+    pre.add_argument("--coordinator", default=None)
     known, _ = pre.parse_known_args(argv)
     if known.devices is None:
         count = CPU_DEVICES_BY_COMMAND.get(argv[0] if argv else None)
@@ -46,14 +48,39 @@ def use_cpu_devices_from(argv: list[str]) -> None:
         except ValueError:
             count = None  # the subcommand's own parser rejects it
     try:
-        devices.use_cpu_devices(count if count is None or count >= 1 else None)
+        devices.use_cpu_devices(count if count is None or count >= 1 else None, start=known.coordinator is None)
     except RuntimeError:
         pass  # JAX already started in this process; the subcommand checks what it gets
+
+
+def join_processes_from(argv: list[str]) -> None:
+    """With `--coordinator HOST:PORT --num-processes N --process-id I`, join the other processes
+    through `jax.distributed` now, before any module starts JAX (gymnax starts it on import); on
+    CPUs their collectives go through gloo."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--coordinator", default=None)
+    pre.add_argument("--num-processes", type=int, default=None)
+    pre.add_argument("--process-id", type=int, default=None)
+    known, _ = pre.parse_known_args(argv)
+    if known.coordinator is None:
+        if known.num_processes is not None or known.process_id is not None:
+            raise SystemExit("snac: error: --num-processes and --process-id go with --coordinator HOST:PORT")
+        return
+    if known.num_processes is None or known.process_id is None:
+        raise SystemExit("snac: error: --coordinator needs --num-processes N and --process-id I")
+    if not (known.num_processes >= 1 and 0 <= known.process_id < known.num_processes):
+        raise SystemExit(f"snac: error: --process-id must be in 0..{known.num_processes - 1}, got {known.process_id}")
+    import jax
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=known.coordinator, num_processes=known.num_processes,
+                               process_id=known.process_id)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     use_cpu_devices_from(argv)
+    join_processes_from(argv)
     args = build_parser().parse_args(argv)
     return args.func(args)
 

@@ -42,3 +42,13 @@ def add_devices_argument(parser: argparse.ArgumentParser, cpu_default: str = "on
         default=None,
         help=f"devices to split the worlds over (default: all; on a CPU {cpu_default}); 1 turns sharding off",
     )
+
+
+def add_process_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--coordinator HOST:PORT --num-processes N --process-id I`: run as one of N processes
+    (hosts) of one computation. `snac` joins them before JAX starts (`snac_jax.cli.join_processes_from`)."""
+    parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                        help="run across processes (hosts): the address of process 0, for jax.distributed")
+    parser.add_argument("--num-processes", type=positive_int, default=None, help="with --coordinator: how many")
+    parser.add_argument("--process-id", type=bounded_number(int, 0), default=None,
+                        help="with --coordinator: this process's index, 0..N-1")
