@@ -94,8 +94,10 @@ def _advance(env, params: EnvParams, decide: Decide, episode: Episode, x) -> tup
     else:
         obs, state, reward, terminated, info = env.step_with_stride(episode.state, move.action, move.stride, params)
     truncated = env.is_truncated(state, params)
-    stepped = Episode(obs, state, agent, episode.episode_return + reward, terminated | truncated)
-    return stepped, Step(~episode.done, move.action, info["stride"], obs, state, reward, terminated, truncated)
+    stepped = Episode(obs=obs, state=state, agent=agent, episode_return=episode.episode_return + reward,
+                      done=terminated | truncated)
+    return stepped, Step(live=~episode.done, action=move.action, stride=info["stride"], obs=obs, state=state,
+                         reward=reward, terminated=terminated, truncated=truncated)
 
 
 def run_to_end(env, params: EnvParams, decide: Decide, episode: Episode) -> Episode:

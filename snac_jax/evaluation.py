@@ -255,5 +255,6 @@ def evaluate_task(
 
     everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
     return TaskResult.from_episodes(
-        task, strata, everything.length, everything.bricks_used, everything.episode_return, seed, wall_s
+        task=task, strata=strata, lengths=everything.length, bricks_used=everything.bricks_used,
+        returns=everything.episode_return, seed=seed, wall_s=wall_s,
     )

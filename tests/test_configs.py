@@ -87,3 +87,34 @@ def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
             registry.tuned_table("ppo")
     finally:
         registry.tuned_table.cache_clear()
+
+
+@pytest.mark.parametrize("algorithm", list(ALGORITHMS))
+def test_every_field_is_a_flag_of_snac_train(algorithm):
+    """The command line is derived from the config's declarations: one flag per field, parsed
+    into the field's type."""
+    from snac_jax.cli import build_parser
+
+    parser = build_parser()
+    for spec in field_specs(config_class(algorithm)).values():
+        if not spec.cli:
+            continue
+        flag = "--" + spec.name.replace("_", "-")
+        if spec.kind is bool:
+            value, text = (not spec.default), ([flag] if not spec.default else ["--no-" + flag[2:]])
+        else:
+            value = spec.default if spec.default is not None else (spec.low if spec.low is not None else 1)
+            if spec.low is not None and spec.low_open and value == spec.low:
+                value = spec.low + 1
+            text = [flag, str(value)]
+        args = parser.parse_args(["train", algorithm, *text])
+        assert getattr(args, spec.name) == spec.kind(value), (algorithm, spec.name)
+        assert spec.name in args.config_options
+
+
+def test_a_flag_out_of_its_range_is_an_argparse_error(capsys):
+    from snac_jax.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["train", "ppo", "--gamma", "1.5"])
+    assert "must be a number in [0, 1], got '1.5'" in capsys.readouterr().err
