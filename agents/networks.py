@@ -196,6 +196,7 @@ class ObservationEncoder(nn.Module):
 
     layout: ObsLayout
     hidden_size: int
+    layer_norm: bool = False  # LayerNorm before each ReLU (PQN's networks)
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
@@ -218,7 +219,8 @@ class ObservationEncoder(nn.Module):
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for _ in range(2):
-            x = nn.relu(nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
+            x = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x)
+            x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
         return x
 
 
@@ -281,11 +283,40 @@ class ActorCritic(nn.Module):
         return carry, logits, value
 
 
+class LayerNormQNetwork(nn.Module):
+    """Q-values `(T, B, A)` with LayerNorm before every hidden ReLU, an optional GRU core, and a
+    linear Q layer on top (as in the paper's networks); the call and the carry are `ActorCritic`'s.
+
+    Why LayerNorm: PQN (Gallici et al. 2024) learns without a target network or replay, and the
+    normalisation is what keeps its bootstrapped targets from diverging (their analysis of TD
+    stability).
+    """
+
+    layout: ObsLayout
+    num_actions: int
+    hidden_size: int = 64
+    rnn_size: int = 0  # 0: feed-forward
+
+    @property
+    def carry_size(self) -> int:
+        return self.rnn_size if self.rnn_size else 1
+
+    def initial_carry(self, batch: int) -> jax.Array:
+        return jnp.zeros((batch, self.carry_size), jnp.float32)
+
+    @nn.compact
+    def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
+        x = ObservationEncoder(self.layout, self.hidden_size, layer_norm=True)(obs)
+        if self.rnn_size:
+            carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
+        return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(x)
+
+
 def param_count(params) -> int:
     return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
 
 
-__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedRNN", "ActorCritic", "scaled_init")
+__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedRNN", "ActorCritic", "LayerNormQNetwork", "scaled_init")
 
 
 class QNetwork(nn.Module):

@@ -30,7 +30,7 @@ from flax import struct
 
 from agents.config import TrainConfig, option
 from agents.networks import ActorCritic, ObsLayout
-from agents.targets import gae
+from agents.targets import gae, truncation_values
 from snac_jax.policy import Policy
 
 
@@ -204,31 +204,13 @@ class PPO:
 
     def _final_values(self, params, batch: Transition) -> jax.Array:
         """`(T, B)` values of the final observations where an episode was truncated (0 elsewhere:
-        a termination bootstraps nothing).
-
-        Why not score every step: truncations are rare (one per step limit per world), and a
-        forward pass over all `T * B` final observations cost as much as the rollout's own. The
-        first `B` truncations are gathered and scored; a batch with more (a step limit shorter
-        than the rollout) takes the all-steps path, so the result is exact either way.
-        """
-        t, n = batch.reward.shape
-        truncated = (batch.done & ~batch.terminated).reshape(-1)
-        final_obs = batch.final_obs.reshape(t * n, -1)
-        carry_after = batch.carry_after.reshape(t * n, -1)
+        a termination bootstraps nothing), each from the carry that saw its episode."""
 
         def score(carry, obs):
             _, _, value = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
             return value[0]
 
-        def gathered():
-            (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
-            values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index]), 0.0)
-            return jnp.zeros((t * n,), values.dtype).at[index].add(values)
-
-        def every_step():
-            return jnp.where(truncated, score(carry_after, final_obs), 0.0)
-
-        return jax.lax.cond(truncated.sum() <= n, gathered, every_step).reshape(t, n)
+        return truncation_values(score, batch.done & ~batch.terminated, batch.final_obs, batch.carry_after)
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
         cfg = self.config

@@ -34,6 +34,8 @@ ALGORITHMS: dict[str, Entry] = {
     "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
     "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
+    "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
+                 "network (PQN-RNN with --recurrent)"),
 }
 
 

@@ -1,7 +1,10 @@
 """Learning targets, each a pure function over time-major arrays, each checked against a
-hand-computed example in the tests: GAE for PPO, n-step returns for the Q-learners."""
+hand-computed example in the tests: GAE for PPO, n-step returns for the replay Q-learners, Q(lambda)
+returns for PQN; and the values at truncations that PPO's and PQN's targets bootstrap from."""
 
 from __future__ import annotations
+
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -48,3 +51,72 @@ def n_step_targets(rewards: jax.Array, dones: jax.Array, values: jax.Array, gamm
         target = target + (gamma**i) * alive * rewards[i : i + length]
         alive = alive * (1.0 - dones[i : i + length].astype(rewards.dtype))
     return target + (gamma**n) * alive * values[n : n + length]
+
+
+def q_lambda(
+    rewards: jax.Array,
+    next_values: jax.Array,
+    final_values: jax.Array,
+    terminated: jax.Array,
+    truncated: jax.Array,
+    gamma: float,
+    td_lambda: float,
+) -> jax.Array:
+    """Q(lambda) returns over time-major `(T, ...)` arrays (PQN's targets, Gallici et al. 2024).
+
+    `next_values[t]` is the greedy value `max_a Q` of the observation after step t as the rollout
+    saw it: the next row's observation, and for the last row the one the rollout stopped at.
+    Where the episode ended at t that observation starts the next episode and is ignored.
+    `final_values[t]` is the value of the episode's last observation (before the auto-reset),
+    read only where `truncated[t]`. With `G[T] = next_values[T-1]`:
+
+        terminated[t]:  G[t] = r[t]                                   (nothing lies beyond)
+        truncated[t]:   G[t] = r[t] + gamma * final_values[t]          (the trace is cut)
+        otherwise:      G[t] = r[t] + gamma * ((1 - lambda) * next_values[t] + lambda * G[t+1])
+
+    A step both terminated and truncated counts as terminated.
+    """
+    bootstrap_if_ended = jnp.where(terminated, 0.0, final_values)
+    ended = terminated | truncated
+
+    def backward(following, step):
+        reward, next_value, end_value, done = step
+        mixed = (1.0 - td_lambda) * next_value + td_lambda * following
+        ret = reward + gamma * jnp.where(done, end_value, mixed)
+        return ret, ret
+
+    _, returns = jax.lax.scan(
+        backward, next_values[-1], (rewards, next_values, bootstrap_if_ended, ended), reverse=True
+    )
+    return returns
+
+
+def truncation_values(
+    score: Callable[[jax.Array, jax.Array], jax.Array],
+    truncated: jax.Array,
+    final_obs: jax.Array,
+    carry_after: jax.Array,
+) -> jax.Array:
+    """`(T, B)` values `score(carry (N, C), obs (N, O)) -> (N,)` of the final observations where
+    `truncated (T, B)`, 0 elsewhere; `final_obs (T, B, O)` and `carry_after (T, B, C)` (the
+    recurrent state that saw the episode) per step.
+
+    Why not score every step: truncations are rare (one per step limit per world), and a
+    forward pass over all `T * B` final observations costs as much as the rollout's own. The
+    first `B` truncations are gathered and scored; a batch with more (a step limit shorter
+    than the rollout) takes the all-steps path, so the result is exact either way.
+    """
+    t, n = truncated.shape
+    truncated = truncated.reshape(-1)
+    final_obs = final_obs.reshape(t * n, -1)
+    carry_after = carry_after.reshape(t * n, -1)
+
+    def gathered():
+        (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
+        values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index]), 0.0)
+        return jnp.zeros((t * n,), values.dtype).at[index].add(values)
+
+    def every_step():
+        return jnp.where(truncated, score(carry_after, final_obs), 0.0)
+
+    return jax.lax.cond(truncated.sum() <= n, gathered, every_step).reshape(t, n)

@@ -1,0 +1,243 @@
+"""PQN / PQN-RNN: Q(lambda) returns by hand, the truncation values, the LayerNorm GRU Q-network
+against step-by-step application, the rollout's Q-values against a pass over the sequence, tiny
+training runs, one compile per configuration, seeds, resume, the CLI, and the paper's missing row.
+
+Episodes are cut short with the `max_steps` training option so that short rollouts hold both
+terminations and truncations.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agents.networks import ActorCritic, LayerNormQNetwork, ObsLayout
+from agents.pqn import PQN
+from agents.registry import make_config
+from agents.targets import q_lambda, truncation_values
+from snac_jax.evaluation import run_episodes
+from snac_jax.tasks import make
+
+# Every option a tuned per-task entry may set is pinned here, so retuning never changes the tests.
+TINY = dict(recurrent=False, num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=2, hidden_size=16,
+            rnn_size=8, learning_rate=1e-3, reward_scale=0.01, chunks=2, total_steps=2 * 8 * 8)
+
+
+def _pqn(task="1d-static-sin", **options) -> PQN:
+    return PQN(make_config("pqn", task, **{**TINY, **options}))
+
+
+# --- pure pieces -------------------------------------------------------------------------------------
+
+
+def test_q_lambda_matches_hand_computation_with_a_termination_and_a_truncation():
+    gamma = 0.9
+    # One world, 5 steps. Step 1 terminates (its reward alone), step 3 is truncated (bootstraps
+    # from its final observation's value 7 and cuts the trace). The next values at steps 1 and 3
+    # are the next episode's first observation (20, 40) and must be ignored, as must the final
+    # values where no truncation happened (99).
+    rewards = jnp.array([1.0, 2.0, 3.0, 4.0, 5.0])[:, None]
+    next_values = jnp.array([10.0, 20.0, 30.0, 40.0, 50.0])[:, None]
+    final_values = jnp.array([99.0, 99.0, 99.0, 7.0, 99.0])[:, None]
+    terminated = jnp.array([False, True, False, False, False])[:, None]
+    truncated = jnp.array([False, False, False, True, False])[:, None]
+
+    got = q_lambda(rewards, next_values, final_values, terminated, truncated, gamma, 0.5)
+    # lambda = 0.5:
+    # G4 = 5 + 0.9 * 50                          = 50.0   (the rollout's end: bootstrap from V(s5))
+    # G3 = 4 + 0.9 * 7                           = 10.3   (truncated: the final observation's value)
+    # G2 = 3 + 0.9 * (0.5 * 30 + 0.5 * 10.3)     = 3 + 0.9 * 20.15 = 21.135
+    # G1 = 2                                     = 2.0    (terminated: nothing beyond)
+    # G0 = 1 + 0.9 * (0.5 * 10 + 0.5 * 2)        = 1 + 0.9 * 6 = 6.4
+    np.testing.assert_allclose(got[:, 0], [6.4, 2.0, 21.135, 10.3, 50.0], rtol=1e-6)
+
+    # lambda = 1 (Monte-Carlo up to the episode's end): G2 = 3 + 0.9 * 10.3 = 12.27, G0 = 1 + 0.9 * 2 = 2.8.
+    got = q_lambda(rewards, next_values, final_values, terminated, truncated, gamma, 1.0)
+    np.testing.assert_allclose(got[:, 0], [2.8, 2.0, 12.27, 10.3, 50.0], rtol=1e-6)
+    # lambda = 0 (one-step Q-learning): G0 = 1 + 9, G2 = 3 + 27, the ends as above.
+    got = q_lambda(rewards, next_values, final_values, terminated, truncated, gamma, 0.0)
+    np.testing.assert_allclose(got[:, 0], [10.0, 2.0, 30.0, 10.3, 50.0], rtol=1e-6)
+    # Terminated and truncated on the same step: a termination, nothing bootstrapped.
+    both = q_lambda(rewards, next_values, final_values, terminated | truncated, truncated, gamma, 0.5)
+    assert float(both[3, 0]) == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
+def test_truncation_values_score_exactly_the_truncated_steps(truncations):
+    t, n = 5, 4
+    rng = np.random.default_rng(truncations)
+    truncated = np.zeros(t * n, bool)
+    truncated[rng.choice(t * n, size=truncations, replace=False)] = True
+    final_obs = rng.normal(size=(t, n, 3)).astype(np.float32)
+    carry = rng.normal(size=(t, n, 2)).astype(np.float32)
+
+    def score(c, o):
+        return o.sum(-1) * c[:, 0]
+
+    got = jax.jit(truncation_values, static_argnums=0)(score, jnp.asarray(truncated.reshape(t, n)), final_obs, carry)
+    expected = np.where(truncated.reshape(t, n), final_obs.sum(-1) * carry[..., 0], 0.0)
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+
+
+def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():
+    env, params = make("1d-static-step")
+    net = LayerNormQNetwork(ObsLayout.from_env(env, params, previous_step=True), env.num_actions, hidden_size=16, rnn_size=8)
+    t, b = 7, 3
+    key_obs, key_reset, key_init = jax.random.split(jax.random.key(0), 3)
+    obs = jax.random.uniform(key_obs, (t, b, net.layout.obs_size), minval=-1, maxval=40)
+    resets = jax.random.bernoulli(key_reset, 0.3, (t, b)).at[0].set(True)
+    carry0 = jax.random.normal(key_init, (b, 8))  # a stale carry: step 0's reset must clear it
+    variables = net.init(jax.random.key(1), carry0, obs, resets)
+    assert any("LayerNorm" in name for name in variables["params"]["ObservationEncoder_0"])
+
+    carry_scan, q_scan = net.apply(variables, carry0, obs, resets)
+    carry = carry0
+    for i in range(t):
+        carry, q = net.apply(variables, carry, obs[i : i + 1], resets[i : i + 1])
+        np.testing.assert_allclose(q[0], q_scan[i], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(carry, carry_scan, rtol=1e-5, atol=1e-6)
+    # A reset really forgets: after the first reset the outputs ignore the carry before it.
+    _, q_other = net.apply(variables, carry0 + 5.0, obs, resets)
+    after = np.asarray(resets).cumsum(axis=0) >= 1
+    np.testing.assert_allclose(np.asarray(q_other)[after], np.asarray(q_scan)[after], rtol=1e-5, atol=1e-6)
+
+
+def test_other_learners_networks_have_no_layer_norm():
+    env, params = make("1d-static-sin")
+    net = ActorCritic(ObsLayout.from_env(env, params), env.num_actions, hidden_size=8, rnn_size=4)
+    variables = net.init(jax.random.key(0), net.initial_carry(1), jnp.zeros((1, 1, 7)), jnp.ones((1, 1), bool))
+    paths = [jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(variables)[0]]
+    assert paths and not any("LayerNorm" in p for p in paths), paths
+
+
+def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry():
+    """The targets bootstrap from the rollout's own Q-values: they must be what the learner's
+    sequence pass (from the carry at the rollout's start, with resets) computes."""
+    pqn = _pqn(recurrent=True, max_steps=5)
+    rollout = jax.jit(pqn.rollout)
+    state, _, _ = rollout(jax.jit(pqn.init)(jax.random.key(0)), pqn.env_params)  # a non-zero carry
+    carry0 = state.worlds.carry
+    _, batch, _ = rollout(state, pqn.env_params)
+    assert bool(batch.reset[1:].any()) and bool(batch.truncated.any()) and bool(jnp.abs(carry0).max() > 0)
+    _, q = pqn.network.apply(state.params, carry0, batch.obs, batch.reset)
+    np.testing.assert_allclose(q.max(-1), batch.value, rtol=1e-5, atol=1e-6)
+
+
+# --- training ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("task,recurrent", [
+    ("1d-static-sin", False),
+    ("1d-dynamic", True),
+    pytest.param("2d-dynamic-sparse", True, marks=pytest.mark.slow),  # the conv design encoder: a long compile
+])
+def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
+    pqn = _pqn(task, recurrent=recurrent, max_steps=6)
+    traces = []
+
+    def chunk(state):
+        traces.append(1)
+        return pqn.train_chunk(state, pqn.env_params, 2)
+
+    run = jax.jit(chunk)
+    state = jax.jit(pqn.init)(jax.random.key(0))
+    state, first = run(state)
+    state, metrics = run(state)
+    assert len(traces) == 1 and run._cache_size() == 1
+    assert metrics["loss"].shape == (2,) and int(state.update) == 4
+    for name in ("loss", "q_mean", "target_mean"):
+        assert np.all(np.isfinite(metrics[name])), name
+    assert int(metrics["episodes"].sum()) > 0
+    assert float(first["epsilon"][0]) == 1.0 and float(metrics["epsilon"][-1]) == pytest.approx(0.01)
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
+
+
+def test_two_seeds_through_the_driver_differ(tmp_path):
+    from agents.driver import read_metrics, train
+
+    config = make_config("pqn", "1d-static-sin", **{**TINY, "seeds": 2, "max_steps": 6})
+    _, state = train(config, tmp_path, progress=False)
+    assert list(np.asarray(state.update)) == [2, 2]
+    first = jax.tree.leaves(state.params)[0]
+    assert not np.allclose(first[0], first[1])
+    lines = read_metrics(tmp_path)
+    assert [r["chunk"] for r in lines] == [0, 1] and all(len(r["loss"]) == 2 for r in lines)
+
+
+@pytest.mark.slow  # two runs and a resume through the driver, with compiles: ~30 s or more on a 2-core CPU
+def test_resume_equals_uninterrupted(tmp_path):
+    from agents import checkpoint
+    from agents.driver import train
+
+    config = make_config("pqn", "1d-static-gauss", **{**TINY, "recurrent": True, "seeds": 2, "total_steps": 4 * 8 * 8,
+                                                        "chunks": 4, "max_steps": 6})
+    _, straight = train(config, tmp_path / "straight", progress=False)
+    _, first = train(config, tmp_path / "killed", progress=False, stop_after_chunks=2)
+    assert list(np.asarray(first.update)) == [2, 2]
+    _, resumed = train(config, tmp_path / "killed", resume=True, progress=False)
+    assert list(np.asarray(resumed.update)) == [4, 4]
+    a, b = checkpoint.to_storable(straight), checkpoint.to_storable(resumed)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_greedy_policy_runs_in_the_evaluator_with_recurrent_state():
+    pqn = _pqn("1d-dynamic", recurrent=True)
+    state = jax.jit(pqn.init)(jax.random.key(0))
+    env, params = make("1d-dynamic", test_design=3, max_steps=30)
+    episodes = run_episodes(env, params, pqn.policy(state.params), jax.random.key(1), np.zeros(4, np.int32))
+    assert episodes.iou.shape == (4,)
+    assert np.all((episodes.iou >= 0) & (episodes.iou <= 1))
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        (dict(num_envs=30, num_minibatches=4), "multiple of num_minibatches"),
+        (dict(q_lambda=1.5), r"q_lambda must be a number in \[0, 1\]"),
+        (dict(eps_end=-0.1), r"eps_end must be a number in \[0, 1\]"),
+        (dict(learning_rate=0.0), "learning_rate must be a number > 0"),
+        (dict(lstm_size=8), "unknown pqn option"),
+    ],
+)
+def test_config_errors_are_clear(options, message):
+    with pytest.raises(ValueError, match=message):
+        make_config("pqn", "1d-static-sin", **options)
+
+
+def test_the_paper_has_no_pqn_row_and_the_table_shows_dashes():
+    from snac_jax.evaluation import TaskResult
+    from snac_jax.paper import load_paper_results, markdown_table, paper_row
+
+    assert paper_row(load_paper_results(), make_config("pqn").paper_method) == {}
+    result = TaskResult.from_episodes("1d-static-sin", {"sin": np.array([0.5, 0.7])}, lengths=[10, 12],
+                                      bricks_used=[3, 4], returns=[1.0, 2.0], seed=0, wall_s=0.0)
+    row = markdown_table([result], {"1d-static-sin": {}}).splitlines()[-1]
+    assert row.startswith("| 1d-static-sin | 2 | 0.600 |") and row.count("—") == 3, row
+
+
+@pytest.mark.slow  # a training and an evaluation subprocess
+def test_cli_trains_pqn_rnn_and_evaluates_it_without_a_paper_row(tmp_path):
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn", "--recurrent", "--task", "1d-static-step",
+           "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8", "--num-minibatches", "2",
+           "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2", "--out", str(out),
+           "--eval-episodes", "2", "--no-progress"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
+        assert (out / name).is_file(), name
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["algorithm"] == "pqn" and saved["recurrent"] is True
+    assert "| 1d-static-step |" in result.stdout and "paper row: pqn" in result.stdout
+    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
+                           capture_output=True, text=True, env=env, timeout=600)
+    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
