@@ -39,7 +39,10 @@ def test_every_tuned_entry_names_the_result_page_it_was_tuned_for(algorithm):
     from agents.registry import TUNED_DIR
 
     root = Path(__file__).parents[1]
-    for task, entry in tomllib.loads((TUNED_DIR / f"{algorithm}.toml").read_text()).items():
+    path = TUNED_DIR / f"{algorithm}.toml"
+    if not path.is_file():
+        pytest.skip(f"{algorithm} has no tuned settings: every task uses the config class's defaults")
+    for task, entry in tomllib.loads(path.read_text()).items():
         assert (root / entry["result"]).is_file(), (algorithm, task, entry["result"])
     assert tuned_table(algorithm)  # loads and checks the keys against the config's fields
 
