@@ -34,6 +34,7 @@ ALGORITHMS: dict[str, Entry] = {
     "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
     "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
+    "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
 }
 
 
