@@ -24,7 +24,7 @@ import numpy as np
 from flax import struct
 
 from agents.config import option
-from agents.dqn import RunnerState, Step, Worlds
+from agents.offpolicy import RunnerState, Step, Worlds
 from agents.drqn import DRQN, DRQNConfig
 from snac_jax.config import EnvConfig
 from snac_jax.transition import drop_reward

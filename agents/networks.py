@@ -195,7 +195,8 @@ class ObservationEncoder(nn.Module):
     """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding."""
 
     layout: ObsLayout
-    hidden_size: int
+    hidden_size: int  # the design encoder's features, and the MLP's widths unless `layers`
+    layers: tuple[int, ...] = ()  # the MLP's widths; empty: two layers of `hidden_size`
     layer_norm: bool = False  # LayerNorm before each ReLU (PQN's networks)
 
     @nn.compact
@@ -218,8 +219,8 @@ class ObservationEncoder(nn.Module):
         if "design" in parts:
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
-        for _ in range(2):
-            x = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x)
+        for width in self.layers or (self.hidden_size,) * 2:
+            x = nn.Dense(width, kernel_init=scaled_init(np.sqrt(2)))(x)
             x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
         return x
 

@@ -36,6 +36,7 @@ ALGORITHMS: dict[str, Entry] = {
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
     "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
                  "network (PQN-RNN with --recurrent)"),
+    "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
 }
 
 

@@ -1,0 +1,251 @@
+"""SAC-Discrete: the soft value, critic, actor and temperature losses against hand computation,
+which parameters each loss moves, the Polyak target, tiny runs (one compile per configuration, two
+seeds through the driver), the greedy policy, resume and the command line."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agents.registry import build_algorithm, make_config
+from agents.sac import actor_loss, critic_loss, soft_values, temperature_loss
+from agents.targets import n_step_targets
+
+# Every option a tuned entry could set is pinned here, so retuning never changes the tests.
+TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_sizes="16,16", learning_starts=0, chunks=2,
+            gradient_steps=1, learning_rate=1e-3, total_steps=4 * 64, buffer_size=8 * 40, max_steps=20)
+
+# With pi = (1/2, 1/2) and alpha = 1 / ln 2, alpha log pi(a) = log2(1/2) = -1 for both actions.
+HALF = jnp.log(jnp.array([0.5, 0.5]))
+ALPHA = 1.0 / math.log(2.0)
+
+
+def _agent(task="1d-static-sin", **options):
+    return build_algorithm(make_config("sac", task, **{**TINY, **options}))
+
+
+def _same(a, b) -> bool:
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+# --- the losses ----------------------------------------------------------------------------------
+
+
+def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
+    # Three rows of one world, two actions; rows 0 and 1 get a loss, the episode ends at row 1.
+    q_target = jnp.array([
+        [[500.0, 500.0], [4.0, 2.0], [1000.0, 1000.0]],  # target critic 1, rows 0..2
+        [[500.0, 500.0], [3.0, 6.0], [1000.0, 1000.0]],  # target critic 2
+    ])[:, :, None, :]  # (2, T=3, S=1, A=2)
+    log_probs = jnp.broadcast_to(HALF, (3, 1, 2))
+    values = soft_values(q_target, log_probs, ALPHA)
+    # V(row 1) = 0.5 * (min(4, 3) + 1) + 0.5 * (min(2, 6) + 1) = 0.5 * 4 + 0.5 * 3 = 3.5
+    np.testing.assert_allclose(values[1, 0], 3.5, rtol=1e-6)
+
+    rewards = jnp.array([1.0, 2.0, 4.0])[:, None]
+    dones = jnp.array([False, True, False])[:, None]
+    targets = n_step_targets(rewards, dones, values, 0.5, n=1, length=2)
+    # y0 = 1 + 0.5 * V(row 1) = 1 + 0.5 * 3.5 = 2.75; y1 = 2 (terminal: row 2's 1000 never counts)
+    np.testing.assert_allclose(targets[:, 0], [2.75, 2.0], rtol=1e-6)
+    # Two steps of reward from row 0: 1 + 0.5 * 2, then the episode's end cuts the bootstrap.
+    np.testing.assert_allclose(n_step_targets(rewards, dones, values, 0.5, n=2, length=1)[0, 0], 2.0)
+
+    q = jnp.array([
+        [[0.0, 3.75], [4.0, 0.0]],  # critic 1, rows 0 and 1
+        [[9.0, 2.25], [0.0, 9.0]],  # critic 2
+    ])[:, :, None, :]
+    actions = jnp.array([1, 0])[:, None]
+    # row 0, action 1: (3.75 - 2.75)^2 + (2.25 - 2.75)^2 = 1 + 0.25 = 1.25
+    # row 1, action 0: (4 - 2)^2 + (0 - 2)^2 = 4 + 4 = 8
+    np.testing.assert_allclose(critic_loss(q, actions, targets, jnp.ones((2, 1))), (1.25 + 8) / 2, rtol=1e-6)
+    np.testing.assert_allclose(critic_loss(q, actions, targets, jnp.array([[0.0], [1.0]])), 8.0, rtol=1e-6)
+    # The targets are held fixed.
+    grad = jax.grad(critic_loss, argnums=2)(q, actions, targets, jnp.ones((2, 1)))
+    assert not np.any(grad)
+
+
+def test_actor_loss_matches_hand_computation_and_moves_only_the_policy():
+    log_probs = jnp.stack([HALF, jnp.log(jnp.array([0.75, 0.25]))])  # two states
+    q = jnp.array([
+        [[3.0, 5.0], [4.0, 9.0]],  # critic 1, states 0 and 1
+        [[4.0, 1.0], [6.0, 8.0]],  # critic 2
+    ])
+    # state 0, alpha = 1/ln 2: min Q = (3, 1); 0.5 * (-1 - 3) + 0.5 * (-1 - 1) = -2 - 1 = -3
+    np.testing.assert_allclose(actor_loss(log_probs[:1], q[:, :1], ALPHA, jnp.ones(1)), -3.0, rtol=1e-6)
+    # state 1, alpha = 0: min Q = (4, 8); -(0.75 * 4 + 0.25 * 8) = -(3 + 2) = -5
+    np.testing.assert_allclose(actor_loss(log_probs[1:], q[:, 1:], 0.0, jnp.ones(1)), -5.0, rtol=1e-6)
+    # both states with alpha = 0: state 0 gives -(0.5 * 3 + 0.5 * 1) = -2, mean (-2 - 5) / 2 = -3.5
+    np.testing.assert_allclose(actor_loss(log_probs, q, 0.0, jnp.ones(2)), -3.5, rtol=1e-6)
+    grad_q, grad_alpha = jax.grad(actor_loss, argnums=(1, 2))(log_probs, q, ALPHA, jnp.ones(2))
+    assert not np.any(grad_q) and float(grad_alpha) == 0.0
+    assert np.any(jax.grad(actor_loss)(log_probs, q, ALPHA, jnp.ones(2)))
+
+
+def test_temperature_loss_matches_hand_computation_and_moves_only_alpha():
+    log_probs = jnp.stack([HALF, jnp.log(jnp.array([0.75, 0.25]))])
+    # H(1/2, 1/2) = ln 2 = 0.693147; H(3/4, 1/4) = 0.75 * 0.287682 + 0.25 * 1.386294 = 0.562335
+    # target 0.6: gaps 0.093147 and -0.037665, mean 0.027741; times log alpha = 2: 0.055482
+    loss = temperature_loss(jnp.asarray(2.0), log_probs, 0.6, jnp.ones(2))
+    np.testing.assert_allclose(loss, 0.055482, rtol=1e-4)
+    # Its gradient is the mean gap: > 0 while the policy is more random than the target, so a
+    # descent step lowers alpha; with only the (3/4, 1/4) state it is < 0 and raises alpha.
+    np.testing.assert_allclose(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.ones(2)), 0.027741, rtol=1e-4)
+    assert float(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.array([0.0, 1.0]))) < 0
+    assert not np.any(jax.grad(temperature_loss, argnums=1)(2.0, log_probs, 0.6, jnp.ones(2)))
+
+
+# --- the learner --------------------------------------------------------------------------------------
+
+
+def test_sac_trains_a_few_updates_with_finite_losses_and_polyak_targets():
+    agent = _agent(tau=0.25)
+    state = jax.jit(agent.init)(jax.random.key(0))
+    critics = state.params["critic"]["params"]["VmapActionHead_0"]["Dense_0"]["kernel"]
+    assert not np.array_equal(critics[0], critics[1]), "the twin critics start apart"
+    assert _same(state.target_params, state.params["critic"])
+
+    after, _ = jax.jit(lambda s: agent.update(s, agent.env_params))(state)
+    assert int(after.gradient_step) == 1
+    # One gradient step: each target moves a quarter of the way to its critic.
+    expected = jax.tree.map(lambda t, p: 0.75 * t + 0.25 * p, state.target_params, after.params["critic"])
+    for x, y in zip(jax.tree.leaves(after.target_params), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+    for part in ("actor", "critic", "log_alpha"):
+        assert not _same(after.params[part], state.params[part]), part
+
+    state, metrics = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 4))(after)
+    for name in ("loss", "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean"):
+        assert metrics[name].shape == (4,) and np.all(np.isfinite(metrics[name])), name
+    assert np.all(metrics["entropy"] <= math.log(agent.env.num_actions) + 1e-6)
+    assert int(state.gradient_step) == 5 and int(metrics["episodes"].sum()) > 0
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
+
+
+def test_a_chunk_compiles_once():
+    agent = _agent()
+    traces = []
+    loss = agent.loss
+    agent.loss = lambda *args: (traces.append(1), loss(*args))[1]
+    chunk = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 2))
+    state, _ = chunk(jax.jit(agent.init)(jax.random.key(0)))
+    first = len(traces)
+    state, _ = chunk(state)
+    state, _ = chunk(state)
+    assert first > 0 and len(traces) == first
+    assert chunk._cache_size() == 1
+
+
+def test_greedy_policy_is_the_argmax_of_the_actors_logits():
+    agent = _agent("2d-static-dense")
+    params = jax.jit(agent.init)(jax.random.key(1)).params
+    # Sharpen the actor so that its argmax is unambiguous.
+    params["actor"]["params"]["Dense_0"]["kernel"] *= 300.0
+    policy = agent.policy(params)
+    env, env_params = agent.env, agent.env_params
+    obs, env_state = env.reset(jax.random.key(2), env_params)
+    policy_state = policy.init(jax.random.key(3), None)
+    layout = agent.layout
+    for t in range(6):
+        action, new_state = policy.act(params, policy_state, obs, jax.random.key(t))
+        logits = agent.actor.apply(params["actor"], layout.acting_inputs(obs, policy_state))
+        assert int(action) == int(jnp.argmax(logits))
+        obs, env_state, _, _, _, _ = env.step(jax.random.key(10 + t), env_state, action, env_params)
+        policy_state = new_state
+    assert policy.name == "sac"
+
+
+def test_two_seeds_through_the_driver(tmp_path):
+    from agents.checkpoint import read_config
+    from agents.driver import read_metrics, train
+    from agents.trained import checkpoint_policy
+
+    config = make_config("sac", "1d-static-step", **{**TINY, "seeds": 2})
+    algorithm, state = train(config, tmp_path, progress=False)
+    assert read_config(tmp_path) == config
+    actor = state.params["actor"]["params"]["Dense_0"]["kernel"]
+    assert actor.shape[0] == 2 and not np.array_equal(actor[0], actor[1])
+    assert state.params["log_alpha"].shape == (2,)
+    records = read_metrics(tmp_path)
+    assert len(records) == 2 and all(len(r["critic_loss"]) == 2 and len(r["alpha"]) == 2 for r in records)
+    policy = checkpoint_policy(algorithm.env, tmp_path, seed_index=1)
+    assert _same(policy.params["actor"], jax.tree.map(lambda x: x[1], state.params["actor"]))
+
+
+@pytest.mark.parametrize("options,message", [
+    (dict(hidden_sizes="64,x"), "hidden_sizes must be comma-separated ints >= 1"),
+    (dict(hidden_sizes="64,0"), "hidden_sizes must be comma-separated ints >= 1"),
+    (dict(tau=0.0), r"tau must be a number in \(0, 1\]"),
+    (dict(target_entropy_fraction=1.5), r"target_entropy_fraction must be a number in \[0, 1\]"),
+    (dict(initial_alpha=0.0), "initial_alpha must be a number > 0"),
+    (dict(eps_end=0.1), "unknown sac option"),
+])
+def test_config_errors_are_clear(options, message):
+    with pytest.raises(ValueError, match=message):
+        make_config("sac", "1d-static-sin", **options)
+
+
+def test_network_widths_follow_the_papers_appendix_per_dimension():
+    assert make_config("sac", "1d-static-sin").layers == (64, 64)
+    assert make_config("sac", "1d-dynamic").layers == (64, 64)
+    assert make_config("sac", "2d-static-sparse").layers == (64, 128, 64)
+    assert make_config("sac", "2d-dynamic-dense").layers == (512, 512, 512)
+    assert make_config("sac", "3d-static-dense").layers == (64, 128, 256, 128, 64)
+    shapes = jax.eval_shape(build_algorithm(make_config("sac", "2d-static-dense")).init, jax.random.key(0)).params
+    for part, lead in (("actor", ()), ("critic", (2,))):  # the critics' parameters carry the twin axis
+        net = shapes[part]["params"]
+        net = net["VmapActionHead_0"] if part == "critic" else net
+        widths = [net["ObservationEncoder_0"][f"Dense_{i}"]["kernel"].shape for i in range(3)]
+        assert [w[:len(lead)] for w in widths] == [lead] * 3 and [w[-1] for w in widths] == [64, 128, 64], part
+        assert net["Dense_0"]["kernel"].shape[-1] == 5  # one output per 2D action
+
+
+# --- resume and the command line ------------------------------------------------------------------
+
+
+@pytest.mark.slow  # three compilations of a whole run through the driver
+def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
+    from agents.driver import train
+    from agents.trained import checkpoint_policy
+    from snac_jax.evaluation import evaluate_task
+
+    config = make_config("sac", "1d-dynamic", **{**TINY, "total_steps": 4 * 64, "chunks": 4})
+    _, full = train(config, tmp_path / "full", progress=False)
+    train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
+    _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    result = evaluate_task("1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"),
+                           episodes_per_test_design=2, max_steps=20)
+    assert result.episodes == 20 and 0.0 <= result.mean <= 1.0
+
+
+@pytest.mark.slow  # a training and an evaluation subprocess
+def test_cli_trains_sac_and_evaluates_it(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "sac", "--task", "1d-static-step", "--total-steps", "512",
+           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-sizes", "8,8", "--buffer-size",
+           "256", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
+           "--eval-episodes", "2", "--no-progress"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "replay on device" in result.stderr
+    for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
+        assert (out / name).is_file(), name
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["algorithm"] == "sac" and saved["hidden_sizes"] == "8,8"
+    assert "paper row: sac" in result.stdout and "| 1d-static-step |" in result.stdout
+    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
+                           capture_output=True, text=True, env=env, timeout=600)
+    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
