@@ -1,7 +1,7 @@
 """DQN: acting epsilon-greedily into a replay buffer on device and learning from sampled windows,
 in one jitted loop (`agents.offpolicy` holds the loop, the buffer and the sampling). DRQN
-(`agents.drqn`) and DRQN + hindsight (`agents.hindsight`) extend the `DQN` class here through
-its hooks.
+(`agents.drqn`), DRQN + hindsight (`agents.hindsight`) and Rainbow (`agents.rainbow`) extend the
+`DQN` class here through its hooks.
 
 The Q-network reads a stack of the last `frame_stack` inputs and, with DRQN, runs an LSTM whose
 burn-in steps only warm its state (their output carry is cut from the gradient). Targets are
@@ -52,7 +52,8 @@ class DQNConfig(ReplayConfig):
 
 class DQN(ReplayLearner):
     """Static pieces of a DQN run; see the module docstring. Subclasses change the network core
-    (`lstm_size`, `burn_in`)."""
+    (`lstm_size`, `burn_in`), the whole network (`make_network`) and the Q-values it acts on
+    (`acting_scores`)."""
 
     lstm_size = 0  # feed-forward
     burn_in = 0
@@ -60,19 +61,18 @@ class DQN(ReplayLearner):
     def __init__(self, config: DQNConfig):
         self.frame_stack = config.frame_stack
         super().__init__(config)
-        self.network = QNetwork(
-            layout=self.layout,
-            num_actions=self.env.num_actions,
-            hidden_size=config.hidden_size,
-            lstm_size=self.lstm_size,
-            dueling=config.dueling,
-        )
+        self.network = self.make_network()
         self.optimizer = optax.chain(
             optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=1e-5)
         )
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.total_steps))
         )
+
+    def make_network(self) -> QNetwork:
+        cfg = self.config
+        return QNetwork(layout=self.layout, num_actions=self.env.num_actions, hidden_size=cfg.hidden_size,
+                        lstm_size=self.lstm_size, dueling=cfg.dueling)
 
     # --- hooks of the replay loop ----------------------------------------------------------------
 
@@ -86,11 +86,15 @@ class DQN(ReplayLearner):
     def action_scores(self, params, carry, frames, resets):
         return self.network.apply(params, carry, frames, resets)
 
+    def acting_scores(self, params, carry, frames, resets, keys: jax.Array):
+        """The Q-values `act` is epsilon-greedy on, given the `acting_keys` beyond its own two."""
+        return self.action_scores(params, carry, frames, resets)
+
     def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array):
-        """Epsilon-greedy on the Q-values."""
+        """Epsilon-greedy on the Q-values (`acting_scores`)."""
         n = self.config.num_envs
-        key_explore, key_random = keys
-        carry, q = self.action_scores(params, worlds.carry, frames[None], worlds.reset[None])
+        key_explore, key_random = keys[0], keys[1]
+        carry, q = self.acting_scores(params, worlds.carry, frames[None], worlds.reset[None], keys[2:])
         explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
         action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, self.env.num_actions), jnp.argmax(q[0], -1))
         return carry, action
@@ -113,13 +117,17 @@ class DQN(ReplayLearner):
         _, q = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :])
         return q
 
+    def replayed_frames(self, batch: Step, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """`(frames, resets)` the network reads along a sampled window, from the row after the
+        previous step's and the frame stack's context (that first row only lends its window and action)."""
+        k, p = self.config.frame_stack, int(self.config.previous_step)
+        inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
+        return stack_frames(inputs, batch.reset[p:], k), batch.reset[p + k - 1 :]
+
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
         cfg = self.config
-        k, length, c = cfg.frame_stack, cfg.sequence_length, cfg.context
-        p = int(cfg.previous_step)  # the first row only lends its window and action to the second
-        inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
-        frames = stack_frames(inputs, batch.reset[p:], k)
-        resets = batch.reset[p + k - 1 :]
+        length, c = cfg.sequence_length, cfg.context
+        frames, resets = self.replayed_frames(batch, obs)
         q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target

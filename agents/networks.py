@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Sequence
+from typing import Callable, Sequence
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agents.noisy import noisy_dense
 from snac_jax.env import SNACEnv
 from snac_jax.observation import ObservationLayout
 from snac_jax.state import EnvParams
@@ -30,6 +31,13 @@ from snac_jax.state import EnvParams
 def scaled_init(gain: float) -> nn.initializers.Initializer:
     """Fan-in scaled normal with the variance an orthogonal init of this gain would give."""
     return nn.initializers.variance_scaling(gain**2, "fan_in", "truncated_normal")
+
+
+Layer = Callable[[int, float], nn.Module]  # (features, gain) -> a dense layer; networks build theirs through one
+
+
+def dense(features: int, gain: float) -> nn.Module:
+    return nn.Dense(features, kernel_init=scaled_init(gain))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -200,7 +208,7 @@ class ObservationEncoder(nn.Module):
     layer_norm: bool = False  # LayerNorm before each ReLU (PQN's networks)
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
+    def __call__(self, obs: jax.Array, layer: Layer = dense) -> jax.Array:
         parts = self.layout.split(obs)
         lead = obs.shape[:-1]
         features = [
@@ -220,7 +228,7 @@ class ObservationEncoder(nn.Module):
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for width in self.layers or (self.hidden_size,) * 2:
-            x = nn.Dense(width, kernel_init=scaled_init(np.sqrt(2)))(x)
+            x = layer(width, np.sqrt(2))(x)
             x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
         return x
 
@@ -251,9 +259,9 @@ class ScannedRNN(nn.Module):
         return nn.GRUCell(self.features, **inits)(carry, inputs)
 
 
-def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float) -> jax.Array:
-    x = nn.relu(nn.Dense(hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
-    return nn.Dense(out, kernel_init=scaled_init(gain))(x)
+def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense) -> jax.Array:
+    x = nn.relu(layer(hidden_size, np.sqrt(2))(x))
+    return layer(out, gain)(x)
 
 
 class ActorCritic(nn.Module):
@@ -321,7 +329,9 @@ __all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "S
 
 
 class QNetwork(nn.Module):
-    """Q-values from a stack of observations, with an optional LSTM core and a dueling head.
+    """Q-values from a stack of observations, with an optional LSTM core and a dueling head; with
+    `atoms` > 1 the logits of each action's return distribution instead (C51), and with `noisy`
+    factorised noisy layers (`agents.noisy.NoisyDense`) in place of the encoder's and heads' dense ones.
 
     Time-major like every network of `agents.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
     last k observations, oldest first, zeros before the episode start), `resets (T, B)`.
@@ -332,6 +342,9 @@ class QNetwork(nn.Module):
     hidden_size: int = 128
     lstm_size: int = 0  # 0: feed-forward
     dueling: bool = True
+    atoms: int = 1  # 1: Q-values (T, B, A); more: logits (T, B, A, atoms)
+    noisy: bool = False
+    sigma0: float = 0.1  # of the noisy layers
 
     @property
     def carry_size(self) -> int:
@@ -341,19 +354,24 @@ class QNetwork(nn.Module):
         return jnp.zeros((batch, self.carry_size), jnp.float32)
 
     @nn.compact
-    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
-        x = ObservationEncoder(self.layout, self.hidden_size)(frames)  # (T, B, k, H)
+    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False):
+        """`noise`: the noisy layers draw their noise (rng "noise"); otherwise they are their mean."""
+        layer = noisy_dense(self.sigma0, noise) if self.noisy else dense
+        x = ObservationEncoder(self.layout, self.hidden_size)(frames, layer)  # (T, B, k, H)
         if frames.shape[-2] > 1:
             x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))
         else:
             x = x[..., 0, :]
         if self.lstm_size:
             carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
-        if self.dueling:
-            value = mlp_head(x, self.hidden_size, 1, 1.0)
-            advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)
-            return carry, value + advantage - advantage.mean(axis=-1, keepdims=True)
-        return carry, mlp_head(x, self.hidden_size, self.num_actions, 1.0)
+        per_action = (self.num_actions,) if self.atoms == 1 else (self.num_actions, self.atoms)
+        advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer).reshape(
+            x.shape[:-1] + per_action)
+        if not self.dueling:
+            return carry, advantage()
+        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer).reshape(x.shape[:-1] + (1,) + per_action[1:])
+        advantage = advantage()  # built after the value stream, so parameter names stay those of the plain head
+        return carry, value + advantage - advantage.mean(axis=-len(per_action), keepdims=True)
 
 
 def stack_frames(obs: jax.Array, resets: jax.Array, k: int) -> jax.Array:

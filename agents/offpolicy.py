@@ -12,7 +12,10 @@ loop: what the Q-learners (`agents.dqn` and its extensions) and SAC (`agents.sac
   `action_scores`).
 
 A learner subclass supplies its networks and optimiser (in `__init__`, after this class's),
-`init_params`, `action_scores`, `act`, `loss`, `update_target` and `acting_metrics`.
+`init_params`, `action_scores`, `act`, `loss`, `update_target` and `acting_metrics`; it may replace
+the replay (`make_buffer`), take more keys to act with (`acting_keys`), and a gradient step of its
+own can reuse the optimiser step and target update (`apply_gradients`), as Rainbow's prioritised
+replay does (`agents.rainbow`).
 
 Replay is a flashbax trajectory buffer on device: one row per world, time along the row, each
 entry a `Step`. A sample is `batch_size` windows of `sample_length` consecutive steps of one world
@@ -130,6 +133,7 @@ class ReplayLearner:
     (`sample`)."""
 
     frame_stack = 1  # observations per network input (DQN's frame stack)
+    acting_keys = 2  # keys `act` gets each step
     optimizer: optax.GradientTransformation  # set by the subclass
 
     def __init__(self, config: ReplayConfig):
@@ -138,18 +142,19 @@ class ReplayLearner:
         self.env, self.env_params = config.make_env()
         self.layout = ObsLayout.from_env(self.env, self.env_params, previous_step=config.previous_step)
         self.per_world = config.buffer_size // config.num_envs
-        self.buffer = fbx.make_trajectory_buffer(
-            add_batch_size=config.num_envs,
-            sample_batch_size=config.batch_size,
-            sample_sequence_length=config.sample_length,
-            period=1,
-            min_length_time_axis=config.sample_length,
-            max_length_time_axis=self.per_world,
-        )
+        self.buffer = self.make_buffer()
         high = self.env.observation_space(self.env_params).high
         if np.max(high) >= np.iinfo(np.int16).max:
             raise ValueError(f"observations reach {np.max(high)}, beyond the int16 the replay stores them in")
         self.check_memory()
+
+    def make_buffer(self):
+        """The replay: one row of `per_world` steps per world, sampled as windows of `sample_length`."""
+        cfg = self.config
+        return fbx.make_trajectory_buffer(
+            add_batch_size=cfg.num_envs, sample_batch_size=cfg.batch_size, sample_sequence_length=cfg.sample_length,
+            period=1, min_length_time_axis=cfg.sample_length, max_length_time_axis=self.per_world,
+        )
 
     def check_memory(self) -> None:
         """Refuse a config whose replay memory exceeds `max_buffer_mb`, before anything is allocated."""
@@ -194,7 +199,7 @@ class ReplayLearner:
         raise NotImplementedError
 
     def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array):
-        """`(carry, action (B,))`: the exploring action of every world, with two keys."""
+        """`(carry, action (B,))`: the exploring action of every world, with `acting_keys` keys."""
         raise NotImplementedError
 
     def loss(self, params, target_params, batch: Step, obs, rewards, mask) -> tuple[jax.Array, dict]:
@@ -248,12 +253,12 @@ class ReplayLearner:
     def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
         """One exploring step in every world."""
         n = self.config.num_envs
-        keys = jax.random.split(key, 3)  # two to act with, one to step the worlds
+        keys = jax.random.split(key, self.acting_keys + 1)  # to act with, and the last to step the worlds
         net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
         frames = frames_with_history(worlds.history, net_obs)
-        carry, action = self.act(params, worlds, frames, keys[:2], env_steps)
+        carry, action = self.act(params, worlds, frames, keys[:-1], env_steps)
         env_state, obs, reward, done, info, step, worlds = self._world_step(
-            worlds, jax.random.split(keys[2], n), action, env_params
+            worlds, jax.random.split(keys[-1], n), action, env_params
         )
 
         history = worlds.history
@@ -307,13 +312,15 @@ class ReplayLearner:
         (_, info), grads = jax.value_and_grad(self.loss, has_aux=True)(
             state.params, state.target_params, batch, obs, rewards, mask
         )
+        return self.apply_gradients(state.replace(key=key), grads), info
+
+    def apply_gradients(self, state: RunnerState, grads) -> RunnerState:
+        """One optimiser step, then the target parameters after it (`update_target`)."""
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         gradient_step = state.gradient_step + 1
         target_params = self.update_target(params, state.target_params, gradient_step)
-        state = state.replace(params=params, target_params=target_params, opt_state=opt_state, key=key,
-                              gradient_step=gradient_step)
-        return state, info
+        return state.replace(params=params, target_params=target_params, opt_state=opt_state, gradient_step=gradient_step)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config

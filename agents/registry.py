@@ -37,6 +37,8 @@ ALGORITHMS: dict[str, Entry] = {
     "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
                  "network (PQN-RNN with --recurrent)"),
     "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
+    "rainbow": Entry("agents.rainbow", "RainbowConfig", "Rainbow",
+                     "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
 }
 
 
