@@ -135,16 +135,14 @@ class RunnerState:
     env_steps: jax.Array  # int32, env steps taken per world batch (all worlds of the seed)
 
 
-# --- pure pieces the tests check one by one --------------------------------------------------------
-
-
 # --- the algorithm -----------------------------------------------------------------------------------
 
 
 class DQN:
     """Static pieces of a DQN run; see the module docstring. Subclasses change the network core
-    (`lstm_size`, `burn_in`), what a stored step records (`_example_step`, `_world_step`) and how
-    a sampled batch is read (`sample`)."""
+    (`lstm_size`, `burn_in`), the network and the replay (`make_network`, `make_buffer`), what a
+    stored step records (`_example_step`, `_world_step`), how a sampled batch is read (`sample`),
+    and how Q-values come from the network (`q_values`)."""
 
     lstm_size = 0  # feed-forward
     burn_in = 0
@@ -154,22 +152,9 @@ class DQN:
         self.config = config
         self.env, self.env_params = config.make_env()
         self.layout = ObsLayout.from_env(self.env, self.env_params, previous_step=config.previous_step)
-        self.network = QNetwork(
-            layout=self.layout,
-            num_actions=self.env.num_actions,
-            hidden_size=config.hidden_size,
-            lstm_size=self.lstm_size,
-            dueling=config.dueling,
-        )
+        self.network = self.make_network()
         self.per_world = config.buffer_size // config.num_envs
-        self.buffer = fbx.make_trajectory_buffer(
-            add_batch_size=config.num_envs,
-            sample_batch_size=config.batch_size,
-            sample_sequence_length=config.sample_length,
-            period=1,
-            min_length_time_axis=config.sample_length,
-            max_length_time_axis=self.per_world,
-        )
+        self.buffer = self.make_buffer()
         self.optimizer = optax.chain(
             optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=1e-5)
         )
@@ -180,6 +165,18 @@ class DQN:
         if np.max(high) >= np.iinfo(np.int16).max:
             raise ValueError(f"observations reach {np.max(high)}, beyond the int16 the replay stores them in")
         self.check_memory()
+
+    def make_network(self) -> QNetwork:
+        return QNetwork(layout=self.layout, num_actions=self.env.num_actions, hidden_size=self.config.hidden_size,
+                        lstm_size=self.lstm_size, dueling=self.config.dueling)
+
+    def make_buffer(self):
+        """The replay: one row of `per_world` steps per world, sampled as windows of `sample_length`."""
+        cfg = self.config
+        return fbx.make_trajectory_buffer(
+            add_batch_size=cfg.num_envs, sample_batch_size=cfg.batch_size, sample_sequence_length=cfg.sample_length,
+            period=1, min_length_time_axis=cfg.sample_length, max_length_time_axis=self.per_world,
+        )
 
     def check_memory(self) -> None:
         """Refuse a config whose replay memory exceeds `max_buffer_mb`, before anything is allocated."""
@@ -245,13 +242,17 @@ class DQN:
                     reward=reward, done=done)
         return env_state, obs, reward, done, info, step, worlds
 
+    def q_values(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None):
+        """`(carry, Q-values (T, B, A))`; `key` draws a noisy network's noise, None: its mean (greedy)."""
+        return self.network.apply(params, carry, frames, resets)
+
     def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
         """One epsilon-greedy step in every world."""
         n, cfg = self.config.num_envs, self.config
-        key_explore, key_random, key_step = jax.random.split(key, 3)
+        key_explore, key_random, key_step, key_noise = jax.random.split(key, 4)
         net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
         frames = frames_with_history(worlds.history, net_obs)
-        carry, q = self.network.apply(params, worlds.carry, frames[None], worlds.reset[None])
+        carry, q = self.q_values(params, worlds.carry, frames[None], worlds.reset[None], key_noise)
         explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
         action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, self.env.num_actions), jnp.argmax(q[0], -1))
         env_state, obs, reward, done, info, step, worlds = self._world_step(
@@ -313,13 +314,17 @@ class DQN:
         _, q = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :])
         return q
 
+    def replayed_frames(self, batch: Step, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """`(frames, resets)` the network reads along a sampled window, from the row after the
+        previous step's and the frame stack's context (that first row only lends its window and action)."""
+        k, p = self.config.frame_stack, int(self.config.previous_step)
+        inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
+        return stack_frames(inputs, batch.reset[p:], k), batch.reset[p + k - 1 :]
+
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
         cfg = self.config
-        k, length, c = cfg.frame_stack, cfg.sequence_length, cfg.context
-        p = int(cfg.previous_step)  # the first row only lends its window and action to the second
-        inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
-        frames = stack_frames(inputs, batch.reset[p:], k)
-        resets = batch.reset[p + k - 1 :]
+        length, c = cfg.sequence_length, cfg.context
+        frames, resets = self.replayed_frames(batch, obs)
         q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target
@@ -341,13 +346,15 @@ class DQN:
         (_, info), grads = jax.value_and_grad(self.loss, has_aux=True)(
             state.params, state.target_params, batch, obs, rewards, mask
         )
+        return self.apply_gradients(state.replace(key=key), grads), info
+
+    def apply_gradients(self, state: RunnerState, grads) -> RunnerState:
+        """One optimizer step, and the target network's copy when its interval comes round."""
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         gradient_step = state.gradient_step + 1
         target_params = optax.periodic_update(params, state.target_params, gradient_step, self.config.target_update_interval)
-        state = state.replace(params=params, target_params=target_params, opt_state=opt_state, key=key,
-                              gradient_step=gradient_step)
-        return state, info
+        return state.replace(params=params, target_params=target_params, opt_state=opt_state, gradient_step=gradient_step)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
@@ -377,7 +384,7 @@ class DQN:
 
     def policy(self, params) -> Policy:
         """The greedy policy for one environment (vmap it for a batch)."""
-        network, k, layout = self.network, self.config.frame_stack, self.layout
+        network, q_values, k, layout = self.network, self.q_values, self.config.frame_stack, self.layout
 
         def init(key, design):
             history = jnp.zeros((k - 1, layout.obs_size), jnp.float32) if k > 1 else None
@@ -385,7 +392,7 @@ class DQN:
 
         def act(params, policy_state, obs, key):
             frames = frames_with_history(policy_state["history"], layout.acting_inputs(obs, policy_state))
-            carry, q = network.apply(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
+            carry, q = q_values(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
             history = frames[1:] if k > 1 else None
             action = jnp.argmax(q[0, 0]).astype(jnp.int32)
             return action, {"carry": carry[0], "history": history, **layout.remember(obs, action)}

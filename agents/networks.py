@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Sequence
+from typing import Callable, Sequence
 
 import flax.linen as nn
 import jax
@@ -30,6 +30,48 @@ from snac_jax.state import EnvParams
 def scaled_init(gain: float) -> nn.initializers.Initializer:
     """Fan-in scaled normal with the variance an orthogonal init of this gain would give."""
     return nn.initializers.variance_scaling(gain**2, "fan_in", "truncated_normal")
+
+
+Layer = Callable[[int, float], nn.Module]  # (features, gain) -> a dense layer; networks build theirs through one
+
+
+def dense(features: int, gain: float) -> nn.Module:
+    return nn.Dense(features, kernel_init=scaled_init(gain))
+
+
+class NoisyDense(nn.Module):
+    """Dense layer with learned factorised Gaussian noise (Fortunato et al., NoisyNet): kernel
+    mu + sigma * f(e_in) f(e_out)^T, bias mu_b + sigma_b * f(e_out), f(e) = sign(e) sqrt|e|; at
+    init mu ~ U(+-1/sqrt(fan_in)), sigma = sigma0 / sqrt(fan_in). With `noise`, fresh noise from
+    the "noise" rng (`apply(..., rngs={"noise": key})`) on every call, one draw for all input rows
+    as in NoisyNet (a draw per row multiplies the random numbers by the batch, the cost that
+    dominates on CPU); without `noise`, the mean (mu only)."""
+
+    features: int
+    sigma0: float = 0.1
+    noise: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        fan_in = x.shape[-1]
+        bound = 1.0 / np.sqrt(fan_in)
+        uniform = lambda key, shape: jax.random.uniform(key, shape, jnp.float32, -bound, bound)
+        sigma = nn.initializers.constant(self.sigma0 / np.sqrt(fan_in))
+        kernel = self.param("kernel", uniform, (fan_in, self.features))
+        bias = self.param("bias", uniform, (self.features,))
+        sigma_kernel = self.param("sigma_kernel", sigma, (fan_in, self.features))
+        sigma_bias = self.param("sigma_bias", sigma, (self.features,))
+        if self.noise:
+            key_in, key_out = jax.random.split(self.make_rng("noise"))
+            scale = lambda e: jnp.sign(e) * jnp.sqrt(jnp.abs(e))
+            noise_in, noise_out = scale(jax.random.normal(key_in, (fan_in,))), scale(jax.random.normal(key_out, (self.features,)))
+            kernel = kernel + sigma_kernel * jnp.outer(noise_in, noise_out)
+            bias = bias + sigma_bias * noise_out
+        return x @ kernel + bias
+
+
+def noisy_dense(sigma0: float, noise: bool) -> Layer:
+    return lambda features, gain: NoisyDense(features, sigma0=sigma0, noise=noise)  # its own init, no gain
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,7 +240,7 @@ class ObservationEncoder(nn.Module):
     hidden_size: int
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
+    def __call__(self, obs: jax.Array, layer: Layer = dense) -> jax.Array:
         parts = self.layout.split(obs)
         lead = obs.shape[:-1]
         features = [
@@ -218,7 +260,7 @@ class ObservationEncoder(nn.Module):
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for _ in range(2):
-            x = nn.relu(nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
+            x = nn.relu(layer(self.hidden_size, np.sqrt(2))(x))
         return x
 
 
@@ -248,9 +290,9 @@ class ScannedRNN(nn.Module):
         return nn.GRUCell(self.features, **inits)(carry, inputs)
 
 
-def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float) -> jax.Array:
-    x = nn.relu(nn.Dense(hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
-    return nn.Dense(out, kernel_init=scaled_init(gain))(x)
+def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense) -> jax.Array:
+    x = nn.relu(layer(hidden_size, np.sqrt(2))(x))
+    return layer(out, gain)(x)
 
 
 class ActorCritic(nn.Module):
@@ -289,7 +331,9 @@ __all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "S
 
 
 class QNetwork(nn.Module):
-    """Q-values from a stack of observations, with an optional LSTM core and a dueling head.
+    """Q-values from a stack of observations, with an optional LSTM core and a dueling head; with
+    `atoms` > 1 the logits of each action's return distribution instead (C51), and with `noisy`
+    factorised noisy layers (`NoisyDense`) in place of the encoder's and heads' dense ones.
 
     Time-major like every network of `agents.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
     last k observations, oldest first, zeros before the episode start), `resets (T, B)`.
@@ -300,6 +344,9 @@ class QNetwork(nn.Module):
     hidden_size: int = 128
     lstm_size: int = 0  # 0: feed-forward
     dueling: bool = True
+    atoms: int = 1  # 1: Q-values (T, B, A); more: logits (T, B, A, atoms)
+    noisy: bool = False
+    sigma0: float = 0.1  # of the noisy layers
 
     @property
     def carry_size(self) -> int:
@@ -309,19 +356,24 @@ class QNetwork(nn.Module):
         return jnp.zeros((batch, self.carry_size), jnp.float32)
 
     @nn.compact
-    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
-        x = ObservationEncoder(self.layout, self.hidden_size)(frames)  # (T, B, k, H)
+    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False):
+        """`noise`: the noisy layers draw their noise (rng "noise"); otherwise they are their mean."""
+        layer = noisy_dense(self.sigma0, noise) if self.noisy else dense
+        x = ObservationEncoder(self.layout, self.hidden_size)(frames, layer)  # (T, B, k, H)
         if frames.shape[-2] > 1:
             x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))
         else:
             x = x[..., 0, :]
         if self.lstm_size:
             carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
-        if self.dueling:
-            value = mlp_head(x, self.hidden_size, 1, 1.0)
-            advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)
-            return carry, value + advantage - advantage.mean(axis=-1, keepdims=True)
-        return carry, mlp_head(x, self.hidden_size, self.num_actions, 1.0)
+        per_action = (self.num_actions,) if self.atoms == 1 else (self.num_actions, self.atoms)
+        advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer).reshape(
+            x.shape[:-1] + per_action)
+        if not self.dueling:
+            return carry, advantage()
+        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer).reshape(x.shape[:-1] + (1,) + per_action[1:])
+        advantage = advantage()
+        return carry, value + advantage - advantage.mean(axis=-len(per_action), keepdims=True)
 
 
 def stack_frames(obs: jax.Array, resets: jax.Array, k: int) -> jax.Array:
