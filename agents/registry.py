@@ -34,6 +34,8 @@ ALGORITHMS: dict[str, Entry] = {
     "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
     "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
+    "rainbow": Entry("agents.rainbow", "RainbowConfig", "Rainbow",
+                     "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
 }
 
 

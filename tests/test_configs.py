@@ -70,7 +70,7 @@ def test_cross_field_rules_and_unknown_names():
         make_config("ppo", "1d-static-sin", num_envs=6, num_minibatches=4)
     with pytest.raises(ValueError, match="unknown ppo option"):
         make_config("ppo", "1d-static-sin", lstm_size=3)
-    with pytest.raises(ValueError, match="unknown algorithm 'a2c'; allowed: ppo, dqn, drqn, drqn-her"):
+    with pytest.raises(ValueError, match="unknown algorithm 'a2c'; allowed: ppo, dqn, drqn, drqn-her, rainbow"):
         make_config("a2c", "1d-static-sin")
     with pytest.raises(ValueError, match="unknown task"):
         make_config("dqn", "4d-static")

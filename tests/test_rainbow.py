@@ -1,0 +1,279 @@
+"""Rainbow: the C51 projection and n-step returns by hand, prioritised replay's importance weights
+for hand-set priorities, the noisy layer, tiny runs (finite losses, compiled once, two seeds
+through the driver), the noise-free greedy policy, resume, the CLI, and the paper's settings."""
+
+from __future__ import annotations
+
+import flashbax as fbx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agents.networks import NoisyDense
+from agents.rainbow import Rainbow, importance_weights
+from agents.registry import build_algorithm, make_config
+from agents.targets import categorical_projection, n_step_returns
+
+# Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
+TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
+            frame_stack=1, learning_rate=1e-3, atoms=11, total_steps=4 * 64, buffer_size=8 * 40, max_steps=14)
+
+
+def _agent(task="1d-static-sin", **options) -> Rainbow:
+    return build_algorithm(make_config("rainbow", task, **{**TINY, **options}))
+
+
+# --- pure pieces -------------------------------------------------------------------------------------
+
+
+def test_categorical_projection_matches_hand_computation():
+    support = jnp.arange(5.0)  # atoms 0, 1, 2, 3, 4: V_min = 0, V_max = 4, spacing 1
+    p = jnp.array([0.1, 0.2, 0.3, 0.2, 0.2])
+    cases = [  # (reward sum, discount, expected projection)
+        # 0.5 + 0.5 z = 0.5, 1, 1.5, 2, 2.5: the mass 0.1 at 0.5 splits 0.05 / 0.05 onto atoms 0 and 1,
+        # 0.2 lands on 1, 0.3 at 1.5 splits 0.15 / 0.15 onto 1 and 2, 0.2 lands on 2, 0.2 at 2.5
+        # splits 0.1 / 0.1 onto 2 and 3: [0.05, 0.05 + 0.2 + 0.15, 0.15 + 0.2 + 0.1, 0.1, 0].
+        (0.5, 0.5, [0.05, 0.4, 0.45, 0.1, 0.0]),
+        # Beyond V_max: 1.5 + z = 1.5, 2.5, 3.5, 4.5, 5.5, clipped to 1.5, 2.5, 3.5, 4, 4:
+        # 0.05 / 0.05 onto 1, 2; 0.1 / 0.1 onto 2, 3; 0.15 / 0.15 onto 3, 4; 0.2 + 0.2 onto 4.
+        (1.5, 1.0, [0.0, 0.05, 0.15, 0.25, 0.55]),
+        # Below V_min: -2.5 + z = -2.5, -1.5, -0.5, 0.5, 1.5, clipped to 0, 0, 0, 0.5, 1.5:
+        # 0.1 + 0.2 + 0.3 onto 0; 0.1 / 0.1 onto 0, 1; 0.1 / 0.1 onto 1, 2.
+        (-2.5, 1.0, [0.7, 0.2, 0.1, 0.0, 0.0]),
+        # Terminal (discount 0): everything at the reward 2.7, split 0.3 / 0.7 onto atoms 2 and 3.
+        (2.7, 0.0, [0.0, 0.0, 0.3, 0.7, 0.0]),
+        # Terminal with the reward beyond V_max: everything on the last atom.
+        (9.0, 0.0, [0.0, 0.0, 0.0, 0.0, 1.0]),
+    ]
+    returns = jnp.array([c[0] for c in cases])
+    discounts = jnp.array([c[1] for c in cases])
+    projected = categorical_projection(support, jnp.broadcast_to(p, (len(cases), 5)), returns, discounts)
+    np.testing.assert_allclose(projected, [c[2] for c in cases], atol=1e-6)
+
+
+def test_projection_onto_the_papers_support_keeps_mass_and_unclipped_means():
+    support = jnp.linspace(-5.0, 35.0, 101)
+    probs = jax.nn.softmax(jax.random.normal(jax.random.key(0), (6, 101)))
+    returns = jnp.array([0.0, 1.0, -0.3, 2.2, 0.7, 0.1])
+    discounts = jnp.array([0.5, 0.6, 0.7, 0.4, 0.0, 0.3])  # keeps r + d z inside [-5, 35]
+    projected = categorical_projection(support, probs, returns, discounts)
+    np.testing.assert_allclose(projected.sum(-1), 1.0, rtol=1e-5)
+    # Splitting each atom's mass linearly between its neighbours keeps the mean: r + d E[Z].
+    np.testing.assert_allclose(projected @ support, returns + discounts * (probs @ support), rtol=1e-4, atol=1e-4)
+
+
+def test_n_step_returns_stop_at_an_episode_end_inside_the_window():
+    gamma = 0.5
+    rewards = jnp.array([1.0, 2.0, 4.0, 8.0, 16.0, 32.0])[:, None]
+    dones = jnp.array([False, True, False, False, False, False])[:, None]
+    sums, discounts = n_step_returns(rewards, dones, gamma, n=3, length=3)
+    # Step 0: 1 + 0.5 * 2, and the episode ends at step 1: nothing to bootstrap from.
+    # Step 1: 2, ending right here. Step 2: 4 + 0.5 * 8 + 0.25 * 16, then 0.5^3 times the value at step 5.
+    np.testing.assert_allclose(sums[:, 0], [2.0, 2.0, 12.0])
+    np.testing.assert_allclose(discounts[:, 0], [0.0, 0.0, 0.125])
+
+
+def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
+    buffer = fbx.make_prioritised_trajectory_buffer(
+        add_batch_size=1, sample_batch_size=64, sample_sequence_length=1, period=1, min_length_time_axis=1,
+        max_length_time_axis=4, priority_exponent=0.5,
+    )
+    state = buffer.init(jnp.zeros(()))
+    state = buffer.add(state, jnp.arange(4.0)[None])
+    state = buffer.set_priorities(state, jnp.arange(4), jnp.array([1.0, 4.0, 9.0, 16.0]))
+    sample = buffer.sample(state, jax.random.key(0))
+    # Priority exponent 0.5: p^0.5 = 1, 2, 3, 4 of total 10, so P = 0.1, 0.2, 0.3, 0.4 for the N = 4 items.
+    P = np.array([0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(sample.probabilities, P[sample.indices], rtol=1e-6)
+    np.testing.assert_array_equal(sample.experience[:, 0], sample.indices)
+    assert set(np.asarray(sample.indices)) == {0, 1, 2, 3}  # stratified: 64 strata cover every item
+    # beta = 0.4: w = (N P)^-0.4 = 0.4^-0.4, 0.8^-0.4, 1.2^-0.4, 1.6^-0.4 = 1.4427, 1.0934, 0.9297, 0.8285,
+    # over the largest (item 0's): 1, 0.7579, 0.6444, 0.5743.
+    w = (4 * P) ** -0.4
+    expected = (w / w.max())[sample.indices]
+    np.testing.assert_allclose(importance_weights(sample.probabilities, 0.4), expected, rtol=1e-5)
+    np.testing.assert_allclose(w / w.max(), [1.0, 0.7579, 0.6444, 0.5743], atol=1e-4)
+    # beta = 1 (the end of training) fully corrects: w = P(0) / P(i) = 1, 1/2, 1/3, 1/4.
+    np.testing.assert_allclose(importance_weights(sample.probabilities, 1.0), (0.1 / P)[sample.indices], rtol=1e-5)
+    # A window drawn at probability 0 (no longer valid) gets no weight.
+    np.testing.assert_allclose(importance_weights(jnp.array([0.0, 0.1, 0.4]), 1.0), [0.0, 1.0, 0.25])
+
+
+def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
+    layer = NoisyDense(6, sigma0=0.5)
+    x = jnp.ones((2, 4))  # two identical rows
+    params = layer.init(jax.random.key(0), x)["params"]
+    # Fortunato et al.'s factorised init: mu ~ U(+-1/sqrt(fan_in)), sigma = sigma0 / sqrt(fan_in).
+    assert np.abs(params["kernel"]).max() <= 0.5 and np.abs(params["bias"]).max() <= 0.5
+    np.testing.assert_allclose(params["sigma_kernel"], 0.25)
+    np.testing.assert_allclose(params["sigma_bias"], 0.25)
+    mean = layer.apply({"params": params}, x)
+    np.testing.assert_allclose(mean, x @ params["kernel"] + params["bias"], rtol=1e-6)
+    noisy = NoisyDense(6, sigma0=0.5, noise=True)
+    a = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(1)})
+    again = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(1)})
+    b = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(2)})
+    np.testing.assert_array_equal(a, again)  # the noise is the rng's, nothing else
+    assert not np.allclose(a, b) and not np.allclose(a, mean)
+    np.testing.assert_array_equal(a[0], a[1])  # one draw per forward pass, shared by its rows
+    # The noise has mean zero: averaged over many draws the output approaches the mean network's.
+    draws = jax.vmap(lambda k: noisy.apply({"params": params}, x[:1], rngs={"noise": k}))(jax.random.split(jax.random.key(3), 4000))
+    np.testing.assert_allclose(draws.mean(0)[0], mean[0], atol=0.05)
+
+
+# --- runs ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def trained_1d():
+    agent = _agent()
+    state = jax.jit(agent.init)(jax.random.key(0))
+    state, metrics = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 4))(state)
+    return agent, state, jax.device_get(metrics)
+
+
+def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
+    agent, state, metrics = trained_1d
+    assert np.all(np.isfinite(metrics["loss"])) and np.all(metrics["loss"] > 0)
+    assert np.all(np.isfinite(metrics["q_mean"])) and np.all(metrics["epsilon"] == 0.0)
+    assert int(state.gradient_step) == 4
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
+    # The sampled windows got their KL as priority: no longer all the initial maximum of 1.
+    tree = state.buffer.sum_tree_state
+    leaves = np.asarray(tree.nodes[-(2**tree.tree_depth):][: tree.capacity])
+    assert len(np.unique(leaves[leaves > 0])) > 1 and float(tree.max_recorded_priority) != 1.0
+
+
+def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
+    agent, state, _ = trained_1d
+    policy = agent.policy(state.params)
+    obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+    memory = policy.init(jax.random.key(0), None)
+    actions = {int(policy.act(policy.params, memory, obs, jax.random.key(k))[0]) for k in range(5)}
+    assert len(actions) == 1  # the acting key draws nothing
+    frames = agent.layout.acting_inputs(obs, memory)[None, None, None]
+    carry = agent.network.initial_carry(1)
+    _, logits = agent.network.apply(state.params, carry, frames, jnp.ones((1, 1), bool))
+    assert actions == {int(jnp.argmax(agent.expected(logits)[0, 0]))}
+    # While the acting network's noise does move the Q-values.
+    _, noisy_q = agent.q_values(state.params, carry, frames, jnp.ones((1, 1), bool), jax.random.key(1))
+    assert not np.allclose(noisy_q, agent.expected(logits))
+
+
+def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
+    from agents.driver import read_metrics, train
+
+    traces = {"loss": 0, "_env_step": 0}
+    for name in traces:
+        original = getattr(Rainbow, name)
+
+        def counted(self, *args, _original=original, _name=name, **kwargs):
+            traces[_name] += 1
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(Rainbow, name, counted)
+    config = make_config("rainbow", "1d-static-step", **TINY, seeds=2)  # two equal chunks: one program
+    _, state = train(config, tmp_path, progress=False)
+    assert traces == {"loss": 1, "_env_step": 1}
+    assert state.params["params"]["NoisyDense_0"]["kernel"].shape[0] == 2
+    first, second = (jax.tree.map(lambda x: x[i], state.params) for i in (0, 1))
+    assert not np.array_equal(first["params"]["NoisyDense_0"]["kernel"], second["params"]["NoisyDense_0"]["kernel"])
+    records = read_metrics(tmp_path)
+    assert [r["chunk"] for r in records] == [0, 1]
+    assert all(np.all(np.isfinite(r["loss"])) for r in records)
+
+
+@pytest.mark.parametrize("options", [
+    pytest.param(dict(noisy=False, eps_start=1.0, eps_end=0.1, double_q=False, dueling=False, n_step=1,
+                      priority_exponent=0.0), id="ablations"),
+    pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
+])
+def test_ablated_and_other_configurations_train(options):
+    task = "2d-dynamic-dense" if options.get("max_steps") == 20 else "1d-static-gauss"
+    agent = _agent(task, **options)
+    state = jax.jit(agent.init)(jax.random.key(1))
+    state, metrics = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 3))(state)
+    assert np.all(np.isfinite(metrics["loss"])) and int(state.gradient_step) == 3
+    if not agent.config.noisy:
+        assert "NoisyDense_0" not in state.params["params"] and metrics["epsilon"][0] > 0.0
+
+
+# --- config -----------------------------------------------------------------------------------------------
+
+
+def test_defaults_are_the_papers_settings():
+    config = make_config("rainbow", "2d-static-dense")
+    assert (config.v_min, config.v_max, config.atoms) == (-5.0, 35.0, 101)
+    assert (config.sigma0, config.n_step, config.priority_exponent, config.importance_exponent) == (0.1, 3, 0.5, 0.4)
+    assert config.noisy and config.dueling and config.double_q and config.eps_start == config.eps_end == 0.0
+    assert (config.buffer_size, config.hidden_size, config.learning_rate) == (10_000, 128, 5e-5)
+    assert make_config("rainbow", "1d-static-sin").learning_rate == 5e-5
+    for task in ("3d-static-dense", "3d-static-sparse", "3d-dynamic-dense", "3d-dynamic-sparse"):
+        assert make_config("rainbow", task).learning_rate == 1e-4
+    agent = build_algorithm(make_config("rainbow", "1d-static-sin", num_envs=8))
+    # Three noisy hidden layers of 128 (two in the encoder, one in each dueling stream), 101 atoms per action.
+    params = jax.eval_shape(agent.init, jax.random.key(0)).params["params"]
+    assert params["ObservationEncoder_0"]["NoisyDense_1"]["kernel"].shape == (128, 128)
+    assert params["NoisyDense_0"]["kernel"].shape == (128, 128) and params["NoisyDense_3"]["kernel"].shape == (128, 3 * 101)
+    assert agent.beta(0) == pytest.approx(0.4) and agent.beta(agent.config.total_steps) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("options,message", [
+    (dict(v_min=5.0, v_max=5.0), r"v_min \(5.0\) must be below v_max \(5.0\)"),
+    (dict(atoms=1), "atoms must be an int >= 2"),
+    (dict(priority_exponent=1.5), r"priority_exponent must be a number in \[0, 1\]"),
+    (dict(sigma0=-0.1), "sigma0 must be a number >= 0"),
+])
+def test_config_errors_are_clear(options, message):
+    with pytest.raises(ValueError, match=message):
+        make_config("rainbow", "1d-static-sin", **options)
+
+
+# --- resume and the command line ------------------------------------------------------------------------
+
+
+@pytest.mark.slow  # three compilations of a whole run on a 2-core CPU
+def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
+    from agents.driver import train
+    from agents.trained import checkpoint_policy
+    from snac_jax.evaluation import evaluate_task
+
+    config = make_config("rainbow", "1d-static-sin", **TINY)
+    _, full = train(config, tmp_path / "full", progress=False)
+    train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
+    _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    result = evaluate_task("1d-static-sin", lambda env: checkpoint_policy(env, tmp_path / "cut"), static_episodes=4)
+    assert result.episodes == 4 and 0.0 <= result.mean <= 1.0
+
+
+@pytest.mark.slow  # a training and an evaluation subprocess
+def test_cli_trains_rainbow_and_evaluates_it(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--task", "1d-static-step", "--total-steps", "512",
+           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
+           "--atoms", "11", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
+           "--eval-episodes", "2", "--no-progress"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "replay on device" in result.stderr
+    for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
+        assert (out / name).is_file(), name
+    assert json.loads((out / "config.json").read_text())["algorithm"] == "rainbow"
+    assert "| 1d-static-step |" in result.stdout
+    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
+                           capture_output=True, text=True, env=env, timeout=600)
+    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
+    bad = subprocess.run([sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--huber-delta", "2"],
+                         capture_output=True, text=True, env=env, timeout=600)
+    assert bad.returncode != 0 and "unrecognized arguments: --huber-delta" in bad.stderr
