@@ -3,7 +3,7 @@ in one resumable command.
 
     snac table --preset paper --dry-run          # the plan and its estimated wall time
     snac table --preset paper                    # run it (again: finished cells are skipped)
-    snac table --preset paper --report           # bench/results/table.md, table.json, table.png
+    snac table --preset paper --report           # bench/results/table.md, table.json, table-paper.png
 
 Plugged into the `snac` command through the `snac_jax.commands` entry point (pyproject.toml).
 Presets: `agents/table/budgets.toml`; measured rates for the estimates: `agents/table/rates.json`.
@@ -21,6 +21,16 @@ DEFAULT_RUNS_DIR = Path("runs") / "table"
 DEFAULT_RESULTS_DIR = Path("bench") / "results"
 
 
+def _task(text: str) -> str:
+    from agents.table.plan import expand_tasks
+
+    try:
+        expand_tasks([text])
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def add_parser(subparsers) -> None:
     from agents.registry import ALGORITHMS
     from agents.table.plan import BUDGETS_FILE, load_presets
@@ -33,9 +43,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--preset", choices=sorted(presets), default="paper",
                         help="budget preset (" + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
                         + f"), from {BUDGETS_FILE.name}")
-    parser.add_argument("--algorithms", nargs="+", default=None, metavar="ALGORITHM",
+    parser.add_argument("--algorithms", nargs="+", default=None, metavar="ALGORITHM", choices=list(ALGORITHMS),
                         help=f"default: every registered one ({', '.join(ALGORITHMS)})")
-    parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK",
+    parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK", type=_task,
                         help=f"paper columns (default all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
                              "or environment task ids")
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
@@ -44,7 +54,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--dry-run", action="store_true", help="print the plan with estimated wall times and stop")
     parser.add_argument("--report", action="store_true",
                         help="copy the finished cells' JSON files under RESULTS_DIR/table/<preset>/ and write "
-                             "RESULTS_DIR/table.md, table.json, table.png (no training)")
+                             "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
+                             "(no training)")
     parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,
                         help=f"where --report writes (default {DEFAULT_RESULTS_DIR})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
