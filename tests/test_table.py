@@ -64,6 +64,16 @@ def test_paper_budgets_estimates_and_caps(tmp_path):
     assert "x the step limit (1D: 750)" in text
 
 
+def test_evaluation_estimates_scale_with_the_episodes():
+    from agents.table.plan import eval_seconds
+
+    rates = {"dqn": {"1d-static-sin": {"eval_s": 10.0}}}
+    # Another learner's figure for the nearest task; 10 x 200 episodes against the 500 it was timed on.
+    assert eval_seconds(rates, "ppo", "1d-dynamic", PRESETS["paper"]) == (40.0, "1d-static-sin")
+    assert eval_seconds(rates, "ppo", "1d-static-gauss", PRESETS["smoke"]) == (10.0 * 2 / 500, "1d-static-sin")
+    assert eval_seconds(rates, "ppo", "2d-static-dense", PRESETS["paper"]) is None
+
+
 def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
     from agents.registry import make_config
 

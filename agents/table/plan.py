@@ -22,7 +22,7 @@ from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
-from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
+from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
 from snac_jax.tasks import TASKS, task_spec
 
 HERE = Path(__file__).parent
@@ -40,6 +40,8 @@ _PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settin
 
 @dataclasses.dataclass(frozen=True)
 class Preset:
+    """One table of budgets.toml: how much each cell trains and how it is scored."""
+
     name: str
     description: str
     seeds: int
@@ -87,7 +89,7 @@ def expand_tasks(names) -> list[tuple[str, str]]:
         if name in PAPER_GROUPS:
             pairs += [(name, task) for task in PAPER_GROUPS[name]]
         elif name in TASKS:
-            pairs.append((next((c for c, ts in PAPER_GROUPS.items() if name in ts), name), name))
+            pairs.append((paper_column(name), name))
         else:
             raise ValueError(f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task "
                              f"({', '.join(TASKS)})")
@@ -121,20 +123,21 @@ def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float,
 
 
 def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
-    """Seconds of the preset's protocol for one seed: measured for the algorithm (else any
-    algorithm) on the task or its kin, scaled by the preset's share of the protocol's episodes."""
+    """Seconds of the preset's protocol for one seed: measured (the full protocol) for the
+    algorithm, else any algorithm, on the task or its kin, scaled by the episode counts."""
     found = measured(rates, algorithm, task, "eval_s")
     if found is None:  # another learner's: the protocol's cost is mostly the environment's
         found = next((m for a in sorted(rates) if (m := measured(rates, a, task, "eval_s"))), None)
     if found is None:
         return None
-    episodes, protocol = ((preset.episodes_per_test_design, EPISODES_PER_TEST_DESIGN) if task_spec(task).dynamic
-                          else (preset.static_episodes, STATIC_EPISODES))
-    return found[0] * episodes / protocol, found[1]
+    full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
+    return found[0] * expected_episodes(task, preset.protocol) / expected_episodes(found[1], full), found[1]
 
 
 @dataclasses.dataclass(frozen=True)
 class Budget:
+    """A cell's env steps per seed, what the preset asked before the wall-time cap, and why."""
+
     env_steps: int  # per seed, what the cell's config asks
     requested: int  # per seed, before the wall-time cap
     source: str
@@ -199,6 +202,8 @@ def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: di
 
 @dataclasses.dataclass
 class Cell:
+    """One (algorithm, environment task) run of the grid and where it stands."""
+
     algorithm: str
     column: str
     task: str

@@ -4,6 +4,8 @@ protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are 
 
 from __future__ import annotations
 
+import shutil
+
 from agents import checkpoint
 from agents.table.plan import CELL_FILE, EVAL_FILE, Cell
 from snac_jax.atomic import atomic_write_json
@@ -23,9 +25,10 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     if cell.status == "done":
         return True
     cell.directory.mkdir(parents=True, exist_ok=True)
-    if cell.status == "new":  # left by a run killed before its first checkpoint
+    if cell.status == "new":  # what a run killed before its first complete checkpoint left
         for stale in (checkpoint.METRICS_FILE, EVAL_FILE):
             (cell.directory / stale).unlink(missing_ok=True)
+        shutil.rmtree(cell.directory / checkpoint.CHECKPOINT_DIR, ignore_errors=True)
     atomic_write_json(cell.directory / CELL_FILE, cell.record())
     algorithm, state = train(cell.config, cell.directory, resume=cell.status == "partial", progress=progress,
                              stop_after_chunks=stop_after_chunks, mesh=devices.env_mesh(num_devices, cell.config.num_envs))
