@@ -125,22 +125,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None) -> None:
-    """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`."""
+def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: int | None = None,
+                 counts: dict[str, int] | None = None) -> None:
+    """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`. `seed` is
+    the evaluation key (default `TUNING_EVAL_SEED`; `snac table` reports with `REPORT_EVAL_SEED`);
+    `counts` (`static_episodes`, `episodes_per_test_design`) replaces `episodes` where given."""
     import jax
 
     from snac_jax.atomic import atomic_write_json
-    from snac_jax.evaluation import evaluate_task
+    from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_column, paper_row
 
     config = algorithm.config
-    counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
+    if counts is None:
+        counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
     results = []
-    for seed in range(config.seeds):
-        params = jax.tree.map(lambda x: x[seed], state.params)
-        result = evaluate_task(config.task, algorithm.policy(params), **counts)
+    for index in range(config.seeds):
+        params = jax.tree.map(lambda x: x[index], state.params)
+        result = evaluate_task(config.task, algorithm.policy(params), **counts,
+                               seed=TUNING_EVAL_SEED if seed is None else seed)
         if config.seeds > 1:
-            result = dataclasses.replace(result, task=f"{config.task} (seed {seed})")
+            result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)
     paper = paper_row(load_paper_results(), config.paper_method)
     paper = {r.task: paper.get(paper_column(config.task), {}) for r in results}

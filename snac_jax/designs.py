@@ -13,6 +13,11 @@ Rejection-sampling a triangle there would cost more than the step itself (a vmap
 runs until the unluckiest env of the batch has its triangle). So `make` draws a bank of designs
 once, on device, with these same generators, and `reset` draws an index into it. The bank size
 and seed are parameters (`design_bank_size`, `design_seed`); a new bank is a new key away.
+
+A bank never holds one of its task's ten test designs: a draw that equals one is redrawn (from
+keys folded out of the design's own key, so every other design of the bank stays as it was).
+Without this the agent could train on the very designs it is scored on: the rounded sine curves
+take few distinct values, and a large bank draws some test curves verbatim.
 """
 
 from __future__ import annotations
@@ -141,16 +146,48 @@ def sample_triangle(key: jax.Array, dim: int, density: str) -> jax.Array:
     return cells.astype(jnp.int16) * height
 
 
-def sample_design(key: jax.Array, dim: int, density: str | None) -> jax.Array:
-    """One training design of a dynamic task, of the plan shape, int16."""
-    if dim == 1:
-        return sample_sine(key)
-    return sample_triangle(key, dim, density)
+def sample_design(key: jax.Array, dim: int, density: str | None, excluded: jax.Array | None = None) -> jax.Array:
+    """One training design of a dynamic task, of the plan shape, int16, never equal to any of
+    `excluded` (E, *plan_shape): a draw that equals one is redrawn with `fold_in(key, attempt)`."""
+    def draw(k):
+        return sample_sine(k) if dim == 1 else sample_triangle(k, dim, density)
+
+    first = draw(key)
+    if excluded is None:
+        return first
+    excluded = jnp.asarray(excluded, jnp.int16)
+
+    def is_excluded(carry):
+        _, design = carry
+        return jnp.any(jnp.all(design[None] == excluded, axis=(1, 2)))
+
+    def redraw(carry):
+        attempt, _ = carry
+        return attempt + 1, draw(jax.random.fold_in(key, attempt + 1))
+
+    _, design = jax.lax.while_loop(is_excluded, redraw, (jnp.int32(0), first))
+    return design
+
+
+def dynamic_design_name(dim: int, density: str | None) -> str:
+    """The designs.json prefix of a dynamic task's test designs (`1d-dynamic`, `2d-dynamic-dense`, ...)."""
+    return "1d-dynamic" if dim == 1 else f"{dim}d-dynamic-{density}"
+
+
+def test_designs(dim: int, density: str | None) -> np.ndarray:
+    """The ten test designs of the dynamic task of (dim, density), (10, *plan_shape) int16."""
+    name = dynamic_design_name(dim, density)
+    return np.stack([fixed_design(f"{name}-test{i}") for i in range(NUM_TEST_DESIGNS)])
+
+
+test_designs.__test__ = False  # a library function, not a pytest test
 
 
 @functools.lru_cache(maxsize=32)
 def design_bank(dim: int, density: str | None, size: int, seed: int) -> np.ndarray:
-    """`size` training designs drawn on device from the generator, as a host int16 array."""
+    """`size` training designs drawn on device from the generator, none equal to a test design of
+    the task, as a host int16 array."""
     keys = jax.random.split(jax.random.key(seed), size)
-    bank = jax.jit(jax.vmap(lambda k: sample_design(k, dim, density)))(keys)
+    excluded = jnp.asarray(test_designs(dim, density))
+    bank = jax.jit(jax.vmap(lambda k: sample_design(k, dim, density, excluded)))(keys)
     return np.asarray(bank)

@@ -6,7 +6,7 @@ import pytest
 from scipy.stats import norm
 
 from snac_jax import TASKS, make, test_design_names
-from snac_jax.designs import TRIANGLE_COUNT_RANGE, reference_designs, sine_curve
+from snac_jax.designs import TRIANGLE_COUNT_RANGE, reference_designs, sample_design, sine_curve
 
 DATA = reference_designs()
 STATIC = [t for t in TASKS if "static" in t]
@@ -98,3 +98,25 @@ def test_reset_draws_designs_from_the_bank():
     drawn = {np.asarray(d).tobytes() for d in states.design}
     bank = {np.asarray(d).tobytes() for d in params.designs}
     assert drawn <= bank and len(drawn) >= 6
+
+
+@pytest.mark.parametrize("task", DYNAMIC)
+def test_training_banks_exclude_every_test_design(task):
+    """The default bank (the one training uses) and another seed's: no design equals a test design."""
+    tests = np.stack([np.asarray(DATA[name]["design"]).reshape(np.shape(make(task, test_design=0)[1].designs[0]))
+                      for name in test_design_names(task)])
+    for options in ({}, {"design_bank_size": 512, "design_seed": 7}):
+        _, params = make(task, **options)
+        bank = np.asarray(params.designs)
+        equal = np.all(bank[:, None] == tests[None], axis=(2, 3))
+        assert not equal.any(), f"{task} {options}: bank designs {np.flatnonzero(equal.any(axis=1))[:5]} are test designs"
+
+
+def test_an_excluded_draw_is_redrawn_and_the_others_kept():
+    keys = jax.random.split(jax.random.key(3), 4)
+    plain = np.asarray(jax.vmap(lambda k: sample_design(k, 1, None))(keys))
+    excluded = plain[[1, 3]]
+    redrawn = np.asarray(jax.jit(jax.vmap(lambda k: sample_design(k, 1, None, excluded)))(keys))
+    np.testing.assert_array_equal(redrawn[[0, 2]], plain[[0, 2]])
+    for design in redrawn[[1, 3]]:
+        assert not np.any(np.all(design[None] == excluded, axis=(1, 2)))

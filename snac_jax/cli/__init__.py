@@ -16,7 +16,7 @@ COMMAND_MODULES = ("rollout", "render", "eval", "play")
 # CPU devices a subcommand gets without `--devices` (others: one per core). Training: the
 # learner's minibatch shuffles become cross-device copies, and 1 device measured faster than 2
 # (bench/results/ppo.md).
-CPU_DEVICES_BY_COMMAND = {"train": 1}
+CPU_DEVICES_BY_COMMAND = {"train": 1, "table": 1}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,95 @@
+"""`snac table`: the benchmark table, every learner on the paper's ten columns with several seeds,
+in one resumable command.
+
+    snac table --preset paper --dry-run          # the plan and its estimated wall time
+    snac table --preset paper                    # run it (again: finished cells are skipped)
+    snac table --preset paper --report           # bench/results/table.md, table.json, table-paper.png
+
+Plugged into the `snac` command through the `snac_jax.commands` entry point (pyproject.toml).
+Presets: `agents/table/budgets.toml`; measured rates for the estimates: `agents/table/rates.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from snac_jax.cli.arguments import add_devices_argument, positive_int
+
+DEFAULT_RUNS_DIR = Path("runs") / "table"
+DEFAULT_RESULTS_DIR = Path("bench") / "results"
+
+
+def _task(text: str) -> str:
+    from agents.table.plan import expand_tasks
+
+    try:
+        expand_tasks([text])
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
+def add_parser(subparsers) -> None:
+    from agents.registry import ALGORITHMS
+    from agents.table.plan import BUDGETS_FILE, load_presets
+    from snac_jax.paper import PAPER_TASKS
+
+    presets = load_presets()
+    parser = subparsers.add_parser(
+        "table", help="the benchmark table: every learner on the paper's columns, several seeds, resumable",
+        description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", choices=sorted(presets), default="paper",
+                        help="budget preset (" + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
+                        + f"), from {BUDGETS_FILE.name}")
+    parser.add_argument("--algorithms", nargs="+", default=None, metavar="ALGORITHM", choices=list(ALGORITHMS),
+                        help=f"default: every registered one ({', '.join(ALGORITHMS)})")
+    parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK", type=_task,
+                        help=f"paper columns (default all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
+                             "or environment task ids")
+    parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
+    parser.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS_DIR,
+                        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/ (default {DEFAULT_RUNS_DIR})")
+    parser.add_argument("--dry-run", action="store_true", help="print the plan with estimated wall times and stop")
+    parser.add_argument("--report", action="store_true",
+                        help="copy the finished cells' JSON files under RESULTS_DIR/table/<preset>/ and write "
+                             "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
+                             "(no training)")
+    parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,
+                        help=f"where --report writes (default {DEFAULT_RESULTS_DIR})")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_devices_argument(parser, cpu_default="1, as snac train")
+    parser.set_defaults(func=run)
+
+
+def plan_from_args(args: argparse.Namespace):
+    from agents.registry import ALGORITHMS
+    from agents.table.plan import load_presets, make_plan
+    from snac_jax.paper import PAPER_TASKS
+
+    preset = load_presets()[args.preset]
+    algorithms = args.algorithms or list(ALGORITHMS)
+    return make_plan(preset, algorithms, args.tasks or list(PAPER_TASKS), args.seeds, args.runs_dir)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.report:
+        from agents.table.report import write_report
+
+        paths = write_report(args.preset, args.runs_dir, args.results_dir)
+        for path in paths.values():
+            print(f"wrote {path}")
+        return 0
+
+    from agents.table.plan import format_plan
+    from agents.table.run import run_cells
+
+    cells = plan_from_args(args)
+    print(format_plan(cells, args.runs_dir), flush=True)
+    if args.dry_run:
+        return 0
+    finished = run_cells(cells, progress=not args.no_progress, num_devices=args.devices)
+    print(f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",
+          file=sys.stderr)
+    return 0

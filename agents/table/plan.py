@@ -1,0 +1,356 @@
+"""The plan of `snac table`: which cells a grid has, what each trains, where it stands and how
+long it should take, before anything starts.
+
+A cell is one (algorithm, environment task) run in `<runs-dir>/<preset>/<algorithm>/<task>/`: one
+`agents.driver.train` call with the preset's seeds vmapped, then the reporting protocol. The
+paper's `1d-static` column is three cells, one per shape. Budgets come from the presets of
+`budgets.toml`; wall-time estimates from measured rates (`rates.json`, written by
+`bench/table_rates.py`), or, for a cell that has started, from its own `metrics.jsonl`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from agents import checkpoint
+from agents.config import TrainConfig
+from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
+from snac_jax.designs import NUM_TEST_DESIGNS
+from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
+from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
+from snac_jax.tasks import TASKS, task_spec
+
+HERE = Path(__file__).parent
+BUDGETS_FILE = HERE / "budgets.toml"
+RATES_FILE = HERE / "rates.json"
+CELL_FILE = "cell.json"
+EVAL_FILE = "eval.json"
+TRAIN_SEED = 1
+"""Base training seed of the table's runs (seed i trains from fold_in(key(1), i)); the runs that
+chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
+
+_PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settings", "static_episodes",
+                "episodes_per_test_design"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """One table of budgets.toml: how much each cell trains and how it is scored."""
+
+    name: str
+    description: str
+    seeds: int
+    wall_limit_s: float | None
+    budgets: dict[str, dict[str, Any]]
+    settings: dict[str, Any]
+    static_episodes: int = STATIC_EPISODES
+    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN
+
+    def overrides(self, algorithm: str) -> dict[str, Any]:
+        """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
+        shared = {k: v for k, v in self.settings.items() if not isinstance(v, dict)}
+        return {**shared, **self.settings.get(algorithm, {})}
+
+    @property
+    def protocol(self) -> dict[str, int]:
+        return {"static_episodes": self.static_episodes, "episodes_per_test_design": self.episodes_per_test_design}
+
+
+def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
+    presets = {}
+    for name, table in tomllib.loads(Path(path).read_text()).items():
+        unknown = sorted(set(table) - _PRESET_KEYS)
+        if unknown:
+            raise ValueError(f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}")
+        limit = table.get("wall_limit_minutes")
+        for algorithm, budget in table.get("budgets", {}).items():
+            if set(budget) - {"env_steps", "episodes", "source"} or ("env_steps" in budget and "episodes" in budget):
+                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source)")
+        presets[name] = Preset(
+            name=name, description=table.get("description", ""), seeds=int(table.get("seeds", 1)),
+            wall_limit_s=None if limit is None else 60.0 * limit, budgets=table.get("budgets", {}),
+            settings=table.get("settings", {}),
+            static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
+            episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
+        )
+    return presets
+
+
+def expand_tasks(names) -> list[tuple[str, str]]:
+    """(paper column, environment task) pairs of paper columns (`1d-static`: its three shapes)
+    or environment task ids, in order, without repeats."""
+    pairs = []
+    for name in names:
+        if name in PAPER_GROUPS:
+            pairs += [(name, task) for task in PAPER_GROUPS[name]]
+        elif name in TASKS:
+            pairs.append((paper_column(name), name))
+        else:
+            raise ValueError(f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task "
+                             f"({', '.join(TASKS)})")
+    return list(dict.fromkeys(pairs))
+
+
+# --- rates and estimates -------------------------------------------------------------------------
+
+
+def load_rates(path: str | Path = RATES_FILE) -> dict[str, dict[str, dict]]:
+    path = Path(path)
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _kin(task: str) -> list[str]:
+    """Tasks whose measured rate stands in for `task`'s, nearest first: itself, the same
+    dimension and kind (static / dynamic), then the same dimension."""
+    spec = task_spec(task)
+    same_kind = [t for t in TASKS if t != task and task_spec(t).dim == spec.dim and task_spec(t).dynamic == spec.dynamic]
+    same_dim = [t for t in TASKS if t not in same_kind and t != task and task_spec(t).dim == spec.dim]
+    return [task, *same_kind, *same_dim]
+
+
+def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float, str] | None:
+    """`(value, the task whose entry gave it)` of `field` for `algorithm`: the nearest kin's entry."""
+    entries = rates.get(algorithm, {})
+    for kin in _kin(task):
+        if field in entries.get(kin, {}):
+            return float(entries[kin][field]), kin
+    return None
+
+
+def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
+    """Seconds of the preset's protocol for one seed: measured (the full protocol) for the
+    algorithm, else any algorithm, on the task or its kin, scaled by the episode counts."""
+    found = measured(rates, algorithm, task, "eval_s")
+    if found is None:  # another learner's: the protocol's cost is mostly the environment's
+        found = next((m for a in sorted(rates) if (m := measured(rates, a, task, "eval_s"))), None)
+    if found is None:
+        return None
+    full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
+    return found[0] * expected_episodes(task, preset.protocol) / expected_episodes(found[1], full), found[1]
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """A cell's env steps per seed, what the preset asked before the wall-time cap, and why."""
+
+    env_steps: int  # per seed, what the cell's config asks
+    requested: int  # per seed, before the wall-time cap
+    source: str
+    capped: bool
+
+    def describe(self) -> str:
+        text = _steps(self.env_steps)
+        return f"{text} (capped from {_steps(self.requested)})" if self.capped else text
+
+
+def _steps(n: int) -> str:
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k" if n >= 1e3 else str(n)
+
+
+def _round_down(x: float) -> int:
+    """Two significant figures, rounded down."""
+    if x < 1:
+        return 0
+    scale = 10 ** max(0, int(math.floor(math.log10(x))) - 1)
+    return int(x // scale * scale)
+
+
+def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
+    """Env steps per seed the preset asks for `config`'s algorithm and task, and why."""
+    budget = preset.budgets.get(config.algorithm, {})
+    if "env_steps" in budget:
+        return int(budget["env_steps"]), f"{preset.name}: {budget['source']}"
+    if "episodes" in budget:
+        limit = config.max_steps or task_spec(config.task).max_steps
+        steps = int(budget["episodes"]) * limit
+        return steps, f"{preset.name}: {budget['source']}, x the step limit ({task_spec(config.task).dim}D: {limit})"
+    if "source" in budget:
+        why = budget["source"]
+    elif "total_steps" in preset.overrides(config.algorithm):
+        why = "the preset's total_steps"
+    elif "total_steps" in tuned_table(config.algorithm).get(config.task, {}):
+        why = f"tuned total_steps (agents/tuned/{config.algorithm}.toml)"
+    else:
+        why = f"{type(config).__name__}'s default total_steps (no tuned entry)"
+    return config.total_steps, f"{preset.name}: {why}"
+
+
+def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict) -> tuple[TrainConfig, Budget]:
+    """The config a cell trains and its budget (capped to the preset's wall limit)."""
+    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED}
+    config = make_config(algorithm, task, **overrides)
+    requested, source = requested_budget(preset, config)
+    steps, capped = requested, False
+    rate = measured(rates, algorithm, task, "steps_per_s")
+    if preset.wall_limit_s is not None and rate is not None:
+        evaluation = eval_seconds(rates, algorithm, task, preset)
+        training_s = preset.wall_limit_s - seeds * (evaluation[0] if evaluation else 0.0)
+        fits = _round_down(max(training_s, 0.0) * rate[0] / seeds)
+        if fits < requested:
+            steps, capped = max(fits, config.steps_per_update), True
+    config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
+    return config, Budget(env_steps=steps, requested=requested, source=source, capped=capped)
+
+
+# --- cells -------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Cell:
+    """One (algorithm, environment task) run of the grid and where it stands."""
+
+    algorithm: str
+    column: str
+    task: str
+    directory: Path
+    config: TrainConfig
+    budget: Budget
+    preset: Preset
+    status: str = "new"  # new | partial | done
+    done_steps: int = 0  # per seed, from the run's metrics
+    estimate_s: float | None = None
+    estimate_from: str = ""
+    metrics: list[dict] = dataclasses.field(default_factory=list)  # a started run's metrics.jsonl
+
+    @property
+    def total_steps(self) -> int:
+        """Env steps per seed the run will have trained (whole updates)."""
+        return self.config.num_updates * self.config.steps_per_update
+
+    def record(self) -> dict[str, Any]:
+        """cell.json: what the table needs beside config.json and eval.json."""
+        return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
+                "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
+                "protocol": self.preset.protocol}
+
+
+def expected_episodes(task: str, protocol: dict[str, int]) -> int:
+    if task_spec(task).dynamic:
+        return protocol["episodes_per_test_design"] * NUM_TEST_DESIGNS
+    return protocol["static_episodes"]
+
+
+def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int = REPORT_EVAL_SEED) -> bool:
+    """eval.json holds one finished result per training seed, scored with the evaluation key
+    (and, if given, over `episodes` episodes)."""
+    try:
+        results = list(json.loads(path.read_text()).values())
+    except (OSError, ValueError, AttributeError):
+        return False
+    return len(results) == seeds and all(
+        isinstance(r, dict) and r.get("seed") == seed and isinstance(r.get("mean"), (int, float))
+        and math.isfinite(r["mean"]) and (episodes is None or r.get("episodes") == episodes) for r in results)
+
+
+def _check_same_config(cell: Cell) -> None:
+    stored = json.loads((cell.directory / checkpoint.CONFIG_FILE).read_text())
+    wanted = cell.config.to_json()
+    differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+    if differ:
+        changes = ", ".join(f"{k}: {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in differ)
+        raise ValueError(f"{cell.directory} holds a run made with other settings ({changes}); "
+                         "choose another --runs-dir or remove that directory")
+
+
+def cell_state(cell: Cell) -> None:
+    """Fill in the cell's status and the env steps per seed its run has done."""
+    if checkpoint.latest_chunk(cell.directory) is None:
+        cell.status, cell.done_steps = "new", 0
+        return
+    _check_same_config(cell)
+    if eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, expected_episodes(cell.task, cell.preset.protocol)):
+        cell.status, cell.done_steps = "done", cell.total_steps
+        return
+    path = cell.directory / checkpoint.METRICS_FILE
+    records = [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
+    last_chunk = checkpoint.latest_chunk(cell.directory)
+    cell.metrics = [r for r in records if r["chunk"] <= last_chunk]
+    cell.status, cell.done_steps = "partial", (cell.metrics[-1]["env_steps"] if cell.metrics else 0)
+
+
+def estimate(cell: Cell, rates: dict) -> None:
+    """Seconds left for the cell (training the remaining steps of every seed, then evaluating
+    every seed) and where the figure comes from."""
+    if cell.status == "done":
+        cell.estimate_s, cell.estimate_from = 0.0, "finished"
+        return
+    seeds = cell.config.seeds
+    remaining = (cell.total_steps - cell.done_steps) * seeds
+    records = cell.metrics
+    if records and records[-1]["wall_s"] > 0:
+        rate = records[-1]["env_steps"] * seeds / records[-1]["wall_s"]
+        source = f"this run's metrics.jsonl: {rate:,.0f} steps/s over {len(records)} chunks"
+    elif (found := measured(rates, cell.algorithm, cell.task, "steps_per_s")) is not None:
+        rate = found[0]
+        source = f"rates.json: {rate:,.0f} steps/s ({found[1]})"
+        if set(cell.preset.overrides(cell.algorithm)) - {"total_steps", "chunks"}:
+            source += " for the tuned settings, which this preset changes"
+    else:
+        cell.estimate_s, cell.estimate_from = None, "no measured rate"
+        return
+    evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
+    cell.estimate_s = remaining / rate + seeds * (evaluation[0] if evaluation else 0.0)
+    cell.estimate_from = source + (f", eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation
+                                   else ", eval not measured")
+
+
+def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: str | Path,
+              rates: dict | None = None) -> list[Cell]:
+    """Every cell of the grid (algorithms x tasks), with its config, budget, status and estimate."""
+    rates = load_rates() if rates is None else rates
+    for algorithm in algorithms:
+        if algorithm not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
+        config_class(algorithm)
+    seeds = preset.seeds if seeds is None else seeds
+    cells = []
+    for algorithm in algorithms:
+        for column, task in expand_tasks(tasks):
+            config, budget = cell_config(preset, algorithm, task, seeds, rates)
+            cell = Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget, preset=preset,
+                        directory=Path(runs_dir) / preset.name / algorithm / task)
+            cell_state(cell)
+            estimate(cell, rates)
+            cells.append(cell)
+    return cells
+
+
+def duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "?"
+    seconds = int(round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    return f"{hours} h {rest // 60:02d} min" if hours else f"{rest // 60} min {rest % 60:02d} s"
+
+
+def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
+    """The plan as printed before anything starts: one line per cell, then the budgets' sources
+    and the total."""
+    if not cells:
+        return "nothing to run"
+    preset = cells[0].preset
+    limit = "" if preset.wall_limit_s is None else f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
+    lines = [f"snac table, preset {preset.name!r}: {preset.description}{limit}",
+             f"{len(cells)} cells, {cells[0].config.seeds} seeds each (vmapped), under {Path(runs_dir) / preset.name}/", "",
+             f"{'algorithm':<10} {'task':<18} {'env steps/seed':>24} {'status':<9} {'estimate':>13}  estimate from"]
+    for c in cells:
+        status = c.status if c.status != "partial" else f"{c.done_steps / max(c.total_steps, 1):.0%} done"
+        lines.append(f"{c.algorithm:<10} {c.task:<18} {c.budget.describe():>24} {status:<9} "
+                     f"{duration(c.estimate_s):>13}  {c.estimate_from}")
+    lines += ["", "budgets:"]
+    for source in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells):
+        lines.append(f"  {source}")
+    if any(c.budget.capped for c in cells):
+        lines.append(f"  capped: the largest budget (two significant figures) whose estimate fits "
+                     f"{preset.wall_limit_s / 60:g} min with every seed's evaluation")
+    known = [c.estimate_s for c in cells if c.estimate_s is not None]
+    unknown = len(cells) - len(known)
+    counts = {s: sum(c.status == s for c in cells) for s in ("new", "partial", "done")}
+    lines += ["", f"total estimate: {duration(sum(known))} ({counts['new']} new, {counts['partial']} partial, "
+                  f"{counts['done']} done" + (f"; {unknown} cells without a measured rate not counted)" if unknown else ")")]
+    return "\n".join(lines)

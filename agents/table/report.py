@@ -1,0 +1,292 @@
+"""`snac table --report`: the benchmark table from the finished cells.
+
+Each finished cell's small JSON files (`config.json`, `eval.json`, `cell.json`; never
+checkpoints) are copied from the runs directory to `bench/results/table/<preset>/<algorithm>/<task>/`,
+and the table is computed from those copies only, so it can be rebuilt from the repository:
+`bench/results/table.md` and `table.json` (every preset found there, one section each) and
+`table-<preset>.png`.
+
+A column's per-seed value is that seed's protocol mean on the task; for `1d-static`, the mean
+over the three shapes of the same seed index. A cell shows the mean over seeds with its 95%
+bootstrap interval across seeds; a learner's IQM pools its runs of every finished column, with a
+stratified bootstrap interval (`agents.table.statistics`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents import checkpoint
+from agents.table import statistics
+from agents.table.plan import CELL_FILE, EVAL_FILE, TRAIN_SEED, eval_is_valid, expected_episodes, load_presets
+from snac_jax.atomic import atomic_write_json, atomic_write_text
+from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
+from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
+
+RAW_FILES = (checkpoint.CONFIG_FILE, EVAL_FILE, CELL_FILE)
+BOOTSTRAP_SEED = 0
+
+
+def _finished(directory: Path) -> bool:
+    try:
+        config = json.loads((directory / checkpoint.CONFIG_FILE).read_text())
+        cell = json.loads((directory / CELL_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    episodes = expected_episodes(cell["task"], cell["protocol"])
+    return eval_is_valid(directory / EVAL_FILE, config["seeds"], episodes, seed=cell["eval_seed"])
+
+
+def collect(runs_dir: str | Path, results_dir: str | Path, preset: str) -> list[Path]:
+    """Copy every finished cell's JSON files under `results_dir/table/<preset>/`; returns the
+    cells copied."""
+    source, target = Path(runs_dir) / preset, Path(results_dir) / "table" / preset
+    copied = []
+    for directory in sorted(p.parent for p in source.glob(f"*/*/{EVAL_FILE}")):
+        if not _finished(directory):
+            continue
+        destination = target / directory.relative_to(source)
+        destination.mkdir(parents=True, exist_ok=True)
+        for name in RAW_FILES:
+            shutil.copyfile(directory / name, destination / name)
+        copied.append(destination)
+    return copied
+
+
+def load_raw(results_dir: str | Path, preset: str) -> dict[str, dict[str, dict]]:
+    """algorithm -> task -> {"config", "eval", "cell"} of the copied cells."""
+    raw: dict[str, dict[str, dict]] = {}
+    for directory in sorted(p.parent for p in (Path(results_dir) / "table" / preset).glob(f"*/*/{EVAL_FILE}")):
+        if _finished(directory):
+            files = {name.split(".")[0]: json.loads((directory / name).read_text()) for name in RAW_FILES}
+            raw.setdefault(directory.parent.name, {})[directory.name] = files
+    return raw
+
+
+def seed_means(files: dict) -> list[float]:
+    """Per-seed protocol means of one cell, in seed order (eval.json keeps it)."""
+    return [float(r["mean"]) for r in files["eval"].values()]
+
+
+def _column_tasks(column: str) -> tuple[str, ...]:
+    return PAPER_GROUPS.get(column, (column,))
+
+
+def _budget(cells: list[dict]) -> dict[str, Any]:
+    budgets = [c["cell"]["budget"] for c in cells]
+    return {
+        "env_steps_per_seed": {c["config"]["task"]: c["config"]["total_steps"] for c in cells},
+        "requested_per_seed": {c["config"]["task"]: b["requested"] for c, b in zip(cells, budgets)},
+        "capped": any(b["capped"] for b in budgets),
+        "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
+    }
+
+
+def _paper_method(algorithm: str) -> str | None:
+    from agents.registry import ALGORITHMS, config_class
+
+    return config_class(algorithm).paper_method if algorithm in ALGORITHMS else None
+
+
+def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = None, preset: str = "",
+          reps: int = statistics.DEFAULT_REPS) -> dict[str, Any]:
+    """table.json's content from the copied cells (`load_raw`)."""
+    paper = load_paper_results() if paper is None else paper
+    learners, iqms, seed_matrix = {}, {}, {}
+    for algorithm, tasks in raw.items():
+        row = paper_row(paper, _paper_method(algorithm))
+        learners[algorithm] = {}
+        for column in PAPER_TASKS:
+            cells = [tasks.get(task) for task in _column_tasks(column)]
+            if any(c is None for c in cells):
+                continue
+            per_task = [seed_means(c) for c in cells]
+            if len({len(v) for v in per_task}) != 1:
+                raise ValueError(f"{algorithm} {column}: its tasks have different seed counts {[len(v) for v in per_task]}")
+            values = np.mean(per_task, axis=0)
+            learners[algorithm][column] = {**statistics.cell_summary(values, reps=reps, seed=BOOTSTRAP_SEED),
+                                           "budget": _budget(cells), "paper": row.get(column, {}).get("avg")}
+            seed_matrix.setdefault(algorithm, []).append(values)
+        columns = learners[algorithm]
+        if columns and len({len(v) for v in seed_matrix[algorithm]}) == 1:
+            scores = np.stack(seed_matrix[algorithm], axis=1)  # (seeds, columns)
+            reported = [row.get(c, {}).get("avg") for c in PAPER_TASKS]
+            reported = [v for v in reported if v is not None]
+            iqms[algorithm] = {**statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
+                               "columns": list(columns),
+                               "paper_iqm": statistics.iqm(reported) if reported else None,
+                               "paper_columns": len(reported)}
+    human = paper_row(paper, "human")
+    hand_paper = paper_row(paper, "handcrafted")
+    hand = {column: {"mean": handcrafted[column]["mean"], "ci95": None, "seeds": [handcrafted[column]["mean"]],
+                     "budget": None, "eval_seed": handcrafted[column].get("seed"),
+                     "paper": hand_paper.get(column, {}).get("avg")}
+            for column in PAPER_TASKS if handcrafted and column in handcrafted}
+    return {
+        "preset": preset, "columns": list(PAPER_TASKS), "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
+        "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": BOOTSTRAP_SEED},
+        "human": {column: {"paper": human.get(column, {}).get("avg")} for column in PAPER_TASKS},
+        "handcrafted": hand, "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
+        "learners": learners, "iqm": iqms,
+    }
+
+
+def _f(value, digits: int = 3) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
+
+
+def _steps(n: int) -> str:
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k"
+
+
+def _budget_text(budget: dict) -> str:
+    steps = sorted(set(budget["env_steps_per_seed"].values()))
+    text = _steps(steps[0]) if len(steps) == 1 else f"{_steps(steps[0])}–{_steps(steps[-1])}"
+    return text + ("*" if budget["capped"] else "")
+
+
+def _header(table: dict) -> list[str]:
+    """What every preset's section shares: how the numbers were made, which keys scored them."""
+    hand_keys = ", ".join(map(str, table["handcrafted_eval_seeds"])) or "—"
+    return [
+        "# The benchmark table", "",
+        "Generated by `snac table --report` from the raw results under `bench/results/table/<preset>/` (each "
+        "finished cell's config.json, eval.json and cell.json; no checkpoints), one section per budget preset "
+        "(`agents/table/budgets.toml`).", "",
+        "- **Scores**: final IoU under the paper's protocol (SPEC §8), greedy policy. A cell is the mean over "
+        "training seeds of each seed's protocol mean, with a 95% percentile bootstrap interval across seeds "
+        f"({table['bootstrap']['reps']:,} resamples, rng seed {table['bootstrap']['seed']}); `1d-static` is, per "
+        "seed index, the mean over its three shapes (three runs). IQM: the interquartile mean over every run of "
+        "every finished column, with a stratified bootstrap interval (seeds resampled within each column), as "
+        "Agarwal et al. (2021) recommend; the estimators are `agents/table/statistics.py`.",
+        f"- **Evaluation keys**: the table's scores use `REPORT_EVAL_SEED = {table['eval_seed']}` "
+        "(`snac_jax.evaluation`), reserved for reporting. Tuning scored its runs with "
+        f"`TUNING_EVAL_SEED = {TUNING_EVAL_SEED}` (the default of `snac eval` and `snac train`), so no setting was "
+        "chosen on the episodes reported here. The handcrafted row (ours) is `bench/results/handcrafted.json`, "
+        f"scored with key {hand_keys}; it has no training seeds.",
+        f"- **Training**: base seed {table['train_seed']} (seed i trains from `fold_in(key({table['train_seed']}), i)`; "
+        "the tuning runs used base seed 0). The training design banks of dynamic tasks exclude every test design.",
+        "- **Budgets**: env steps per seed in each section's second table; `*` marks a cell whose budget was "
+        "capped to fit the preset's wall-time limit per cell on the 2-core CPU (requested budgets and their "
+        "sources are in table.json).",
+        "- **Paper rows**: `snac_jax/data/paper_results.json` (the paper's appendix table; — where it reports "
+        "none). The paper's IQM is over the columns it reports, one number per column.", "",
+    ]
+
+
+def _reference_row(name: str, values: list) -> str:
+    """A row without seeds: its numbers, and their IQM over the columns that have one."""
+    reported = [v for v in values if v is not None]
+    iqm = f"{statistics.iqm(reported):.3f} ({len(reported)} columns)" if reported else "—"
+    return f"| {name} | " + " | ".join(_f(v) for v in values) + f" | {iqm} |"
+
+
+def _section(table: dict, description: str) -> list[str]:
+    columns = table["columns"]
+    lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
+             "| row | " + " | ".join(columns) + " | IQM [95% CI] |", "|---|" + "---:|" * len(columns) + "---:|",
+             _reference_row("human (paper)", [table["human"][c]["paper"] for c in columns]),
+             _reference_row("handcrafted (ours)", [table["handcrafted"].get(c, {}).get("mean") for c in columns]),
+             _reference_row("handcrafted (paper)", [table["handcrafted"].get(c, {}).get("paper") for c in columns])]
+    for learner, cells in table["learners"].items():
+        iqm = table["iqm"].get(learner)
+        ours = [f"{cells[c]['mean']:.3f} [{cells[c]['ci95'][0]:.3f}, {cells[c]['ci95'][1]:.3f}]" if c in cells else "—"
+                for c in columns]
+        iqm_text = "—" if not iqm else (f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
+                                        + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)"))
+        paper_iqm = (f"{iqm['paper_iqm']:.3f} ({iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
+                     else "—")
+        lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
+        lines.append(f"| {learner} (paper) | " + " | ".join(_f(cells.get(c, {}).get("paper")) for c in columns)
+                     + f" | {paper_iqm} |")
+    if not table["learners"]:
+        lines += ["", "No finished cells yet: `snac table --preset "
+                  f"{table['preset']} --dry-run` shows the plan, `snac table --preset {table['preset']}` runs it."]
+        return lines + [""]
+    lines += ["", "Env steps per seed (`*`: capped to the wall-time limit):", "",
+              "| learner | seeds | " + " | ".join(columns) + " |", "|---|---:|" + "---:|" * len(columns)]
+    for learner, cells in table["learners"].items():
+        seeds = sorted({len(v["seeds"]) for v in cells.values()})
+        lines.append(f"| {learner} | {', '.join(map(str, seeds))} | "
+                     + " | ".join(_budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns) + " |")
+    return lines + [""]
+
+
+def markdown(tables: dict[str, dict], descriptions: dict[str, str] | None = None) -> str:
+    """table.md: the shared header, then one section per preset."""
+    descriptions = descriptions or {}
+    lines = _header(next(iter(tables.values())))
+    for name, table in tables.items():
+        lines += _section(table, descriptions.get(name, ""))
+    return "\n".join(lines)
+
+
+def figure(table: dict, path: str | Path) -> None:
+    """Every learner's per-column interval (mean and 95% CI), the paper's value as a marker."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns, learners = table["columns"], list(table["learners"])
+    fig, axes = plt.subplots(2, 5, figsize=(17, 6.5), sharey=True)
+    for ax, column in zip(axes.flat, columns):
+        for x, learner in enumerate(learners):
+            cell = table["learners"][learner].get(column)
+            if cell is not None:
+                low, high = cell["ci95"]
+                ax.errorbar(x, cell["mean"], yerr=[[cell["mean"] - low], [high - cell["mean"]]], fmt="o", color="C0",
+                            capsize=4, label="ours: mean, 95% CI" if x == 0 else None)
+                if cell["paper"] is not None:
+                    ax.plot(x, cell["paper"], "x", color="C3", markersize=8, mew=2, label="paper")
+        hand = table["handcrafted"].get(column)
+        if hand is not None:
+            ax.axhline(hand["mean"], color="0.5", linestyle="--", linewidth=1, label="handcrafted (ours)")
+        ax.set_title(column, fontsize=10)
+        ax.set_xticks(range(len(learners)), learners, rotation=45, fontsize=8)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlim(-0.5, max(len(learners), 1) - 0.5)
+        ax.grid(axis="y", alpha=0.3)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("final IoU")
+    handles, labels = {}, []
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    fig.suptitle(f"snac table, preset {table['preset']!r}", y=0.99, fontsize=11)
+    if handles:
+        fig.legend(list(handles.values()), list(handles), loc="upper center", bbox_to_anchor=(0.5, 0.955),
+                   ncol=len(handles), frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.9))
+    path = Path(path)
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
+                 reps: int = statistics.DEFAULT_REPS) -> dict[str, Path]:
+    """Copy `preset`'s finished cells from `runs_dir`, then rebuild table.md and table.json from
+    every preset's raw results under `results_dir/table/`, and `table-<preset>.png` per preset."""
+    results_dir = Path(results_dir)
+    collect(runs_dir, results_dir, preset)
+    presets = load_presets()
+    found = sorted((p.name for p in (results_dir / "table").glob("*") if p.is_dir()),
+                   key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
+    hand_path = results_dir / "handcrafted.json"
+    handcrafted = json.loads(hand_path.read_text()) if hand_path.is_file() else None
+    tables = {name: build(load_raw(results_dir, name), handcrafted=handcrafted, preset=name, reps=reps)
+              for name in found or [preset]}
+    paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
+    atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
+    atomic_write_json(paths["json"], tables)
+    for name, table in tables.items():
+        paths[f"png:{name}"] = results_dir / f"table-{name}.png"
+        figure(table, paths[f"png:{name}"])
+    return paths

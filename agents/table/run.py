@@ -1,0 +1,75 @@
+"""Running the plan of `snac table`: each unfinished cell is one `agents.driver.train` call (a
+started one resumes from its last checkpoint), then its learning curve and the reporting
+protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped."""
+
+from __future__ import annotations
+
+import shutil
+
+from agents import checkpoint
+from agents.table.plan import CELL_FILE, EVAL_FILE, Cell
+from snac_jax.atomic import atomic_write_json
+from snac_jax.evaluation import REPORT_EVAL_SEED
+
+
+def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None = None,
+             num_devices: int | None = None) -> bool:
+    """Train (or resume) and evaluate one cell; True when it finished (`stop_after_chunks`, the
+    tests' stand-in for a killed run, can leave it unfinished). `num_devices`: how many devices
+    the worlds are split over (default: as `snac train`)."""
+    from agents.cli import evaluate_run
+    from agents.driver import chunk_sizes, read_metrics, train
+    from agents.plotting import plot_curve
+    from snac_jax import devices
+
+    if cell.status == "done":
+        return True
+    cell.directory.mkdir(parents=True, exist_ok=True)
+    if cell.status == "new":  # what a run killed before its first complete checkpoint left
+        for stale in (checkpoint.METRICS_FILE, EVAL_FILE):
+            (cell.directory / stale).unlink(missing_ok=True)
+        shutil.rmtree(cell.directory / checkpoint.CHECKPOINT_DIR, ignore_errors=True)
+    atomic_write_json(cell.directory / CELL_FILE, cell.record())
+    algorithm, state = train(cell.config, cell.directory, resume=cell.status == "partial", progress=progress,
+                             stop_after_chunks=stop_after_chunks, mesh=devices.env_mesh(num_devices, cell.config.num_envs))
+    last = checkpoint.latest_chunk(cell.directory)
+    if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
+        cell.status = "partial"
+        return False
+    plot_curve(read_metrics(cell.directory), cell.task, f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
+               cell.directory / "curve.png")
+    evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
+    cell.status = "done"
+    return True
+
+
+def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None,
+              num_devices: int | None = None) -> int:
+    """Run every unfinished cell in order under one progress bar over the grid's env steps;
+    returns how many cells are finished."""
+    from tqdm.auto import tqdm
+
+    total = sum(c.total_steps * c.config.seeds for c in cells)
+    done = sum(c.done_steps * c.config.seeds for c in cells)
+    name = cells[0].preset.name if cells else ""
+    bar = tqdm(total=total, initial=done, unit="step", unit_scale=True, desc=f"table {name}", disable=not progress,
+               dynamic_ncols=True, position=0)
+    try:
+        for index, cell in enumerate(cells):
+            if cell.status == "done":
+                continue
+            bar.set_postfix_str(f"cell {index + 1}/{len(cells)}: {cell.algorithm} {cell.task}")
+            before = cell.done_steps
+            finished = run_cell(cell, progress=progress, stop_after_chunks=stop_after_chunks, num_devices=num_devices)
+            steps = cell.total_steps if finished else _done_steps(cell)
+            bar.update((steps - before) * cell.config.seeds)
+    finally:
+        bar.close()
+    return sum(c.status == "done" for c in cells)
+
+
+def _done_steps(cell: Cell) -> int:
+    from agents.driver import read_metrics
+
+    records = read_metrics(cell.directory)
+    return records[-1]["env_steps"] if records else 0

@@ -1,0 +1,95 @@
+"""Aggregate scores over seeds and tasks as Agarwal et al. (2021, "Deep RL at the edge of the
+statistical precipice") recommend, with the estimators of their `rliable` library written out
+in numpy/scipy (`rliable` itself does not import beside this project's pandas):
+
+- the interquartile mean (IQM): the mean of the middle half of all runs of all tasks, robust to
+  a few outlying runs yet using half of the data, unlike the median;
+- the stratified bootstrap: each task's runs (seeds) are resampled with replacement,
+  independently per task, and the statistic recomputed; the 2.5th and 97.5th percentiles of the
+  resampled statistics are the 95% interval. With one task it is the ordinary bootstrap over
+  seeds, which is how one cell of the table gets its interval.
+
+Scores are arrays of shape (runs, tasks); every task has the same number of runs.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy import stats
+
+DEFAULT_REPS = 10_000
+
+
+def iqm(scores) -> float:
+    """Interquartile mean of all entries: a quarter cut from each end, the rest averaged."""
+    return float(stats.trim_mean(np.asarray(scores, dtype=np.float64), proportiontocut=0.25, axis=None))
+
+
+def mean_of_runs(resampled: np.ndarray) -> np.ndarray:
+    """Per bootstrap replicate (reps, runs, tasks) -> (reps,): the mean over runs and tasks."""
+    return resampled.mean(axis=(1, 2))
+
+
+def iqm_of_runs(resampled: np.ndarray) -> np.ndarray:
+    """Per bootstrap replicate (reps, runs, tasks) -> (reps,): the IQM over runs and tasks."""
+    return stats.trim_mean(resampled.reshape(len(resampled), -1), proportiontocut=0.25, axis=1)
+
+
+def _as_runs_by_tasks(scores) -> np.ndarray:
+    scores = np.asarray(scores, dtype=np.float64)
+    if scores.ndim == 1:
+        scores = scores[:, None]
+    if scores.ndim != 2 or scores.size == 0:
+        raise ValueError(f"scores must be a non-empty (runs, tasks) array, got shape {scores.shape}")
+    if not np.all(np.isfinite(scores)):
+        raise ValueError("scores must be finite")
+    return scores
+
+
+def stratified_bootstrap_ci(
+    scores,
+    statistic: Callable[[np.ndarray], np.ndarray] = mean_of_runs,
+    *,
+    reps: int = DEFAULT_REPS,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """The percentile interval of `statistic` under the stratified bootstrap (runs resampled
+    within each task). `scores`: (runs, tasks), or (runs,) for a single task. The same `seed`
+    gives the same interval."""
+    scores = _as_runs_by_tasks(scores)
+    if reps < 1 or not 0 < confidence < 1:
+        raise ValueError(f"reps must be >= 1 and confidence in (0, 1), got {reps}, {confidence}")
+    runs, tasks = scores.shape
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(0, runs, size=(reps, runs, tasks))
+    resampled = scores[rows, np.arange(tasks)[None, None, :]]
+    values = statistic(resampled)
+    alpha = (1 - confidence) / 2
+    low, high = np.percentile(values, [100 * alpha, 100 * (1 - alpha)])
+    return float(low), float(high)
+
+
+def cell_summary(seed_scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+    """One cell of the table: the mean over seeds, its 95% bootstrap interval across seeds and
+    the per-seed values."""
+    values = _as_runs_by_tasks(seed_scores)[:, 0]
+    return {
+        "mean": float(values.mean()),
+        "ci95": list(stratified_bootstrap_ci(values, mean_of_runs, reps=reps, seed=seed)),
+        "seeds": [float(v) for v in values],
+    }
+
+
+def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+    """One learner over tasks: the IQM of its (runs, tasks) scores and its 95% stratified
+    bootstrap interval."""
+    scores = _as_runs_by_tasks(scores)
+    return {
+        "iqm": iqm(scores),
+        "ci95": list(stratified_bootstrap_ci(scores, iqm_of_runs, reps=reps, seed=seed)),
+        "tasks": scores.shape[1],
+        "runs": scores.shape[0],
+    }

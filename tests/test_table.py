@@ -1,0 +1,205 @@
+"""`snac table`: the plan and its estimates, the statistics (against hand-computed values), the
+aggregation into table.json / table.md, and (slow) the smoke preset run, interrupted, resumed,
+skipped and reported."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from agents.table import statistics
+from agents.table.plan import TRAIN_SEED, expand_tasks, format_plan, load_presets, make_plan
+from agents.table.report import build, markdown
+from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
+
+PRESETS = load_presets()
+
+
+def _run_cli(argv: list[str]) -> int:
+    from agents.table import cli
+
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["table", *argv])
+    return args.func(args)
+
+
+# --- plan ----------------------------------------------------------------------------------------
+
+
+def test_paper_columns_expand_to_environment_tasks():
+    assert expand_tasks(["1d-static", "1d-static-sin", "2d-static-dense"]) == [
+        ("1d-static", "1d-static-sin"), ("1d-static", "1d-static-gauss"), ("1d-static", "1d-static-step"),
+        ("2d-static-dense", "2d-static-dense")]
+    with pytest.raises(ValueError, match="unknown task"):
+        expand_tasks(["4d-static"])
+
+
+def test_paper_budgets_estimates_and_caps(tmp_path):
+    rates = {"ppo": {"1d-static-sin": {"steps_per_s": 30_000, "eval_s": 10.0}},
+             "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
+    cells = make_plan(PRESETS["paper"], ["ppo", "drqn", "dqn"], ["1d-static", "2d-static-dense"], 3, tmp_path, rates)
+    by = {(c.algorithm, c.task): c for c in cells}
+    assert len(cells) == 3 * 4 and {c.status for c in cells} == {"new"}
+    # PPO: 10M steps per seed, trained as 152 whole updates of 1024 worlds x 64 steps;
+    # 3 seeds x 9,961,472 / 30k/s + 3 x 10 s of evaluation; gauss borrows sin's rate.
+    ppo = by["ppo", "1d-static-gauss"]
+    assert ppo.config.total_steps == 10_000_000 and not ppo.budget.capped and ppo.total_steps == 152 * 1024 * 64
+    assert ppo.estimate_s == pytest.approx(3 * 9_961_472 / 30_000 + 30)
+    assert ppo.config.seeds == 3 and ppo.config.seed == TRAIN_SEED
+    # DRQN: 10,000 episodes x 750 steps = 7.5M asked; (1800 s - 3 x 10 s) x 3000/s / 3 seeds = 1.77M fits -> 1.7M.
+    drqn = by["drqn", "1d-static-sin"]
+    assert drqn.budget.requested == 7_500_000 and drqn.budget.capped and drqn.budget.env_steps == 1_700_000
+    assert drqn.config.total_steps == 1_700_000
+    # No rate for 2D at all: no cap, no estimate, and the plan says so.
+    assert by["ppo", "2d-static-dense"].estimate_s is None and not by["ppo", "2d-static-dense"].budget.capped
+    # DQN: 3,000 episodes x 600 steps on 2D.
+    assert by["dqn", "2d-static-dense"].budget.requested == 1_800_000
+    text = format_plan(cells, tmp_path)
+    assert "1.7M (capped from 7.5M)" in text and "rates.json: 30,000 steps/s (1d-static-sin)" in text
+    assert "no measured rate" in text and "without a measured rate not counted" in text
+    assert "x the step limit (1D: 750)" in text
+
+
+def test_evaluation_estimates_scale_with_the_episodes():
+    from agents.table.plan import eval_seconds
+
+    rates = {"dqn": {"1d-static-sin": {"eval_s": 10.0}}}
+    # Another learner's figure for the nearest task; 10 x 200 episodes against the 500 it was timed on.
+    assert eval_seconds(rates, "ppo", "1d-dynamic", PRESETS["paper"]) == (40.0, "1d-static-sin")
+    assert eval_seconds(rates, "ppo", "1d-static-gauss", PRESETS["smoke"]) == (10.0 * 2 / 500, "1d-static-sin")
+    assert eval_seconds(rates, "ppo", "2d-static-dense", PRESETS["paper"]) is None
+
+
+def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
+    from agents.registry import make_config
+
+    [cell] = make_plan(PRESETS["tuned"], ["ppo"], ["1d-static-step"], 2, tmp_path, rates={})
+    tuned = make_config("ppo", "1d-static-step")
+    assert cell.config.total_steps == tuned.total_steps and cell.config.rnn_size == tuned.rnn_size
+    assert "agents/tuned/ppo.toml" in cell.budget.source
+
+
+def test_dry_run_prints_the_plan(tmp_path, capsys):
+    assert _run_cli(["--preset", "paper", "--algorithms", "ppo", "drqn", "--tasks", "1d-static", "3d-dynamic-dense",
+                     "--runs-dir", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "preset 'paper'" in out and "8 cells, 3 seeds each" in out and "total estimate:" in out
+    assert out.count(" new ") == 8 and not any(tmp_path.iterdir())  # nothing started
+
+
+# --- statistics ----------------------------------------------------------------------------------
+
+
+def test_iqm_by_hand():
+    # sorted: .1 .2 .3 .4 .5 .7 .8 .9 -> a quarter (2) cut from each end -> mean(.3, .4, .5, .7)
+    assert statistics.iqm([0.1, 0.9, 0.5, 0.3, 0.7, 0.2, 0.8, 0.4]) == pytest.approx(0.475)
+    assert statistics.iqm([[1.0, 2.0], [3.0, 4.0]]) == pytest.approx(2.5)
+
+
+def test_bootstrap_intervals():
+    assert statistics.stratified_bootstrap_ci([0.7, 0.7, 0.7]) == (pytest.approx(0.7), pytest.approx(0.7))
+    # Two seeds 0 and 1: resampled means are 0, 0.5, 1 with probabilities 1/4, 1/2, 1/4.
+    assert statistics.stratified_bootstrap_ci([0.0, 1.0]) == (0.0, 1.0)
+    values = np.random.default_rng(1).uniform(size=7)
+    first = statistics.stratified_bootstrap_ci(values, reps=500, seed=3)
+    assert statistics.stratified_bootstrap_ci(values, reps=500, seed=3) == first
+    assert statistics.stratified_bootstrap_ci(values, reps=500, seed=4) != first
+    assert first[0] < values.mean() < first[1]
+    # Stratified: seeds are resampled within each task, so constant tasks give a constant IQM.
+    assert statistics.stratified_bootstrap_ci([[0.2, 0.9], [0.2, 0.9]], statistics.iqm_of_runs) == (
+        pytest.approx(0.55), pytest.approx(0.55))
+    with pytest.raises(ValueError, match="finite"):
+        statistics.stratified_bootstrap_ci([0.1, np.nan])
+
+
+# --- aggregation ---------------------------------------------------------------------------------
+
+
+def _files(algorithm: str, task: str, means: list[float], steps: int, capped: bool = False) -> dict:
+    return {
+        "config": {"algorithm": algorithm, "task": task, "seeds": len(means), "total_steps": steps},
+        "eval": {f"{task} (seed {i})": {"mean": m, "seed": REPORT_EVAL_SEED} for i, m in enumerate(means)},
+        "cell": {"budget": {"env_steps": steps, "requested": 2 * steps if capped else steps, "capped": capped,
+                            "source": "test"}},
+    }
+
+
+def test_aggregation_by_hand(tmp_path):
+    raw = {"ppo": {
+        "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000),
+        "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000),
+        "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True),
+        "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),
+        "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.5, 0.5], 1000),  # no column misses it
+    }, "drqn": {"1d-dynamic": _files("drqn", "1d-dynamic", [0.8], 500)}}
+    hand = {"1d-static": {"mean": 0.95, "seed": TUNING_EVAL_SEED}}
+    table = build(raw, handcrafted=hand, preset="smoke", reps=2000)
+    ppo = table["learners"]["ppo"]
+    # 1d-static per seed: mean over the three shapes of the same seed index.
+    assert ppo["1d-static"]["seeds"] == [pytest.approx(0.6), pytest.approx(0.6)]
+    assert ppo["1d-static"]["mean"] == pytest.approx(0.6) and ppo["1d-static"]["ci95"] == [pytest.approx(0.6)] * 2
+    assert ppo["1d-static"]["paper"] == 0.776  # the paper's PPO, 1d-static
+    assert ppo["1d-static"]["budget"]["capped"] and ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
+    assert ppo["2d-static-dense"]["mean"] == pytest.approx(0.3) and ppo["2d-static-dense"]["ci95"] == [0.2, 0.4]
+    assert set(ppo) == {"1d-static", "2d-static-dense", "2d-static-sparse"}
+    # IQM of the (2 seeds x 3 columns) runs .6 .6 .2 .4 .5 .5: sorted .2 .4 .5 .5 .6 .6, one cut each end.
+    assert table["iqm"]["ppo"]["iqm"] == pytest.approx(0.5)
+    assert table["iqm"]["ppo"]["tasks"] == 3 and table["iqm"]["drqn"]["iqm"] == pytest.approx(0.8)
+    assert table["handcrafted"]["1d-static"]["paper"] == 0.948 and table["human"]["1d-static"]["paper"] == 0.83
+    assert table["eval_seed"] == REPORT_EVAL_SEED != TUNING_EVAL_SEED
+    text = markdown({"smoke": table}, {"smoke": "test preset"})
+    assert "| **ppo** (ours) | 0.600 [0.600, 0.600] |" in text and "(3 of 10 columns)" in text
+    assert "| ppo | 2 | 1k–2k* |" in text
+    assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
+
+
+# --- the smoke preset, end to end ----------------------------------------------------------------
+
+
+@pytest.mark.slow  # two tiny trainings, a resume and four evaluations: ~1 min on a loaded 2-core CPU
+def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, monkeypatch):
+    from agents.table import run as table_run
+    from agents.table.report import write_report
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    smoke = PRESETS["smoke"]
+    first, second = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
+    assert table_run.run_cells([first], progress=False) == 1
+    assert not table_run.run_cell(second, progress=False, stop_after_chunks=1)  # "killed" after 1 of 4 chunks
+
+    cells = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
+    assert [c.status for c in cells] == ["done", "partial"] and cells[1].done_steps == 2048 // 4
+    assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
+    before = (cells[0].directory / "eval.json").stat().st_mtime_ns
+    calls = []
+    import agents.driver as driver
+
+    real_train = driver.train
+
+    def spy(config, out_dir, **kwargs):
+        calls.append((config.task, kwargs["resume"]))
+        return real_train(config, out_dir, **kwargs)
+
+    monkeypatch.setattr(driver, "train", spy)
+    assert table_run.run_cells(cells, progress=False) == 2
+    assert calls == [("1d-static-gauss", True)]
+    assert (cells[0].directory / "eval.json").stat().st_mtime_ns == before  # the finished cell was skipped
+    metrics = [json.loads(x) for x in (cells[1].directory / "metrics.jsonl").read_text().splitlines()]
+    assert [r["chunk"] for r in metrics] == [0, 1, 2, 3]
+    evals = json.loads((cells[1].directory / "eval.json").read_text())
+    assert len(evals) == 2 and {r["seed"] for r in evals.values()} == {REPORT_EVAL_SEED}
+
+    with pytest.raises(ValueError, match="seeds: 2 there, 3 now"):
+        make_plan(smoke, ["ppo"], ["1d-static-sin"], 3, runs)
+
+    paths = write_report("smoke", runs, results, reps=200)
+    table = json.loads(paths["json"].read_text())["smoke"]
+    assert table["learners"] == {"ppo": {}}  # 1d-static-step is missing: no column is complete
+    copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
+    assert copied == [f"table/smoke/ppo/{t}/{f}" for t in ("1d-static-gauss", "1d-static-sin")
+                      for f in ("cell.json", "config.json", "eval.json")]
+    assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
