@@ -20,7 +20,7 @@ def tree_bytes(tree: Any) -> int:
     """Bytes of every array (or `jax.ShapeDtypeStruct`) in a pytree."""
     import jax
 
-    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))
+    return int(sum(np.prod(x.shape, dtype=np.int64) * x.dtype.itemsize for x in jax.tree.leaves(tree)))
 
 
 def _cgroup_room() -> int | None:

@@ -161,3 +161,64 @@ def test_snac_eval_human_prints_the_summary(tmp_path, capsys):
     assert "| 2d-static-sparse | 1 |" in out and "0.606" in out
     with pytest.raises(SystemExit, match="exactly one of"):
         main(["eval", "--human", str(path), "--policy", "random"])
+
+
+def _honest_record(task="2d-static-sparse", mode="eval", keys=("space", "right", "space"), **kwargs):
+    session = GameSession(task, mode, seed=3, max_steps=len(keys), **kwargs)
+    for key in keys:
+        session.press(key)
+    [record] = session.records
+    records.verify_record(record)  # the honest record passes
+    return record
+
+
+def _doctored(record, **changes):
+    return records.EpisodeRecord(**{**vars(record), **changes})
+
+
+def test_doctored_records_are_refused():
+    honest = _honest_record()
+    one_brick = np.zeros((20, 20), int)
+    one_brick[0, 0] = 1
+    cases = {
+        "actions must be in 0..4, got 7": dict(actions=[7, *honest.actions[1:]]),
+        "actions must be ints >= 0": dict(actions=[-1, *honest.actions[1:]]),
+        "more than the step limit": dict(actions=honest.actions + [4], strides=honest.strides + [1]),
+        "design must be 20 x 20": dict(design=[[1]]),
+        "its design is not its test design|its design is not the design": dict(design=one_brick.tolist()),
+        "claims IoU": dict(iou=min(1.0, honest.iou + 0.1)),
+        "claims bricks used 3": dict(bricks_used=3),
+        "claims total reward": dict(total_reward=honest.total_reward + 5),
+        "claims terminated True": dict(terminated=True),
+        "has not ended after its 3 actions": dict(max_steps=4),
+        "test_design must be null": dict(test_design=2),
+    }
+    for message, changes in cases.items():
+        with pytest.raises(ValueError, match=message):
+            records.verify_record(_doctored(honest, **changes))
+    with pytest.raises(ValueError, match="claims bricks used"):
+        records.summarize_records([_doctored(honest, bricks_used=0)])
+
+
+def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path):
+    """The forged record of the issue: a one-brick design, one drop on it, IoU 1 claimed."""
+    honest = _honest_record(keys=("space",))
+    design = np.zeros((20, 20), int)
+    design[0, 0] = 1
+    forged = _doctored(honest, design=design.tolist(), iou=1.0, total_reward=5.0)
+    assert records.replay_iou(forged) == 1.0  # the replay alone would believe it
+    path = tmp_path / "forged.jsonl"
+    records.append_record(path, forged)
+    with pytest.raises(ValueError, match="its design is not"):
+        records.human_report(path)
+
+
+def test_dynamic_records_must_hold_the_design_the_game_gives():
+    test = _honest_record("1d-dynamic", "eval", keys=("space", "space"))
+    with pytest.raises(ValueError, match="its design is not its test design"):
+        records.verify_record(_doctored(test, test_design=(test.test_design + 1) % 10))
+    trained = _honest_record("1d-dynamic", "train", keys=("space", "space"))
+    other = _honest_record("1d-dynamic", "train", keys=("space", "space"), player="other")
+    with pytest.raises(ValueError, match="not the design the game gives this episode"):
+        records.verify_record(_doctored(trained, seed=trained.seed + 1))
+    assert trained.design == other.design  # the seed alone decides it
