@@ -255,7 +255,11 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
             metadata = ocp.StandardCheckpointer().metadata(
                 Path(directory).absolute() / CHECKPOINT_DIR / str(chunk) / "default"
             )
-        stored_tree = getattr(getattr(metadata, "item_metadata", metadata), "tree", metadata)
+        item = getattr(metadata, "item_metadata", metadata)
+        if item is None:  # orbax answers None when it cannot parse the checkpoint's _METADATA
+            raise DamagedCheckpoint(f"{directory}: checkpoint {chunk} cannot be read (truncated or corrupt files?): "
+                                    "its metadata does not parse")
+        stored_tree = getattr(item, "tree", item)
         storable = to_storable(like)
         wanted = {path: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
                   for path, x in _leaves_by_path(storable).items()}
@@ -287,8 +291,8 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int | None, Any, l
     did not. A damaged newest checkpoint falls back to the one before it (orbax keeps two), so
     a resume recomputes that chunk instead of failing. `(None, like, [])` without checkpoints.
 
-    When no checkpoint restores, the newest one's error is raised: a mismatch with config.json
-    that every checkpoint shares is the config's fault, not damage."""
+    When no checkpoint restores, a mismatch with config.json is raised if there is one (the
+    config's fault, not damage), else the newest checkpoint's damage."""
     path = Path(directory) / CHECKPOINT_DIR
     if not path.is_dir():
         return None, like, []
@@ -301,9 +305,22 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int | None, Any, l
             return chunk, restore_state(directory, like, chunk)[1], [str(e) for e in errors]
         except ValueError as error:
             errors.append(error)
-    if errors:
-        raise errors[0]
+    if errors:  # a mismatch with config.json is the config's fault, whatever else is damaged
+        raise next((e for e in errors if not isinstance(e, DamagedCheckpoint)), errors[0])
     return None, like, []
+
+
+def discard_after(directory: str | Path, chunk: int) -> list[int]:
+    """Delete the checkpoints newer than `chunk` (unreadable ones a resume recomputes, so
+    that their chunks can be saved again); the chunks deleted."""
+    manager = _manager(Path(directory))
+    try:
+        newer = [step for step in manager.all_steps() if step > chunk]
+        for step in newer:
+            manager.delete(step)
+    finally:
+        manager.close()
+    return newer
 
 
 def read_config(directory: str | Path):

@@ -91,6 +91,8 @@ def _resume_point(out_dir: Path, state: Any, warn: Callable[[str], None]) -> tup
     last, state, notes = checkpoint.restore_latest(out_dir, state)
     for note in notes:
         warn(f"{note}; resuming from an earlier checkpoint")
+    if notes:
+        checkpoint.discard_after(out_dir, -1 if last is None else last)  # recomputed, then saved again
     if last is None:
         recorded = checkpoint.read_metrics_lines(metrics_path)
         if recorded:
