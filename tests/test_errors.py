@@ -99,3 +99,17 @@ def test_traced_values_are_not_checked_and_the_rule_is_documented():
     for clamped, valid in ((99, 2), (-1, 2), (-100, 0)):
         np.testing.assert_array_equal(step(state, clamped, 1, params)[1].grid, step(state, valid, 1, params)[1].grid)
     assert "clamps" in env.step.__doc__ and "0..num_actions-1" in env.step.__doc__
+
+
+def test_replay_refuses_actions_and_strides_the_env_would_clamp():
+    from snac_jax.replay import replay
+
+    env, params = make("1d-static-sin", max_steps=5)
+    with pytest.raises(ValueError, match=r"actions must be in 0\.\.2, got 7"):
+        replay(env, params, [0, 7], [1, 1])
+    with pytest.raises(ValueError, match=r"strides must be in 1\.\.3, got 4"):
+        replay(env, params, [0, 1], [1, 4])
+    with pytest.raises(ValueError, match="one stride per action and at least one action"):
+        replay(env, params, [], [])
+    with pytest.raises(ValueError, match="one stride per action"):
+        replay(env, params, [0, 1], [1])

@@ -200,7 +200,7 @@ def test_doctored_records_are_refused():
         records.summarize_records([_doctored(honest, bricks_used=0)])
 
 
-def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path):
+def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path, capsys):
     """The forged record of the issue: a one-brick design, one drop on it, IoU 1 claimed."""
     honest = _honest_record(keys=("space",))
     design = np.zeros((20, 20), int)
@@ -211,6 +211,11 @@ def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path):
     records.append_record(path, forged)
     with pytest.raises(ValueError, match="its design is not"):
         records.human_report(path)
+    from snac_jax.cli import main
+
+    assert main(["eval", "--human", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("snac eval: error: record of 2d-static-sparse seed 3: its design is not") and err.count("\n") == 1
 
 
 def test_dynamic_records_must_hold_the_design_the_game_gives():
@@ -222,3 +227,37 @@ def test_dynamic_records_must_hold_the_design_the_game_gives():
     with pytest.raises(ValueError, match="not the design the game gives this episode"):
         records.verify_record(_doctored(trained, seed=trained.seed + 1))
     assert trained.design == other.design  # the seed alone decides it
+
+
+def test_play_checks_the_record_path_before_opening_the_window(tmp_path, monkeypatch, capsys):
+    from snac_jax.cli import main
+
+    monkeypatch.setattr(window, "run_window", lambda *a, **k: pytest.fail("the window opened"))
+    (tmp_path / "file").write_text("")
+    for record, message in ((tmp_path, "is a directory"), (tmp_path / "file" / "h.jsonl", "is not a directory")):
+        assert main(["play", "--task", "1d-static-sin", "--record", str(record)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("snac play: error: record file ") and message in err
+
+
+def test_a_finished_episode_is_never_dropped(tmp_path, monkeypatch, capsys):
+    """The record file fails when the episode ends (disk full, permissions changed): the episode
+    is kept, written to a file in the temporary folder, and the command says where."""
+    from snac_jax.cli import main
+    from snac_jax.human import game
+
+    def full_disk(path, record):
+        if os.path.basename(path) == "h.jsonl":
+            raise OSError(28, "No space left on device")
+        return records.append_record(path, record)
+
+    monkeypatch.setattr(game, "append_record", full_disk)
+    monkeypatch.setattr(game.tempfile, "gettempdir", lambda: str(tmp_path))
+    monkeypatch.setattr(window, "run_window", functools.partial(window.run_window, script=["space", "space", "return"]))
+    rc = main(["play", "--task", "1d-static-sin", "--max-steps", "2", "--episodes", "1", "--record", str(tmp_path / "h.jsonl")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "1 episode(s) could not be appended" in err and "No space left on device" in err
+    [saved] = tmp_path.glob("snac-play-unsaved-*.jsonl")
+    [record] = records.load_records(saved)
+    assert record.actions == [2, 2] and str(saved) in err
+    records.verify_record(record)

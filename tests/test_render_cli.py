@@ -49,3 +49,19 @@ def test_render_rejects_bad_requests(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["render", "--task", "4d-static", "--out", str(tmp_path / "x.gif")])
     assert not list(tmp_path.iterdir())
+
+
+def test_outputs_and_sizes_are_checked_before_the_episode(tmp_path, capsys, monkeypatch):
+    import snac_jax.recording
+
+    monkeypatch.setattr(snac_jax.recording, "record_episode", lambda *a, **k: pytest.fail("ran the episode first"))
+    (tmp_path / "file").write_text("")
+    rc = main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "file" / "x.gif")])
+    assert rc == 2 and "snac render: error: --out " in capsys.readouterr().err
+    rc = main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.gif"), "--cell", "100000"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "snac render: error: one frame at --cell 100000 needs about" in err and "lower --cell" in err
+    with pytest.raises(SystemExit):
+        main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.gif"), "--cell", "3"])
+    assert "must be an int >= 4" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
