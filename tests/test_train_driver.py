@@ -459,3 +459,23 @@ def test_sigkill_at_any_point_then_resume_equals_an_uninterrupted_run(tmp_path):
         _, resumed = train(config, out, resume=True, progress=False, mesh=env_mesh(1))
         assert _leaves_equal(straight, resumed), where
         assert [(r["chunk"], r["iou"], r["return"]) for r in read_metrics(out)] == expected, where
+
+
+def test_run_files_are_readable_by_others(tmp_path):
+    """Every file of a run goes through `snac_jax.atomic` and gets 0666 less the umask (0644
+    under 022), not the 0600 of a bare temporary file."""
+    from agents.driver import _start_run
+    from agents.plotting import plot_curve
+    from snac_jax.atomic import atomic_write_json
+
+    config = make_config("ppo", "1d-static-sin", total_steps=128, **TINY)
+    old_umask = os.umask(0o022)
+    try:
+        _start_run(config, tmp_path, {"eval_episodes": 2, "no_eval": False})
+        records = [{"chunk": 0, "env_steps": 128, "iou": [0.1], "return": [1.0]}]
+        plot_curve(records, config.task, "title", tmp_path / "curve.png")
+        atomic_write_json(tmp_path / "eval.json", {})
+    finally:
+        os.umask(old_umask)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
+    assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     sources = [args.policy, args.checkpoint, args.human]
     if sum(source is not None for source in sources) != 1:
-        raise SystemExit("snac eval: give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+        raise ValueError("give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
     if args.json is not None:
         check_writable(args.json, "--json")  # before the evaluation, not after it
     if args.human is not None:
