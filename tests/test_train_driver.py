@@ -200,6 +200,12 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     again = evaluate_task("1d-static-sin", lambda env: trained.checkpoint_policy(env, out), static_episodes=4)
     assert again.mean == pytest.approx(evaluation["1d-static-sin"]["mean"])
 
+    from snac_jax.cli import main  # and `snac render --checkpoint` draws the trained policy
+
+    gif = tmp_path / "run.gif"
+    assert main(["render", "--task", "1d-static-sin", "--checkpoint", str(out), "--out", str(gif), "--max-steps", "8"]) == 0
+    assert gif.stat().st_size > 0
+
 
 def test_checkpoint_policy_rejects_another_task(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
