@@ -1,9 +1,12 @@
 """Run directories: orbax checkpoints of the runner state and the run's config.json
 (`agents.trained` loads a trained policy back from one).
 
-A run directory holds `config.json`, `metrics.jsonl`, `checkpoints/<chunk>/` (orbax, written to
-a temporary folder and renamed when complete, so a crash never leaves a half checkpoint),
-`curve.png` and `eval.json`.
+A run directory holds `config.json`, `run.json` (the caller's options, e.g. the CLI's evaluation
+settings, restored on resume), `metrics.jsonl`, `checkpoints/<chunk>/` (orbax, written to a
+temporary folder and renamed when complete, so a crash never leaves a half checkpoint),
+`curve.png`, `eval.json`, and `.lock`, which a process holds while it works on the run (two
+processes never write one run; the kernel drops the lock when its holder dies, even by SIGKILL).
+A new run starts only in an empty (or new) directory.
 
 Typed PRNG keys do not serialise: they are stored as their raw `key_data` and wrapped again on
 restore, guided by the structure of a freshly initialised state.
@@ -11,9 +14,11 @@ restore, guided by the structure of a freshly initialised state.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import jax
 import numpy as np
@@ -23,6 +28,120 @@ from agents.registry import config_from_json
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_DIR = "checkpoints"
+RUN_OPTIONS_FILE = "run.json"
+LOCK_FILE = ".lock"
+
+
+class DamagedCheckpoint(ValueError):
+    """A checkpoint whose files cannot be read back (truncated or corrupt)."""
+
+
+# --- the run directory -------------------------------------------------------------------------
+
+
+def check_new_run_directory(directory: str | Path) -> Path:
+    """`ValueError` unless a new run may start in `directory`: absent, or an empty directory
+    (a lock file aside) whose nearest existing folder is writable. Nothing is created."""
+    from snac_jax.atomic import check_writable
+
+    directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"{directory} is a file, not a run directory")
+    entries = sorted(p.name for p in directory.iterdir() if p.name != LOCK_FILE) if directory.is_dir() else []
+    if entries:
+        shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
+        hint = (" (a run: continue it with --resume / resume=True)" if CONFIG_FILE in entries
+                else "")
+        raise ValueError(f"{directory} is not empty ({shown}){hint}; a new run needs a new or empty directory")
+    check_writable(directory / CONFIG_FILE, "run directory file")
+    return directory
+
+
+_HELD: dict[Path, list] = {}  # run directory -> [open lock file, depth]: this process's locks
+
+
+@contextlib.contextmanager
+def lock_run(directory: str | Path) -> Iterator[Path]:
+    """Hold `directory/.lock` (created with the directory) while working on the run: a second
+    process gets a `ValueError` at once. Re-entrant within a process (the CLI holds it across
+    training and evaluation, `train` again inside)."""
+    import fcntl
+
+    directory = Path(directory)
+    key = directory.absolute()
+    if key in _HELD:
+        _HELD[key][1] += 1
+    else:
+        directory.mkdir(parents=True, exist_ok=True)
+        handle = open(directory / LOCK_FILE, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise ValueError(f"{directory} is in use by {holder}: one run directory takes one process at a time") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"process {os.getpid()}\n")
+        handle.flush()
+        _HELD[key] = [handle, 1]
+    try:
+        yield directory
+    finally:
+        _HELD[key][1] -= 1
+        if not _HELD[key][1]:
+            _HELD.pop(key)[0].close()  # closing drops the lock
+
+
+def write_run_options(directory: str | Path, options: dict[str, Any]) -> None:
+    from snac_jax.atomic import atomic_write_json
+
+    atomic_write_json(Path(directory) / RUN_OPTIONS_FILE, options)
+
+
+def read_run_options(directory: str | Path) -> dict[str, Any]:
+    """The caller's options stored with the run (`{}` for runs that stored none)."""
+    path = Path(directory) / RUN_OPTIONS_FILE
+    if not path.is_file():
+        return {}
+    return _read_json_object(path)
+
+
+def _read_json_object(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path} is not valid JSON ({error}); it is damaged or was edited by hand") from error
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} must hold a JSON object, got {type(data).__name__}")
+    return data
+
+
+def read_metrics_lines(path: str | Path) -> list[dict]:
+    """The records of a metrics.jsonl. A last line cut short (the process was killed while
+    writing it) is left out; a bad line before it is a `ValueError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    lines = path.read_text().splitlines()
+    records = []
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as error:
+            if number == len(lines):
+                break  # torn by a kill: the chunk it describes has no checkpoint either
+            raise ValueError(f"{path}:{number}: not a JSON line ({error})") from error
+        if not isinstance(record, dict) or not isinstance(record.get("chunk"), int):
+            raise ValueError(f"{path}:{number}: not a metrics record (an object with a chunk number)")
+        records.append(record)
+    return records
+
+
+# --- checkpoints -------------------------------------------------------------------------------
 
 
 def _is_key(x: Any) -> bool:
@@ -115,7 +234,7 @@ def _check_matches(directory, chunk: int, stored: dict, wanted: dict) -> None:
         listed = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
         raise ValueError(
             f"{directory}: checkpoint {chunk} does not hold the state its {CONFIG_FILE} describes (edited "
-            f"{CONFIG_FILE}, or another algorithm's or version's checkpoint): {listed}"
+            f"{CONFIG_FILE}, a damaged checkpoint, or another algorithm's or version's checkpoint): {listed}"
         )
 
 
@@ -132,15 +251,21 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
         chunk = manager.latest_step() if chunk is None else chunk
         if chunk is None:
             raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ to resume from")
-        metadata = ocp.StandardCheckpointer().metadata(
-            Path(directory).absolute() / CHECKPOINT_DIR / str(chunk) / "default"
-        )
-        stored_tree = getattr(getattr(metadata, "item_metadata", metadata), "tree", metadata)
+        with _damage_is_named(directory, chunk):
+            metadata = ocp.StandardCheckpointer().metadata(
+                Path(directory).absolute() / CHECKPOINT_DIR / str(chunk) / "default"
+            )
+        item = getattr(metadata, "item_metadata", metadata)
+        if item is None:  # orbax answers None when it cannot parse the checkpoint's _METADATA
+            raise DamagedCheckpoint(f"{directory}: checkpoint {chunk} cannot be read (truncated or corrupt files?): "
+                                    "its metadata does not parse")
+        stored_tree = getattr(item, "tree", item)
         storable = to_storable(like)
         wanted = {path: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
                   for path, x in _leaves_by_path(storable).items()}
         _check_matches(directory, chunk, _metadata_leaves(stored_tree), wanted)
-        restored = manager.restore(chunk, args=ocp.args.StandardRestore(_shaped_like(stored_tree, wanted)))
+        with _damage_is_named(directory, chunk):
+            restored = manager.restore(chunk, args=ocp.args.StandardRestore(_shaped_like(stored_tree, wanted)))
     finally:
         manager.close()
     by_path = _metadata_leaves(restored)
@@ -148,10 +273,63 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
     return chunk, from_storable(jax.tree_util.tree_unflatten(jax.tree.structure(storable), leaves), like)
 
 
-def read_config(directory: str | Path):
-    """The config of run directory `directory` (its config.json)."""
+@contextlib.contextmanager
+def _damage_is_named(directory, chunk: int) -> Iterator[None]:
+    """Any failure to read checkpoint files (orbax and tensorstore raise many kinds) becomes
+    one `DamagedCheckpoint` naming the checkpoint; the original stays chained."""
+    try:
+        yield
+    except Exception as error:
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0][:200]
+        raise DamagedCheckpoint(
+            f"{directory}: checkpoint {chunk} cannot be read (truncated or corrupt files?): {type(error).__name__}: {first}"
+        ) from error
 
+
+def restore_latest(directory: str | Path, like: Any) -> tuple[int | None, Any, list[str]]:
+    """`(chunk, state, notes)` of the newest checkpoint that restores; `notes` say why newer ones
+    did not. A damaged newest checkpoint falls back to the one before it (orbax keeps two), so
+    a resume recomputes that chunk instead of failing. `(None, like, [])` without checkpoints.
+
+    When no checkpoint restores, a mismatch with config.json is raised if there is one (the
+    config's fault, not damage), else the newest checkpoint's damage."""
+    path = Path(directory) / CHECKPOINT_DIR
+    if not path.is_dir():
+        return None, like, []
+    manager = _manager(Path(directory))
+    steps = sorted(manager.all_steps(), reverse=True)
+    manager.close()
+    errors: list[ValueError] = []
+    for chunk in steps:
+        try:
+            return chunk, restore_state(directory, like, chunk)[1], [str(e) for e in errors]
+        except ValueError as error:
+            errors.append(error)
+    if errors:  # a mismatch with config.json is the config's fault, whatever else is damaged
+        raise next((e for e in errors if not isinstance(e, DamagedCheckpoint)), errors[0])
+    return None, like, []
+
+
+def discard_after(directory: str | Path, chunk: int) -> list[int]:
+    """Delete the checkpoints newer than `chunk` (unreadable ones a resume recomputes, so
+    that their chunks can be saved again); the chunks deleted."""
+    manager = _manager(Path(directory))
+    try:
+        newer = [step for step in manager.all_steps() if step > chunk]
+        for step in newer:
+            manager.delete(step)
+    finally:
+        manager.close()
+    return newer
+
+
+def read_config(directory: str | Path):
+    """The config of run directory `directory` (its config.json); errors name the file."""
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"{directory} is not a training run directory: {CONFIG_FILE} is missing")
-    return config_from_json(json.loads(path.read_text()))
+    data = _read_json_object(path)
+    try:
+        return config_from_json(data)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: {error}") from error

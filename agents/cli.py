@@ -10,6 +10,7 @@ type, bounds and help: nothing here lists hyperparameters. Each run writes `DIR/
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 import time
@@ -66,10 +67,14 @@ def add_parser(subparsers) -> None:
         sub = algorithms.add_parser(name, help=entry.summary)
         sub.add_argument("--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}")
         sub.add_argument("--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)")
-        sub.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the run in DIR (other options ignored)")
+        sub.add_argument("--resume", type=Path, default=None, metavar="DIR",
+                         help="continue the run in DIR as its config.json describes (only --eval-episodes, --[no-]eval, "
+                              "--no-progress and --devices may be given; the first two default to the run's own)")
         sub.add_argument("--eval-episodes", type=positive_int, default=None,
                          help="episodes per design for the final evaluation (default: the paper's protocol)")
-        sub.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+        sub.add_argument("--eval", dest="no_eval", action="store_false", default=None,
+                         help="run the final evaluation (the default; on --resume, even if the run was started without)")
+        sub.add_argument("--no-eval", dest="no_eval", action="store_true", help="skip the final evaluation")
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
         add_devices_argument(sub, cpu_default="1, measured faster for training")
         add_process_arguments(sub)
@@ -84,6 +89,55 @@ def build_config(args: argparse.Namespace):
     return make_config(args.algorithm, args.task or DEFAULT_TASK, **options)
 
 
+RUN_OPTIONS = ("eval_episodes", "no_eval")
+"""Options of `snac train` kept with the run (`run.json`): a resume uses them unless given again."""
+
+
+def _options_fixed_by_the_run(args: argparse.Namespace) -> list[str]:
+    """The flags given with --resume that the run's config.json already decides."""
+    names = ["task", "out", *args.config_options]
+    return ["--" + name.replace("_", "-") for name in names if getattr(args, name) is not None]
+
+
+def training_memory_bytes(algorithm) -> int:
+    """An estimate of the device memory a run needs, from shapes alone: the seed-batched runner
+    state twice (a chunk's input and output), and the rollout batch of one update three times
+    (the batch, its shuffled minibatches, their gradients) when the algorithm has PPO's
+    `rollout(state, env_params) -> (state, batch, stats)`."""
+    import jax
+
+    from agents.driver import seed_keys
+    from snac_jax.memory import tree_bytes
+
+    init = jax.vmap(algorithm.init)
+    state = jax.eval_shape(init, seed_keys(algorithm.config))
+    needed = 2 * tree_bytes(state)
+    rollout = getattr(algorithm, "rollout", None)
+    if rollout is not None:
+        try:
+            batch = jax.eval_shape(jax.vmap(rollout, in_axes=(0, None)), state, algorithm.env_params)[1]
+        except (TypeError, ValueError, IndexError):  # a `rollout` of another form than PPO's
+            batch = None
+        needed += 3 * tree_bytes(batch)
+    return needed
+
+
+def _require_evaluation_memory(algorithm, episodes: int | None) -> None:
+    """The final evaluation's episodes must fit too (its policy state is small beside a world)."""
+    from snac_jax.designs import NUM_TEST_DESIGNS
+    from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES, require_episode_memory
+    from snac_jax.policy import uniform_random_policy
+
+    env = getattr(algorithm, "env", None)
+    if env is None:
+        return
+    if env.config.dynamic:
+        count = NUM_TEST_DESIGNS * (episodes or EPISODES_PER_TEST_DESIGN)
+    else:
+        count = episodes or STATIC_EPISODES
+    require_episode_memory(env, algorithm.env_params, uniform_random_policy(env.num_actions), count)
+
+
 def run(args: argparse.Namespace) -> int:
     import jax
 
@@ -92,36 +146,61 @@ def run(args: argparse.Namespace) -> int:
     from agents.plotting import plot_curve
     from agents.registry import build_algorithm
     from agents.sharding import host_value, training_mesh
-    from snac_jax import devices
+    from snac_jax import devices, memory
 
-    if args.resume is not None:
+    resume = args.resume is not None
+    given = {"eval_episodes": args.eval_episodes, "no_eval": args.no_eval}
+    if resume:
+        fixed = _options_fixed_by_the_run(args)
+        if fixed:
+            raise ValueError(f"--resume continues the run as {args.resume / checkpoint.CONFIG_FILE} describes; "
+                             f"{', '.join(fixed)} cannot change it (start a new run in a new directory instead)")
         out_dir = args.resume
         config = checkpoint.read_config(out_dir)
         if config.algorithm != args.algorithm:
             raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
+        stored = checkpoint.read_run_options(out_dir)
+        options = {name: given[name] if given[name] is not None else stored.get(name) for name in RUN_OPTIONS}
     else:
         config = build_config(args)
         kind = "-rnn" if getattr(config, "recurrent", False) else ""
         out_dir = args.out or Path("runs") / f"{config.algorithm}{kind}-{config.task}-{time.strftime('%Y%m%d-%H%M%S')}"
-    print(f"{config.algorithm} on {config.task}: {config.total_steps:,} env steps x {config.seeds} seed(s), "
+        if jax.process_index() == 0:
+            checkpoint.check_new_run_directory(out_dir)  # before any work
+        options = given
+    options["no_eval"] = bool(options["no_eval"])
+    steps = config.num_updates * config.steps_per_update
+    rounded = "" if steps == config.total_steps else (
+        f" (total_steps {config.total_steps:,} rounded to whole updates of {config.steps_per_update:,})")
+    print(f"{config.algorithm} on {config.task}: {steps:,} env steps{rounded} x {config.seeds} seed(s), "
           f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
 
-    memory = getattr(build_algorithm(config), "describe_memory", None)  # replay learners: say the buffer's size
-    if memory is not None:
-        print(memory(), file=sys.stderr)
+    algorithm = build_algorithm(config)
+    describe = getattr(algorithm, "describe_memory", None)  # replay learners: say the buffer's size
+    if describe is not None:
+        print(describe(), file=sys.stderr)
+    memory.require(f"training {config.seeds} seed(s) x {config.num_envs:,} worlds", training_memory_bytes(algorithm),
+                   "use fewer worlds (--num-envs), shorter rollouts or fewer seeds")
+    if not options["no_eval"]:
+        _require_evaluation_memory(algorithm, options["eval_episodes"])  # now, not after the training
     mesh = training_mesh(args.devices, config.num_envs)
     devices.check_divisible(config.num_envs, mesh)
     print(f"worlds split over {mesh.devices.size} {mesh.devices.flat[0].platform} device(s)", file=sys.stderr)
-    algorithm, state = train(config, out_dir, resume=args.resume is not None, progress=not args.no_progress, mesh=mesh)
-    if jax.process_index() != 0:
-        return 0  # process 0 draws the curve and runs the evaluation
-    state = state.replace(params=host_value(state.params))
-    config = algorithm.config
-    kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
-    plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
-    print(f"wrote {out_dir / 'curve.png'}", file=sys.stderr)
-    if not args.no_eval:
-        evaluate_run(algorithm, state, out_dir, args.eval_episodes)
+    writer = jax.process_index() == 0  # across processes, process 0 writes the run directory
+    with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
+        algorithm, state = train(config, out_dir, resume=resume, progress=not args.no_progress, mesh=mesh,
+                                 run_options=None if resume else options)
+        if not writer:
+            return 0
+        if resume:
+            checkpoint.write_run_options(out_dir, options)
+        state = state.replace(params=host_value(state.params))
+        config = algorithm.config
+        kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
+        plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
+        print(f"wrote {out_dir / 'curve.png'}", file=sys.stderr)
+        if not options["no_eval"]:
+            evaluate_run(algorithm, state, out_dir, options["eval_episodes"])
     return 0
 
 
@@ -136,13 +215,19 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_column, paper_row
 
+    from agents.trained import run_overrides
+
     config = algorithm.config
     if counts is None:
         counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
+    overrides = run_overrides(config)  # scored on the episodes it trained on
+    if overrides:
+        print(f"evaluated with the run's training settings {overrides} (the protocol's numbers assume the task's own)",
+              file=sys.stderr)
     results = []
     for index in range(config.seeds):
         params = jax.tree.map(lambda x: x[index], state.params)
-        result = evaluate_task(config.task, algorithm.policy(params), **counts,
+        result = evaluate_task(config.task, algorithm.policy(params), **counts, **overrides,
                                seed=TUNING_EVAL_SEED if seed is None else seed)
         if config.seeds > 1:
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")

@@ -20,7 +20,9 @@ import typing
 from typing import Any, ClassVar
 
 from snac_jax.atomic import atomic_write_text
-from snac_jax.tasks import TASKS
+from snac_jax.tasks import MAX_INT32, TASKS
+
+MAX_UPDATES = MAX_INT32
 
 
 def option(default: Any, help: str, *, low: float | None = None, high: float | None = None,
@@ -129,6 +131,9 @@ class TrainConfig:
             raise ValueError(f"unknown task {self.task!r}; allowed: {', '.join(TASKS)}")
         for name, spec in field_specs(type(self)).items():
             spec.check(getattr(self, name))
+        if self.num_updates > MAX_UPDATES:
+            raise ValueError(f"total_steps {self.total_steps:,} makes {self.num_updates:,} updates of {self.steps_per_update:,} "
+                             f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)")
         self.check()
 
     def check(self) -> None:

@@ -14,8 +14,10 @@ remaining chunks with the same compiled function, so the result equals an uninte
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -72,10 +74,46 @@ def summarize_chunk(metrics: dict[str, np.ndarray]) -> dict[str, list[float]]:
 
 
 def _read_metrics(path: Path, up_to_chunk: int) -> list[dict]:
-    if not path.is_file():
-        return []
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in records if r["chunk"] <= up_to_chunk]
+    return [r for r in checkpoint.read_metrics_lines(path) if r["chunk"] <= up_to_chunk]
+
+
+def _start_run(config: TrainConfig, out_dir: Path, run_options: dict | None) -> None:
+    """A new run in `out_dir` (checked empty by the caller, under the lock): its config, the
+    caller's options and an empty metrics file."""
+    checkpoint.check_new_run_directory(out_dir)  # again under the lock: another run may have begun
+    save_config(config, out_dir / checkpoint.CONFIG_FILE)
+    if run_options is not None:
+        checkpoint.write_run_options(out_dir, run_options)
+    atomic_write_text(out_dir / checkpoint.METRICS_FILE, "")
+
+
+def _resume_point(out_dir: Path, state: Any, warn: Callable[[str], None], writer: bool = True) -> tuple[int, Any, list[dict]]:
+    """`(chunks done, state, metrics history)` of the run in `out_dir`: the newest checkpoint
+    that restores (a damaged newest one falls back to the one before), the metrics up to it
+    (lines past it, or cut short by a kill, are dropped and rewritten)."""
+    metrics_path = out_dir / checkpoint.METRICS_FILE
+    last, state, notes = checkpoint.restore_latest(out_dir, state)
+    for note in notes:
+        warn(f"{note}; resuming from an earlier checkpoint")
+    if notes and writer:
+        checkpoint.discard_after(out_dir, -1 if last is None else last)  # recomputed, then saved again
+    if last is None:
+        recorded = checkpoint.read_metrics_lines(metrics_path)
+        if recorded:
+            raise ValueError(f"{out_dir}: {checkpoint.METRICS_FILE} records {len(recorded)} chunk(s) but there is no "
+                             f"checkpoint to resume from ({checkpoint.CHECKPOINT_DIR}/ was removed?); start a new run "
+                             "in another directory")
+        warn(f"{out_dir}: no chunk was checkpointed yet; starting the run from its beginning")
+        if writer:
+            atomic_write_text(metrics_path, "")
+        return 0, state, []
+    history = _read_metrics(metrics_path, last)
+    missing = sorted(set(range(last + 1)) - {r["chunk"] for r in history})
+    if missing:
+        warn(f"{metrics_path} lacks the lines of chunk(s) {missing}; the learning curve will have gaps")
+    if writer:
+        atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
+    return last + 1, state, history
 
 
 def train(
@@ -86,24 +124,34 @@ def train(
     progress: bool = True,
     stop_after_chunks: int | None = None,
     mesh=None,
+    run_options: dict | None = None,
 ) -> tuple[Any, Any]:
     """Train `config` into `out_dir` (or continue the run there with `resume=True`).
 
-    Returns `(algorithm, state)`. `stop_after_chunks` ends early after that many chunks of
-    this call (the tests' stand-in for a killed run).
+    Returns `(algorithm, state)`. A new run needs a new or empty `out_dir`; `run_options` (JSON)
+    are stored with it (`checkpoint.read_run_options`). The run directory is locked for the
+    call (`checkpoint.lock_run`). `stop_after_chunks` ends early after that many chunks of this
+    call (the tests' stand-in for a killed run). Across processes (`jax.distributed`), process 0
+    checks, locks and writes the run directory; the others only train and checkpoint with it.
     """
     out_dir = Path(out_dir)
-    metrics_path = out_dir / checkpoint.METRICS_FILE
-    writer = jax.process_index() == 0  # across processes, one writes the run's files
+    writer = jax.process_index() == 0
     if resume:
-        config = checkpoint.read_config(out_dir)
+        checkpoint.read_config(out_dir)  # a clear error before anything is created
     else:
         config.validate()
-        if (out_dir / checkpoint.CHECKPOINT_DIR).exists():
-            raise ValueError(f"{out_dir} already holds a run; pass resume=True (--resume) or choose another directory")
-        out_dir.mkdir(parents=True, exist_ok=True)
         if writer:
-            save_config(config, out_dir / checkpoint.CONFIG_FILE)
+            checkpoint.check_new_run_directory(out_dir)
+    with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
+        if resume:
+            config = checkpoint.read_config(out_dir)
+        elif writer:
+            _start_run(config, out_dir, run_options)
+        return _train(config, out_dir, resume, progress, stop_after_chunks, mesh, writer)
+
+
+def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, stop_after_chunks, mesh, writer: bool):
+    metrics_path = out_dir / checkpoint.METRICS_FILE
     algorithm = build_algorithm(config)
     mesh = training_mesh(num_envs=config.num_envs) if mesh is None else mesh
     state = initial_state(algorithm, mesh)
@@ -112,14 +160,7 @@ def train(
 
     done_chunks, history = 0, []
     if resume:
-        last = checkpoint.latest_chunk(out_dir)
-        if last is None:
-            raise ValueError(f"{out_dir}: no checkpoint to resume from")
-        _, state = checkpoint.restore_state(out_dir, state)
-        done_chunks = last + 1
-        history = _read_metrics(metrics_path, last)
-        if writer:
-            atomic_write_text(metrics_path, "".join(json.dumps(r) + "\n" for r in history))
+        done_chunks, state, history = _resume_point(out_dir, state, lambda text: print(text, file=sys.stderr), writer)
 
     sizes = chunk_sizes(config.num_updates, config.chunks)
     compiled: dict[int, Callable] = {}
@@ -185,5 +226,4 @@ def _progress_bar(total: int, initial: int, config: TrainConfig, enabled: bool):
 
 
 def read_metrics(out_dir: str | Path) -> list[dict]:
-    path = Path(out_dir) / checkpoint.METRICS_FILE
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return checkpoint.read_metrics_lines(Path(out_dir) / checkpoint.METRICS_FILE)

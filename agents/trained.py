@@ -8,42 +8,54 @@ from pathlib import Path
 
 import jax
 
-from agents.checkpoint import read_config, restore_state
+from agents.checkpoint import CHECKPOINT_DIR, read_config, restore_latest
 from agents.driver import initial_state
 from agents.registry import build_algorithm
 
 
 def load_trained(directory: str | Path):
-    """`(algorithm object, runner state with a leading seed axis, chunk)` of a run directory."""
+    """`(algorithm object, runner state with a leading seed axis, chunk)` of a run directory,
+    from its newest checkpoint. A damaged newest checkpoint is an error (scoring the one before
+    would silently score an older policy) that says how to repair the run."""
     config = read_config(directory)
     algorithm = build_algorithm(config)
     like = initial_state(algorithm)
-    chunk, state = restore_state(directory, like)
+    chunk, state, notes = restore_latest(directory, like)
+    if chunk is None:
+        raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ (the run was stopped before its first chunk ended?)")
+    if notes:
+        raise ValueError(f"{notes[0]}; checkpoint {chunk} is intact: `snac train {config.algorithm} --resume {directory}` "
+                         "recomputes the later chunk(s) from it")
     return algorithm, state, chunk
 
 
 def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     """Policy builder for the evaluator: the greedy policy of run `checkpoint`, seed `seed_index`.
 
-    `env` must be the task the run trained on (the evaluator passes each environment task)."""
+    `env` must be the task the run trained on (the evaluator passes each environment task);
+    that and `seed_index` are checked before the checkpoint is read."""
+    config = read_config(checkpoint)
+    if env.config.task_id != config.task:
+        raise ValueError(f"checkpoint {checkpoint} was trained on {config.task!r}, cannot evaluate it on {env.config.task_id!r}")
+    if not 0 <= seed_index < config.seeds:
+        raise ValueError(f"seed_index must be in 0..{config.seeds - 1} for {checkpoint}, got {seed_index}")
     algorithm, state, _ = load_trained(checkpoint)
-    if env.config.task_id != algorithm.config.task:
-        raise ValueError(
-            f"checkpoint {checkpoint} was trained on {algorithm.config.task!r}, cannot evaluate it on {env.config.task_id!r}"
-        )
-    seeds = algorithm.config.seeds
-    if not 0 <= seed_index < seeds:
-        raise ValueError(f"seed_index must be in 0..{seeds - 1} for {checkpoint}, got {seed_index}")
     params = jax.tree.map(lambda x: x[seed_index], state.params)
     return algorithm.policy(params)
 
 
 def checkpoint_builder(directory: str | Path):
     """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
-    of its algorithm)`. The 1D static shapes are scored on the shape the run trained on."""
+    of its algorithm, the make overrides it trained with)`. The 1D static shapes are scored on the
+    shape the run trained on; a run trained with `max_steps` is scored on episodes that long."""
     config = read_config(directory)
 
     def builder(env, **options):
         return checkpoint_policy(env, directory, **options)
 
-    return builder, config.task, getattr(config, "paper_method", config.algorithm)
+    return builder, config.task, getattr(config, "paper_method", config.algorithm), run_overrides(config)
+
+
+def run_overrides(config) -> dict:
+    """The `snac_jax.make` overrides a run trained with (its step limit, when it set one)."""
+    return {"max_steps": config.max_steps} if config.max_steps else {}

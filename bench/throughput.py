@@ -1,10 +1,10 @@
 """Throughput of the SNAC environments: env-steps/s of jitted, vmapped random rollouts with
 auto-reset, for every task and batch size, against the plain NumPy engine in the same run.
 
-    python bench/throughput.py                       # all tasks, N in 1 64 1024 4096 16384
-    python bench/throughput.py --devices 1,all       # also without sharding, to compare
-    python bench/throughput.py --quick               # every task at one small N (< 2 min)
-    python bench/throughput.py --tasks 2d-static-dense --num-envs 1024 4096 --json out.json
+    python bench/throughput.py --out bench/results                  # all tasks, N in 1 64 1024 4096 16384
+    python bench/throughput.py --out bench/results --devices 1,all  # also without sharding, to compare
+    python bench/throughput.py --out /tmp/quick --quick             # every task at one small N (< 2 min)
+    python bench/throughput.py --out /tmp/dense --tasks 2d-static-dense --num-envs 1024 4096
 
 What is timed: `snac_jax.rollout.random_rollout`, one jitted `lax.scan` of `--steps` steps over
 N worlds (uniform-random actions, auto-reset, episode statistics accumulated), split over the
@@ -18,9 +18,10 @@ benchmarks; a learning agent pays for them on top.
 The baseline is `bench/numpy_engine.py`: one world stepped in a Python loop with NumPy, reset
 when an episode ends, the way the reference implementation is written (one process, one core).
 
-Outputs, under `--out` (default bench/results/): `throughput.json` (or `--json PATH`), a list of
-rows {"task", "num_envs", "steps_per_s", "compile_s", "numpy_steps_per_s", "ratio", ...};
-`throughput.md`, the tables; `throughput_<family>.png`, log-log steps/s against N per family.
+Writes only under `--out` (a directory, required): `throughput.json`, a list of rows {"task",
+"num_envs", "steps_per_s", "compile_s", "numpy_steps_per_s", "ratio", ...}; `throughput.md`, the
+tables; `throughput_<family>.png`, log-log steps/s against N per family; `snac_rollout_e2e.json`.
+The committed tables in bench/results/ change only when `--out bench/results` says so.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.dont_write_bytecode = True  # nothing but the results is written
 
 from snac_jax import devices  # noqa: E402  (light: does not start JAX)
 from snac_jax.cli.arguments import positive_int  # noqa: E402  (light as well)
@@ -72,10 +74,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--numpy-steps", type=positive_int, default=None, help="steps of the NumPy baseline per task (default 20000)")
     parser.add_argument("--no-e2e", action="store_true", help="skip timing `snac rollout` end to end")
     parser.add_argument("--quick", action="store_true", help="every task at N=64, T=100: a smoke run (< 2 min)")
-    parser.add_argument("--json", type=Path, default=None, help="where to write the rows (default OUT/throughput.json)")
     parser.add_argument("--from-json", type=Path, default=None, metavar="PATH",
                         help="measure nothing: rebuild the table and plots from the rows of an earlier run")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results", help="directory for the table and plots")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="directory for everything written: rows, table, plots (bench/results for the committed ones)")
     args = parser.parse_args(argv)
     if args.repeats < 3:
         parser.error("--repeats must be >= 3 (the median of at least three timed calls)")
@@ -352,7 +354,7 @@ def main(argv=None) -> int:
             print(f"{e2e[-1]['command']}: {e2e[-1]['wall_s']:.2f} s end to end", flush=True)
     context["load_end"] = load()
 
-    json_path = args.json or args.out / "throughput.json"
+    json_path = args.out / "throughput.json"
     write_text(json_path, json.dumps(rows, indent=1) + "\n")
     if e2e:
         write_text(args.out / "snac_rollout_e2e.json", json.dumps(e2e, indent=1) + "\n")

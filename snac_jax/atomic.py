@@ -24,6 +24,23 @@ def file_mode(path: Path) -> int:
     return 0o666 & ~umask
 
 
+def check_writable(path: str | os.PathLike, what: str = "output file") -> Path:
+    """`ValueError` now, before any work, unless `atomic_write(path, ...)` could write `path`:
+    it must not be a directory, and its nearest existing folder must be a writable folder (the
+    temporary file is made beside the target, then renamed over it)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{what} {path} is a directory; give a file name")
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"{what} {path} cannot be created: {folder} is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} {path} cannot be written: no permission to write in {folder}")
+    return path
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> Path:
     """Run `write(file)` on a temporary binary file beside `path`, then rename it over `path`."""
     path = Path(path)

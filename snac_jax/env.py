@@ -11,7 +11,7 @@ import numpy as np
 from gymnax.environments import environment, spaces
 
 from snac_jax import batched_step, metrics, observation, threefry
-from snac_jax.config import EnvConfig
+from snac_jax.config import MAX_STRIDE, EnvConfig
 from snac_jax.state import EnvParams, EnvState
 from snac_jax.transition import PADDING, is_stuck, transition
 
@@ -50,6 +50,22 @@ def draw_design_index(word: jax.Array, num_designs: int) -> jax.Array:
     return (word % jnp.uint32(num_designs)).astype(jnp.int32)
 
 
+def _host_values(x: Any) -> np.ndarray | None:
+    """`x` as a NumPy array when its value is known while tracing (a Python or NumPy number, a
+    concrete array), else None: a traced value is checked by nobody (see `SNACEnv.step`)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x)
+
+
+def check_range(name: str, x: Any, low: int, high: int) -> None:
+    """`ValueError` if a known value of `x` lies outside low..high (traced values pass)."""
+    values = _host_values(x)
+    if values is not None and values.size and (values.min() < low or values.max() > high):
+        bad = values[(values < low) | (values > high)].reshape(-1)[0]
+        raise ValueError(f"{name} must be in {low}..{high}, got {bad}")
+
+
 class SNACEnv(environment.Environment[EnvState, EnvParams]):
     """One SNAC task. Build it with `snac_jax.make(task_id, **overrides)`.
 
@@ -83,6 +99,32 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
     def num_actions(self) -> int:
         return self.config.num_actions
 
+    # --- input checks --------------------------------------------------------------------------
+    # Shapes are static, so these run once while tracing and cost nothing per step.
+
+    def check_params(self, params: EnvParams) -> None:
+        """`ValueError` unless `params` have the shapes of this task's (another task's params would
+        otherwise run: JAX pads and clamps what does not fit)."""
+        k = params.designs.shape[0] if params.designs.ndim else 0
+        expected = {
+            "designs": (k, *self.config.plan_shape),
+            "design_max_bricks": (k,),
+            "design_volume": (k,),
+            "stride_probs": (MAX_STRIDE,),
+        }
+        for name, shape in expected.items():
+            got = tuple(getattr(params, name).shape)
+            if got != shape:
+                raise ValueError(f"params.{name} has shape {got}, {self!r} needs {shape}: params of another task? "
+                                 "(snac_jax.make builds the matching pair)")
+
+    def check_state(self, state: EnvState) -> None:
+        """`ValueError` unless `state` has this task's grid and design shapes."""
+        for name, shape in (("grid", self.config.grid_shape), ("design", self.config.plan_shape)):
+            got = tuple(getattr(state, name).shape)
+            if got != shape:
+                raise ValueError(f"state.{name} has shape {got}, {self!r} needs {shape}: a state of another task?")
+
     # --- reset ---------------------------------------------------------------------------------
 
     def _empty_grid(self) -> np.ndarray:
@@ -101,7 +143,13 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         return jnp.pad(plan_mask, ((pr, pr), (pc, pc)))
 
     def reset_to_design(self, key: jax.Array, params: EnvParams, design_index: jax.Array) -> tuple[jax.Array, EnvState]:
-        """Reset onto `params.designs[design_index]` (the evaluator pins test designs this way)."""
+        """Reset onto `params.designs[design_index]` (the evaluator pins test designs this way).
+
+        `design_index` must be in 0..K-1 for the K designs of `params`: a known index outside is
+        a `ValueError`; a traced one is not checked (JAX would clamp it to the bank).
+        """
+        self.check_params(params)
+        check_range("design_index", design_index, 0, params.designs.shape[0] - 1)
         design = params.designs[design_index]
         landmarks = None
         if self.config.num_landmarks:
@@ -137,6 +185,12 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams | None = None
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
         """gymnax's auto-resetting step, with the same outputs and info keys, made cheaper.
+
+        `action` must be in 0..num_actions-1. It is not checked here (a check on a traced value
+        would cost every step): JAX's gather clamps an index outside the action table, so 99 acts
+        as the last action, and a negative one counts from the end first (-1 is the last, -100
+        clamps to 0). `snac_jax.evaluation` counts such actions and refuses to score a policy
+        that takes them. The shapes of `state` and `params` are checked while tracing.
 
         - One hash of `key` per step: `step_env` and `reset_env` read different words of it.
         - The observation is computed once, of the state after the auto-reset, instead of for
@@ -183,8 +237,14 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         """The deterministic step for a given stride, without auto-reset (replays use it).
 
         `info["final_iou"]` is the IoU after this step: the episode's final IoU on the step
-        that ends it (terminated or truncated).
+        that ends it (terminated or truncated). `stride` must be in 1..3 and `action` in
+        0..num_actions-1: known values outside are a `ValueError`, traced ones are not checked
+        (see `step`).
         """
+        self.check_params(params)
+        self.check_state(state)
+        check_range("action", action, 0, self.num_actions - 1)
+        check_range("stride", stride, 1, MAX_STRIDE)
         state, reward, terminated = transition(self.config, state, jnp.asarray(action), jnp.asarray(stride))
         info = {"final_iou": metrics.iou(state), "stride": jnp.asarray(stride, jnp.int32)}
         return self.get_obs(state, params), state, reward, terminated, info

@@ -31,12 +31,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax import designs, devices, episodes, metrics
-from snac_jax.env import SNACEnv
+from snac_jax import designs, devices, episodes, memory, metrics
+from snac_jax.env import SNACEnv, check_range
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
 from snac_jax.policy import Policy
 from snac_jax.state import EnvParams
-from snac_jax.tasks import TASKS, make, make_params, task_spec, test_design_names
+from snac_jax.tasks import MAX_SEED, TASKS, make, make_params, task_spec, test_design_names
 
 STATIC_EPISODES = 500
 EPISODES_PER_TEST_DESIGN = 200
@@ -75,20 +75,30 @@ class Episodes:
     bricks_used: jax.Array  # int32
     episode_return: jax.Array  # float32, sum of rewards
     design_index: jax.Array  # int32, index into the params' designs
+    invalid_actions: jax.Array  # int32, actions outside 0..num_actions-1 (the env would clamp them)
+
+
+def _check_action(action: jax.Array) -> None:
+    """A policy's action must be one integer per call; checked on shapes while tracing."""
+    if action.shape != () or not jnp.issubdtype(action.dtype, jnp.integer):
+        raise ValueError(f"policy.act must return one integer action (shape ()), got {action.dtype}{list(action.shape)}")
 
 
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, design_indices) -> Episodes:
     def decide(episode: episodes.Episode, _):
-        key, policy_state = episode.agent
+        key, policy_state, invalid = episode.agent
         key, key_act, key_step = jax.random.split(key, 3)
         action, policy_state = act(policy_params, policy_state, episode.obs, key_act)
-        return episodes.Move(action, key=key_step), (key, policy_state)
+        action = jnp.asarray(action)
+        _check_action(action)
+        invalid = invalid + ((action < 0) | (action >= env.num_actions)).astype(jnp.int32)
+        return episodes.Move(action, key=key_step), (key, policy_state, invalid)
 
     def run(key, design_index):
         key_reset, key_init, key_run = jax.random.split(key, 3)
         obs, state = env.reset_to_design(key_reset, env_params, design_index)
-        first = episodes.start(obs, state, (key_run, init(key_init, state.design)))
+        first = episodes.start(obs, state, (key_run, init(key_init, state.design), jnp.zeros((), jnp.int32)))
         final = episodes.run_to_end(env, env_params, decide, first)
         return Episodes(
             iou=metrics.iou(final.state),
@@ -96,6 +106,7 @@ def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, de
             bricks_used=final.state.bricks_used,
             episode_return=final.episode_return,
             design_index=design_index,
+            invalid_actions=final.agent[2],
         )
 
     return jax.vmap(run)(keys, design_indices)
@@ -126,16 +137,38 @@ def run_episodes(
 
     The episodes are split over `num_devices` local devices (default: as many as divide the
     episode count evenly; see `snac_jax.devices`). Every episode has its own key, so the
-    outcomes do not depend on the number of devices.
+    outcomes do not depend on the number of devices. Every episode's state lives on the device
+    at once: a count whose estimated memory exceeds the device's is refused before anything runs.
     """
-    design_indices = jnp.asarray(design_indices, jnp.int32)
-    num_episodes = design_indices.shape[0]
+    env.check_params(params)
+    indices = np.asarray(design_indices)
+    if indices.ndim != 1 or not np.issubdtype(indices.dtype, np.integer):
+        raise ValueError(f"design_indices must be a 1-D array of ints, got {indices.dtype}{list(indices.shape)}")
+    check_range("design_indices", indices, 0, params.designs.shape[0] - 1)
+    num_episodes = indices.shape[0]
+    require_episode_memory(env, params, policy, num_episodes)
+    design_indices = jnp.asarray(indices, jnp.int32)
     keys = jax.random.split(key, num_episodes)
     mesh = devices.env_mesh(num_devices, num_envs=num_episodes)
     if mesh.devices.size == 1:
         return _run_episodes(env, policy.init, policy.act, policy.params, params, keys, design_indices)
     devices.check_divisible(num_episodes, mesh)
     return _run_episodes_sharded(env, policy.init, policy.act, policy.params, params, keys, design_indices, mesh)
+
+
+def episode_bytes(env: SNACEnv, params: EnvParams, policy: Policy) -> int:
+    """An upper bound of the device memory one episode of `run_episodes` holds: its state,
+    observation, key and policy state, in the loop's carry, the step's copy and the select."""
+    key = jax.random.key(0)
+    obs, state = jax.eval_shape(env.reset_to_design, key, params, 0)
+    policy_state = jax.eval_shape(policy.init, key, state.design)
+    return 4 * memory.tree_bytes((obs, state, policy_state, jax.random.key_data(key)))
+
+
+def require_episode_memory(env: SNACEnv, params: EnvParams, policy: Policy, num_episodes: int) -> None:
+    """`ValueError` with the estimate if `num_episodes` episodes at once would not fit."""
+    memory.require(f"{num_episodes:,} episodes at once", num_episodes * episode_bytes(env, params, policy),
+                   "evaluate fewer episodes")
 
 
 def test_design_params(task_id: str, params: EnvParams) -> EnvParams:
@@ -231,12 +264,20 @@ def evaluate_task(
 ) -> TaskResult:
     """Score `policy` on `task` (a paper column such as `1d-static`, or an environment task id)
     with the protocol of SPEC §8. `overrides` go to `snac_jax.make` (e.g. `gps=True`); a
-    dynamic task's test designs replace its training designs. `num_devices`: see
-    `run_episodes` (the numbers do not depend on it)."""
+    dynamic task's test designs replace its training designs (so `test_design`, which would
+    pin one, is refused). `num_devices`: see `run_episodes` (the numbers do not depend on it).
+
+    A policy that takes an action outside the task's actions (the env would clamp it to a valid
+    one: a policy built for another task) is refused with a `ValueError`, not scored."""
     env_tasks = environment_tasks(task)
     for name, count in (("static_episodes", static_episodes), ("episodes_per_test_design", episodes_per_test_design)):
         if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
             raise ValueError(f"{name} must be an int >= 1, got {count!r}")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an int in 0..{MAX_SEED}, got {seed!r}")
+    if "test_design" in overrides:
+        raise ValueError("test_design pins one design, but the protocol scores a dynamic task on all ten of its "
+                         "test designs (a static task has none): leave it out")
     start = time.perf_counter()
     strata: dict[str, np.ndarray] = {}
     outcomes: list[Episodes] = []
@@ -249,12 +290,21 @@ def evaluate_task(
         if dynamic:
             params = test_design_params(env_task, params)
             names = test_design_names(env_task)
+            require_episode_memory(env, params, episode_policy, len(names) * episodes_per_test_design)
             design_indices = np.repeat(np.arange(len(names)), episodes_per_test_design)
         else:
             names = [env_task]
+            require_episode_memory(env, params, episode_policy, static_episodes)
             design_indices = np.zeros(static_episodes, np.int32)
         key = _task_key(seed, env_task)
         result = jax.device_get(run_episodes(env, params, episode_policy, key, design_indices, num_devices))
+        invalid = np.asarray(result.invalid_actions)
+        if invalid.any():
+            raise ValueError(
+                f"policy {episode_policy.name!r} took {int(invalid.sum()):,} action(s) outside 0..{env.num_actions - 1} "
+                f"in {int(np.count_nonzero(invalid))} of {invalid.size} episodes of {env_task}; the environment would "
+                f"clamp them to valid ones, so they are not scored (a policy for a task with another action count?)"
+            )
         outcomes.append(result)
         for index, name in enumerate(names):
             strata[name] = np.asarray(result.iou[result.design_index == index], np.float64)

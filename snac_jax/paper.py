@@ -38,7 +38,10 @@ def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
         text = resources.files("snac_jax").joinpath("data/paper_results.json").read_text()
     else:
         text = Path(path).read_text()
-    results = json.loads(text)
+    try:
+        results = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path or 'paper_results.json'}: not valid JSON ({error})") from error
     if not isinstance(results, dict) or not isinstance(results.get("methods"), dict):
         raise ValueError(f"{path or 'paper_results.json'}: expected an object with a 'methods' table")
     return results

@@ -3,8 +3,10 @@
 The library never imports the packages that extend it: `agents` (the learners) declares in
 pyproject.toml a `train` subcommand (group `snac_jax.commands`: a module with
 `add_parser(subparsers)`) and a loader of trained policies (group `snac_jax.checkpoint_loaders`:
-`loader(run_directory) -> (builder(env, **options) -> Policy, the run's task, its paper row)`),
-and `snac eval --checkpoint` / `snac render --checkpoint` reach them here by name.
+`loader(run_directory) -> (builder(env, **options) -> Policy, the run's task, its paper row,
+the `make` overrides the run trained with)`, the last optional), and `snac eval --checkpoint` /
+`snac render --checkpoint` reach them here by name. The overrides (a training step limit) are
+applied when the run is evaluated, so it is scored on the episodes it learned.
 """
 
 from __future__ import annotations

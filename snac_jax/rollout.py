@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from snac_jax import devices, threefry
+from snac_jax import devices, memory, threefry
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 
@@ -79,6 +79,13 @@ def _rollout(
     return stats
 
 
+def require_rollout_memory(env: SNACEnv, params: EnvParams, num_envs: int) -> None:
+    """`ValueError` with the estimate if `num_envs` worlds would not fit: every world's state
+    and observation, in the scan's carry and the step's copy."""
+    obs, state = jax.eval_shape(env.reset, jax.random.key(0), params)
+    memory.require(f"{num_envs:,} worlds", 2 * num_envs * memory.tree_bytes((obs, state)), "use fewer worlds")
+
+
 @partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh", "reset_ended_only"))
 def random_rollout(
     key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None, reset_ended_only: bool = True
@@ -91,7 +98,9 @@ def random_rollout(
     With `mesh` (`snac_jax.devices.env_mesh()`), the worlds are split evenly over its devices,
     each device running its own scan from its own key; `num_envs` must be a multiple of the
     device count. The same key gives different (equally distributed) worlds for another mesh.
+    A `num_envs` whose estimated memory exceeds the device's is refused while tracing.
     """
+    require_rollout_memory(env, params, num_envs)
     if mesh is None or mesh.devices.size == 1:
         return _rollout(key, env, params, num_envs, num_steps, reset_ended_only)
     devices.check_divisible(num_envs, mesh)

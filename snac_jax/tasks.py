@@ -13,8 +13,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from snac_jax import designs
-from snac_jax.config import REWARD_SCHEMES, EnvConfig
+from snac_jax import designs, memory
+from snac_jax.config import PLAN_SIZE_1D, PLAN_SIZE_2D, REWARD_SCHEMES, EnvConfig
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 
@@ -62,11 +62,16 @@ OVERRIDES = {
     "obstacles": "bool: the 3D action set and obstacle rule (default: on in 3D, off in 2D; 1D has none)",
     "landmarks": f"int K >= 0 landmark cells outside the design (2D/3D; True means {DEFAULT_NUM_LANDMARKS})",
     "reward_scheme": f"one of {REWARD_SCHEMES} (default: 'binary' in 2D, 'height' in 1D/3D)",
-    "max_steps": "int >= 1, the step limit (truncation)",
+    "max_steps": "int in 1..2**31-1, the step limit (truncation)",
     "test_design": "int 0..9: pin a dynamic task to one of its ten test designs",
     "design_bank_size": f"int >= 1, training designs drawn at make time (dynamic tasks; default {DEFAULT_DESIGN_BANK_SIZE})",
-    "design_seed": "int, the seed of the design bank (dynamic tasks; default 0)",
+    "design_seed": "int in 0..2**32-1, the seed of the design bank (dynamic tasks; default 0)",
 }
+
+MAX_INT32 = 2**31 - 1
+"""Step counts are int32 on device."""
+MAX_SEED = 2**32 - 1
+"""`jax.random.key` keeps 32 bits of a seed (without x64), so larger seeds would repeat smaller ones."""
 
 
 def task_spec(task_id: str) -> TaskSpec:
@@ -99,6 +104,14 @@ def _require_int(name: str, value: Any, low: int, high: int | None = None) -> in
         allowed = f"an int >= {low}" if high is None else f"an int in {low}..{high}"
         raise ValueError(f"{name} must be {allowed}, got {value!r}")
     return int(value)
+
+
+def _bank_bytes_per_design(dim: int) -> int:
+    """An upper bound of the memory `designs.design_bank` needs per design: the host copy, and
+    on device the generator's working set (a triangle edge is rasterised as an n x n x n mask)."""
+    plan = PLAN_SIZE_1D if dim == 1 else PLAN_SIZE_2D**2
+    working = 8 * plan if dim == 1 else PLAN_SIZE_2D**3
+    return 2 * plan + working
 
 
 def _stride_probs(value: Any) -> tuple[float, float, float]:
@@ -140,7 +153,7 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     reward_scheme = overrides.get("reward_scheme", "binary" if spec.dim == 2 else "height")
     if reward_scheme not in REWARD_SCHEMES:
         raise ValueError(f"reward_scheme must be one of {REWARD_SCHEMES}, got {reward_scheme!r}")
-    max_steps = _require_int("max_steps", overrides.get("max_steps", spec.max_steps), 1)
+    max_steps = _require_int("max_steps", overrides.get("max_steps", spec.max_steps), 1, MAX_INT32)
 
     for name in ("test_design", "design_bank_size", "design_seed"):
         if name in overrides and not spec.dynamic:
@@ -152,8 +165,10 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
         design_stack = designs.fixed_design(test_design_names(task_id)[index])[None]
     elif spec.dynamic:
         size = _require_int("design_bank_size", overrides.get("design_bank_size", DEFAULT_DESIGN_BANK_SIZE), 1)
-        seed = _require_int("design_seed", overrides.get("design_seed", 0), 0)
+        seed = _require_int("design_seed", overrides.get("design_seed", 0), 0, MAX_SEED)
         density = None if spec.dim == 1 else spec.design
+        memory.require(f"a bank of {size:,} designs", size * _bank_bytes_per_design(spec.dim),
+                       "lower design_bank_size")
         design_stack = designs.design_bank(spec.dim, density, size, seed)
     else:
         design_stack = designs.fixed_design(spec.design)[None]

@@ -37,9 +37,33 @@ def golden_traces_path() -> Path:
     return Path(os.environ.get(GOLDEN_TRACES_ENV_VAR) or BUNDLED_TRACES)
 
 
-_TRACES = load_traces(golden_traces_path())
+try:
+    _TRACES, _TRACES_ERROR = load_traces(golden_traces_path()), None
+except ValueError as error:  # an empty or cut file: every test that reads traces fails with this
+    _TRACES, _TRACES_ERROR = [], str(error)
 
 
-@pytest.fixture(params=range(len(_TRACES)), ids=[f"{t['variant']}-{i}" for i, t in enumerate(_TRACES)])
+def golden_traces() -> list[dict]:
+    """Every golden trace; fails the calling test when the file is empty, cut or unreadable."""
+    if _TRACES_ERROR is not None:
+        pytest.fail(f"golden traces: {_TRACES_ERROR}")
+    return _TRACES
+
+
+def _trace_params(select=lambda trace: True):
+    """Parameters of a fixture over the traces `select` accepts (one failing case when the
+    file does not load, so a bad `SNAC_GOLDEN_TRACES` fails instead of leaving nothing to run)."""
+    if _TRACES_ERROR is not None:
+        return [pytest.param(None, id="unreadable-golden-traces")]
+    return [pytest.param(i, id=f"{t['variant']}-{i}") for i, t in enumerate(_TRACES) if select(t)]
+
+
+@pytest.fixture(params=_trace_params())
 def golden_trace(request):
-    return _TRACES[request.param]
+    return golden_traces()[request.param]
+
+
+@pytest.fixture(params=_trace_params(lambda trace: "dynamic" in trace["variant"]))
+def dynamic_golden_trace(request):
+    """The traces of dynamic tasks (their observations append the design)."""
+    return golden_traces()[request.param]

@@ -18,7 +18,12 @@ def _run(args, tmp_path):
     return json.loads((tmp_path / "throughput.json").read_text())
 
 
+def _committed_results() -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in (ROOT / "bench" / "results").rglob("*") if p.is_file()}
+
+
 def test_tiny_run_writes_rows_table_and_plots(tmp_path):
+    committed = _committed_results()
     rows = _run(["--tasks", "3d-dynamic-sparse", "1d-static-sin", "--num-envs", "1", "4", "--steps", "60",
                  "--numpy-steps", "200", "--no-e2e"], tmp_path)
     assert [(r["task"], r["num_envs"]) for r in rows] == [
@@ -32,6 +37,16 @@ def test_tiny_run_writes_rows_table_and_plots(tmp_path):
     assert "## 1D" in table and "## 3D" in table and "## 2D" not in table
     for family in ("1d", "3d"):
         assert (tmp_path / f"throughput_{family}.png").read_bytes()[:4] == b"\x89PNG"
+    assert _committed_results() == committed  # everything went under --out
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "throughput.json", "throughput.md", "throughput_1d.png", "throughput_3d.png"]
+
+
+def test_the_output_directory_is_required_and_the_only_one():
+    for args in ([], ["--json", "rows.json", "--out", "x"]):
+        done = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=ROOT)
+        assert done.returncode == 2, (args, done.stderr)
+    assert not (ROOT / "rows.json").exists() and not (ROOT / "x").exists()
 
 
 def test_bad_arguments_are_rejected(tmp_path):

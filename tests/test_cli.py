@@ -39,3 +39,52 @@ def test_installed_entry_point_runs():
     )
     assert result.returncode == 0, result.stderr
     assert "env-steps/s" in result.stdout
+
+
+def test_errors_are_one_line_and_bugs_keep_their_traceback(capsys, monkeypatch):
+    """Bad input and unwritable files end with `snac CMD: error: ...` and status 2; any other
+    exception is a bug and propagates with its traceback."""
+    from snac_jax.cli import rollout
+
+    def broken(args):
+        raise ValueError("the message")
+
+    monkeypatch.setattr(rollout, "run", broken)
+    assert main(["rollout", "--task", "1d-static-sin"]) == 2
+    assert capsys.readouterr().err == "snac rollout: error: the message\n"
+
+    def missing(args):
+        raise FileNotFoundError(2, "No such file or directory", "/nowhere/file")
+
+    monkeypatch.setattr(rollout, "run", missing)
+    assert main(["rollout"]) == 2
+    assert capsys.readouterr().err == "snac rollout: error: No such file or directory: /nowhere/file\n"
+
+    def bug(args):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(rollout, "run", bug)
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["rollout"])
+    monkeypatch.setenv("SNAC_TRACEBACK", "1")
+    monkeypatch.setattr(rollout, "run", broken)
+    with pytest.raises(ValueError, match="the message"):
+        main(["rollout"])
+
+
+def test_rollout_refuses_a_batch_that_cannot_fit(capsys):
+    assert main(["rollout", "--task", "2d-static-dense", "--num-envs", "1000000000", "--steps", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("snac rollout: error: 1,000,000,000 worlds needs about ") and "GiB, more than the " in err
+    assert "use fewer worlds" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("command", [["rollout"], ["eval", "--policy", "random"],
+                                     ["render", "--task", "1d-static-sin", "--out", "x.gif"], ["play", "--task", "1d-static-sin"]])
+@pytest.mark.parametrize("seed", ["4294967296", "-1", "1e3"])
+def test_seeds_must_fit_in_32_bits(command, seed, capsys):
+    """`jax.random.key` keeps 32 bits: seed 2**32 would silently repeat seed 0."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([*command, "--seed", seed])
+    assert exit_info.value.code == 2
+    assert "must be an int in 0..4294967295" in capsys.readouterr().err

@@ -62,6 +62,7 @@ def test_every_field_declares_help_and_a_known_type(algorithm):
     ("ent_coef_end", -2.0, "ent_coef_end must be a number >= -1 or None, got -2.0"),
     ("seed", 2**64, "seed must be an int in"),
     ("max_steps", float("nan"), "max_steps must be an int in"),
+    ("total_steps", 10**20, r"makes 1,525,878,906,250,000 updates of 65,536 env steps; at most 2,147,483,647"),
 ])
 def test_bad_values_are_refused_with_the_allowed_range(name, value, message):
     with pytest.raises(ValueError, match=message):

@@ -1,5 +1,9 @@
-"""Bad input raises ValueError naming what is allowed, before anything is traced."""
+"""Bad input raises ValueError naming what is allowed, before anything is traced (or, for what
+only tracing sees, while tracing: shapes are static, so the checks cost nothing per step)."""
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from snac_jax import TASKS, make, test_design_names
@@ -26,8 +30,12 @@ from snac_jax import TASKS, make, test_design_names
         ("2d-static-dense", {"landmarks": -3}, "int >= 0"),
         ("2d-static-dense", {"landmarks": 300}, "at most 252"),
         ("3d-static-dense", {"reward_scheme": "sparse"}, "one of \\('height', 'binary'\\)"),
-        ("2d-static-dense", {"max_steps": 0}, "int >= 1"),
+        ("2d-static-dense", {"max_steps": 0}, r"int in 1\.\.2147483647"),
         ("2d-dynamic-sparse", {"design_bank_size": 0}, "int >= 1"),
+        ("2d-static-dense", {"max_steps": 2**31}, r"int in 1\.\.2147483647"),
+        ("2d-dynamic-dense", {"design_seed": 2**64}, r"int in 0\.\.4294967295"),
+        ("2d-dynamic-dense", {"design_seed": 2**32}, r"int in 0\.\.4294967295"),  # key(2**32) == key(0)
+        ("2d-dynamic-dense", {"design_bank_size": 10**10}, "a bank of 10,000,000,000 designs needs about .* GiB, more than"),
     ],
 )
 def test_make_rejects_bad_input(task, overrides, message):
@@ -44,3 +52,64 @@ def test_every_task_builds_with_defaults():
     for task in TASKS:
         env, params = make(task, design_bank_size=4) if "dynamic" in task else make(task)
         assert env.name == task
+
+
+def _reset(env, params):
+    return env.reset(jax.random.key(0), params)[1]
+
+
+def test_an_environment_refuses_another_tasks_params_and_state():
+    env, params = make("2d-static-dense")
+    env_1d, params_1d = make("1d-static-sin")
+    state = _reset(env, params)
+    with pytest.raises(ValueError, match=r"params.designs has shape \(1, 1, 30\), .* needs \(1, 20, 20\)"):
+        env.reset(jax.random.key(0), params_1d)
+    with pytest.raises(ValueError, match="params of another task"):
+        env.step(jax.random.key(0), state, 0, params_1d)
+    with pytest.raises(ValueError, match="params of another task"):
+        jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(jax.random.key(0), 2),
+                                                    jax.tree.map(lambda x: jnp.stack([x, x]), state), jnp.zeros(2, int), params_1d)
+    with pytest.raises(ValueError, match=r"state.grid has shape \(1, 34\)"):
+        env.step(jax.random.key(0), _reset(env_1d, params_1d), 0, params)
+    with pytest.raises(ValueError, match=r"stride_probs has shape \(2,\)"):
+        env.reset(jax.random.key(0), params.replace(stride_probs=jnp.ones(2) / 2))
+
+
+def test_known_indices_strides_and_actions_are_checked_at_the_boundary():
+    env, params = make("2d-dynamic-dense", design_bank_size=4)
+    state = _reset(env, params)
+    with pytest.raises(ValueError, match=r"design_index must be in 0\.\.3, got 4"):
+        env.reset_to_design(jax.random.key(0), params, 4)
+    with pytest.raises(ValueError, match=r"design_index must be in 0\.\.3, got -1"):
+        env.reset_to_design(jax.random.key(0), params, jnp.asarray(-1))
+    with pytest.raises(ValueError, match=r"stride must be in 1\.\.3, got 7"):
+        env.step_with_stride(state, 0, 7, params)
+    with pytest.raises(ValueError, match=r"stride must be in 1\.\.3, got 0"):
+        env.step_with_stride(state, 0, 0, params)
+    with pytest.raises(ValueError, match=r"action must be in 0\.\.4, got 5"):
+        env.step_with_stride(state, 5, 1, params)
+    env.step_with_stride(state, 4, 3, params)  # the largest valid ones pass
+
+
+def test_traced_values_are_not_checked_and_the_rule_is_documented():
+    """Inside jit an index is not known: the documented clamping applies (no per-step check)."""
+    env, params = make("1d-static-sin")
+    state = _reset(env, params)
+    step = jax.jit(env.step_with_stride)
+    for clamped, valid in ((99, 2), (-1, 2), (-100, 0)):
+        np.testing.assert_array_equal(step(state, clamped, 1, params)[1].grid, step(state, valid, 1, params)[1].grid)
+    assert "clamps" in env.step.__doc__ and "0..num_actions-1" in env.step.__doc__
+
+
+def test_replay_refuses_actions_and_strides_the_env_would_clamp():
+    from snac_jax.replay import replay
+
+    env, params = make("1d-static-sin", max_steps=5)
+    with pytest.raises(ValueError, match=r"actions must be in 0\.\.2, got 7"):
+        replay(env, params, [0, 7], [1, 1])
+    with pytest.raises(ValueError, match=r"strides must be in 1\.\.3, got 4"):
+        replay(env, params, [0, 1], [1, 4])
+    with pytest.raises(ValueError, match="one stride per action and at least one action"):
+        replay(env, params, [], [])
+    with pytest.raises(ValueError, match="one stride per action"):
+        replay(env, params, [0, 1], [1])

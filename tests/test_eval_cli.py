@@ -64,3 +64,29 @@ def test_json_write_is_atomic(tmp_path):
         write_json_atomic(path, {"bad": object()})
     assert json.loads(path.read_text()) == {"ok": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["results.json"]
+
+
+def test_outputs_and_sizes_are_checked_before_the_evaluation(tmp_path, capsys, monkeypatch):
+    import snac_jax.evaluation
+
+    monkeypatch.setattr(snac_jax.evaluation, "evaluate_task", lambda *a, **k: pytest.fail("evaluated first"))
+    (tmp_path / "file").write_text("")
+    for target, message in ((tmp_path, "is a directory"), (tmp_path / "file" / "out.json", "is not a directory")):
+        code = main(["eval", "--policy", "random", "--task", "1d-static-sin", "--json", str(target)])
+        err = capsys.readouterr().err
+        assert code == 2 and err.startswith("snac eval: error: --json ") and message in err
+    monkeypatch.undo()
+    code = main(["eval", "--policy", "random", "--task", "1d-dynamic", "--episodes", "1000000000"])
+    err = capsys.readouterr().err
+    assert code == 2 and "snac eval: error: 10,000,000,000 episodes at once needs about" in err
+
+
+def test_a_policy_for_another_task_is_not_scored(capsys, monkeypatch):
+    """The registry's random policy sized for 2D (5 actions) on a 1D task (3): refused."""
+    from snac_jax.policies import random as random_module
+    from snac_jax.policy import uniform_random_policy
+
+    monkeypatch.setattr(random_module, "random_policy", lambda env, **options: uniform_random_policy(5))
+    code = main(["eval", "--policy", "random", "--task", "1d-static-sin", "--episodes", "2"])
+    err = capsys.readouterr().err
+    assert code == 2 and "outside 0..2" in err and "not scored" in err

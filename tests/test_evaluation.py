@@ -11,7 +11,7 @@ import pytest
 
 from snac_jax import evaluation, make
 from snac_jax.evaluation import evaluate_task, summarize
-from snac_jax.policy import Policy
+from snac_jax.policy import Policy, uniform_random_policy
 
 
 def _never_drop(env) -> Policy:
@@ -122,13 +122,26 @@ def _compiled_programs() -> int:
     return evaluation._run_episodes._cache_size() + evaluation._run_episodes_sharded._cache_size()
 
 
-def test_same_seed_same_numbers_and_one_compile_per_configuration():
-    first = evaluate_task("2d-static-sparse", _NEVER_DROP, static_episodes=6, seed=1)
+_RANDOM = uniform_random_policy(5)  # its actions depend on the key it is given
+
+
+def test_same_seed_same_episodes_and_one_compile_per_configuration():
+    """A policy whose every action comes from its key: the same seed repeats every episode (the
+    per-episode arrays, not only their means), another seed changes them, and nothing recompiles."""
+    env, params = make("2d-static-sparse", max_steps=60)
+    indices = np.zeros(6, np.int32)
+    first = jax.device_get(evaluation.run_episodes(env, params, _RANDOM, jax.random.key(1), indices))
     compiled = _compiled_programs()
-    again = evaluate_task("2d-static-sparse", _NEVER_DROP, static_episodes=6, seed=1)
-    other_seed = evaluate_task("2d-static-sparse", _NEVER_DROP, static_episodes=6, seed=2)
+    again = jax.device_get(evaluation.run_episodes(env, params, _RANDOM, jax.random.key(1), indices))
+    other = jax.device_get(evaluation.run_episodes(env, params, _RANDOM, jax.random.key(2), indices))
     assert _compiled_programs() == compiled
-    assert (first.mean, first.mean_length) == (again.mean, again.mean_length) == (other_seed.mean, 600.0)
+    for name in ("iou", "length", "bricks_used", "episode_return"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(again, name), err_msg=name)
+    assert np.unique(first.bricks_used).size > 1  # the episodes differ from one another...
+    assert not np.array_equal(first.episode_return, other.episode_return)  # ...and with the seed
+    a = evaluate_task("2d-static-sparse", _RANDOM, static_episodes=6, seed=1, max_steps=60)
+    b = evaluate_task("2d-static-sparse", _RANDOM, static_episodes=6, seed=1, max_steps=60)
+    assert {**a.to_json(), "wall_s": 0} == {**b.to_json(), "wall_s": 0}
 
 
 def test_seed_changes_the_episodes():
@@ -154,11 +167,41 @@ def test_a_builder_is_called_once_per_environment_task():
         ("2d-static", {}, "allowed"),
         ("2d-static-dense", {"static_episodes": 0}, "static_episodes"),
         ("2d-dynamic-dense", {"episodes_per_test_design": 1.5}, "episodes_per_test_design"),
+        ("2d-dynamic-dense", {"test_design": 3}, "test_design pins one design"),
+        ("1d-static-sin", {"seed": 2**32}, r"seed must be an int in 0\.\.4294967295"),
+        ("1d-static-sin", {"seed": -1}, r"seed must be an int in 0\.\.4294967295"),
+        ("1d-static-sin", {"static_episodes": 10**11}, "100,000,000,000 episodes at once needs about .* GiB, more than"),
     ],
 )
 def test_bad_input_is_a_value_error(task, kwargs, match):
     with pytest.raises(ValueError, match=match):
         evaluate_task(task, _NEVER_DROP, **kwargs)
+
+
+def test_a_policy_with_actions_outside_the_task_is_refused_not_scored():
+    """5 random actions on a 3-action task: the env would clamp 3 and 4 to the drop (2)."""
+    with pytest.raises(ValueError, match=r"took [\d,]+ action\(s\) outside 0\.\.2 in 4 of 4 episodes of 1d-static-sin"):
+        evaluate_task("1d-static-sin", uniform_random_policy(5), static_episodes=4, max_steps=30)
+    below = Policy(_NEVER_DROP.init, lambda p, s, o, k: (jnp.asarray(-1, jnp.int32), s), None, "minus-one")
+    with pytest.raises(ValueError, match="outside 0..4"):
+        evaluate_task("2d-static-sparse", below, static_episodes=2, max_steps=5)
+
+
+def test_a_policy_must_return_one_integer_action():
+    batched = Policy(_NEVER_DROP.init, lambda p, s, o, k: (jnp.ones(2, jnp.int32), s), None, "two-actions")
+    floating = Policy(_NEVER_DROP.init, lambda p, s, o, k: (jnp.asarray(1.0), s), None, "float")
+    for policy in (batched, floating):
+        with pytest.raises(ValueError, match="one integer action"):
+            evaluate_task("1d-static-sin", policy, static_episodes=2, max_steps=5)
+
+
+def test_run_episodes_checks_design_indices_and_params():
+    env, params = make("2d-static-sparse", max_steps=5)
+    with pytest.raises(ValueError, match=r"design_indices must be in 0\.\.0, got 1"):
+        evaluation.run_episodes(env, params, _NEVER_DROP, jax.random.key(0), [0, 1])
+    _, other = make("1d-static-sin")
+    with pytest.raises(ValueError, match="params of another task"):
+        evaluation.run_episodes(env, other, _NEVER_DROP, jax.random.key(0), [0])
 
 
 def test_paper_results_are_packaged():

@@ -159,5 +159,105 @@ def test_snac_eval_human_prints_the_summary(tmp_path, capsys):
     assert main(["eval", "--human", str(path)]) == 0
     out = capsys.readouterr().out
     assert "| 2d-static-sparse | 1 |" in out and "0.606" in out
-    with pytest.raises(SystemExit, match="exactly one of"):
-        main(["eval", "--human", str(path), "--policy", "random"])
+    assert main(["eval", "--human", str(path), "--policy", "random"]) == 2
+    assert "snac eval: error: give exactly one of" in capsys.readouterr().err
+
+
+def _honest_record(task="2d-static-sparse", mode="eval", keys=("space", "right", "space"), **kwargs):
+    session = GameSession(task, mode, seed=3, max_steps=len(keys), **kwargs)
+    for key in keys:
+        session.press(key)
+    [record] = session.records
+    records.verify_record(record)  # the honest record passes
+    return record
+
+
+def _doctored(record, **changes):
+    return records.EpisodeRecord(**{**vars(record), **changes})
+
+
+def test_doctored_records_are_refused():
+    honest = _honest_record()
+    one_brick = np.zeros((20, 20), int)
+    one_brick[0, 0] = 1
+    cases = {
+        "actions must be in 0..4, got 7": dict(actions=[7, *honest.actions[1:]]),
+        "actions must be ints >= 0": dict(actions=[-1, *honest.actions[1:]]),
+        "more than the step limit": dict(actions=honest.actions + [4], strides=honest.strides + [1]),
+        "design must be 20 x 20": dict(design=[[1]]),
+        "its design is not its test design|its design is not the design": dict(design=one_brick.tolist()),
+        "claims IoU": dict(iou=min(1.0, honest.iou + 0.1)),
+        "claims bricks used 3": dict(bricks_used=3),
+        "claims total reward": dict(total_reward=honest.total_reward + 5),
+        "claims terminated True": dict(terminated=True),
+        "has not ended after its 3 actions": dict(max_steps=4),
+        "test_design must be null": dict(test_design=2),
+    }
+    for message, changes in cases.items():
+        with pytest.raises(ValueError, match=message):
+            records.verify_record(_doctored(honest, **changes))
+    with pytest.raises(ValueError, match="claims bricks used"):
+        records.summarize_records([_doctored(honest, bricks_used=0)])
+
+
+def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path, capsys):
+    """The forged record of the issue: a one-brick design, one drop on it, IoU 1 claimed."""
+    honest = _honest_record(keys=("space",))
+    design = np.zeros((20, 20), int)
+    design[0, 0] = 1
+    forged = _doctored(honest, design=design.tolist(), iou=1.0, total_reward=5.0)
+    assert records.replay_iou(forged) == 1.0  # the replay alone would believe it
+    path = tmp_path / "forged.jsonl"
+    records.append_record(path, forged)
+    with pytest.raises(ValueError, match="its design is not"):
+        records.human_report(path)
+    from snac_jax.cli import main
+
+    assert main(["eval", "--human", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("snac eval: error: record of 2d-static-sparse seed 3: its design is not") and err.count("\n") == 1
+
+
+def test_dynamic_records_must_hold_the_design_the_game_gives():
+    test = _honest_record("1d-dynamic", "eval", keys=("space", "space"))
+    with pytest.raises(ValueError, match="its design is not its test design"):
+        records.verify_record(_doctored(test, test_design=(test.test_design + 1) % 10))
+    trained = _honest_record("1d-dynamic", "train", keys=("space", "space"))
+    other = _honest_record("1d-dynamic", "train", keys=("space", "space"), player="other")
+    with pytest.raises(ValueError, match="not the design the game gives this episode"):
+        records.verify_record(_doctored(trained, seed=trained.seed + 1))
+    assert trained.design == other.design  # the seed alone decides it
+
+
+def test_play_checks_the_record_path_before_opening_the_window(tmp_path, monkeypatch, capsys):
+    from snac_jax.cli import main
+
+    monkeypatch.setattr(window, "run_window", lambda *a, **k: pytest.fail("the window opened"))
+    (tmp_path / "file").write_text("")
+    for record, message in ((tmp_path, "is a directory"), (tmp_path / "file" / "h.jsonl", "is not a directory")):
+        assert main(["play", "--task", "1d-static-sin", "--record", str(record)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("snac play: error: record file ") and message in err
+
+
+def test_a_finished_episode_is_never_dropped(tmp_path, monkeypatch, capsys):
+    """The record file fails when the episode ends (disk full, permissions changed): the episode
+    is kept, written to a file in the temporary folder, and the command says where."""
+    from snac_jax.cli import main
+    from snac_jax.human import game
+
+    def full_disk(path, record):
+        if os.path.basename(path) == "h.jsonl":
+            raise OSError(28, "No space left on device")
+        return records.append_record(path, record)
+
+    monkeypatch.setattr(game, "append_record", full_disk)
+    monkeypatch.setattr(game.tempfile, "gettempdir", lambda: str(tmp_path))
+    monkeypatch.setattr(window, "run_window", functools.partial(window.run_window, script=["space", "space", "return"]))
+    rc = main(["play", "--task", "1d-static-sin", "--max-steps", "2", "--episodes", "1", "--record", str(tmp_path / "h.jsonl")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "1 episode(s) could not be appended" in err and "No space left on device" in err
+    [saved] = tmp_path.glob("snac-play-unsaved-*.jsonl")
+    [record] = records.load_records(saved)
+    assert record.actions == [2, 2] and str(saved) in err
+    records.verify_record(record)

@@ -10,7 +10,7 @@ import pytest
 
 from snac_jax import TASKS, designs, make
 from bench.numpy_engine import NumpyEnv, line_cells, random_sine, random_triangle
-from tests.conftest import _TRACES
+from tests.conftest import golden_traces
 
 
 def _engine_for_trace(trace) -> NumpyEnv:
@@ -22,7 +22,7 @@ def _engine_for_trace(trace) -> NumpyEnv:
 
 
 def test_numpy_engine_replays_every_golden_trace():
-    for number, trace in enumerate(_TRACES):
+    for number, trace in enumerate(golden_traces()):
         env = _engine_for_trace(trace)
         expected = np.asarray(trace["observations"], dtype=np.float32)
         width = expected.shape[1]

@@ -41,11 +41,27 @@ def test_render_writes_a_gif_with_one_frame_per_drawn_state(tmp_path, capsys, ta
 def test_render_rejects_bad_requests(tmp_path, capsys):
     assert main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.png")]) == 2
     assert "gif" in capsys.readouterr().err
-    # a checkpoint needs a policy that loads one
+    # a policy or a checkpoint, not both
     rc = main(["render", "--task", "2d-static-dense", "--policy", "handcrafted", "--checkpoint", str(tmp_path),
                "--out", str(tmp_path / "x.gif")])
     assert rc == 2
-    assert "handcrafted" in capsys.readouterr().err
+    assert "not both" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["render", "--task", "4d-static", "--out", str(tmp_path / "x.gif")])
     assert not list(tmp_path.iterdir())
+
+
+def test_outputs_and_sizes_are_checked_before_the_episode(tmp_path, capsys, monkeypatch):
+    import snac_jax.recording
+
+    monkeypatch.setattr(snac_jax.recording, "record_episode", lambda *a, **k: pytest.fail("ran the episode first"))
+    (tmp_path / "file").write_text("")
+    rc = main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "file" / "x.gif")])
+    assert rc == 2 and "snac render: error: --out " in capsys.readouterr().err
+    rc = main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.gif"), "--cell", "100000"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "snac render: error: one frame at --cell 100000 needs about" in err and "lower --cell" in err
+    with pytest.raises(SystemExit):
+        main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.gif"), "--cell", "3"])
+    assert "must be an int >= 4" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]

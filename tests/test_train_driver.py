@@ -46,26 +46,75 @@ def test_checkpoint_round_trip(tmp_path):
     assert jax.dtypes.issubdtype(restored.key.dtype, jax.dtypes.prng_key)
 
 
-def test_resume_equals_uninterrupted(tmp_path):
+def test_resume_equals_uninterrupted(tmp_path, capsys):
     config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=4 * 16 * 8, chunks=4, **TINY)
     _, straight = train(config, tmp_path / "straight", progress=False)
-    _, first = train(config, tmp_path / "killed", progress=False, stop_after_chunks=2)
+    straight_lines = read_metrics(tmp_path / "straight")
+    killed = tmp_path / "killed"
+    _, first = train(config, killed, progress=False, stop_after_chunks=2)
     assert int(first.update[0]) == 2
-    # A crash after the metrics line but before the checkpoint: resume drops the extra line.
-    with (tmp_path / "killed" / checkpoint.METRICS_FILE).open("a") as f:
-        f.write(json.dumps({"chunk": 2, "wall_s": 0.0}) + "\n")
-    _, resumed = train(config, tmp_path / "killed", resume=True, progress=False)
+    # A crash after the metrics line but before the checkpoint, then one in the middle of the
+    # next line: resume drops both.
+    with (killed / checkpoint.METRICS_FILE).open("a") as f:
+        f.write(json.dumps({"chunk": 2, "wall_s": 0.0}) + "\n" + '{"chunk": 3, "wa')
+    _, resumed = train(config, killed, resume=True, progress=False)
     assert int(resumed.update[0]) == 4
     assert _leaves_equal(straight, resumed)
-    straight_lines, resumed_lines = read_metrics(tmp_path / "straight"), read_metrics(tmp_path / "killed")
+    resumed_lines = read_metrics(killed)
     assert [r["chunk"] for r in resumed_lines] == [0, 1, 2, 3]
     assert [r["iou"] for r in resumed_lines] == [r["iou"] for r in straight_lines]
+
+    # The newest checkpoint damaged (its metadata cut in half): evaluating it is refused with the
+    # way out, and a resume recomputes its chunk from the one before, to the same state.
+    cut = killed / checkpoint.CHECKPOINT_DIR / "3" / "default" / "_METADATA"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"checkpoint 3 .*; checkpoint 2 is intact: `snac train ppo --resume "):
+        trained.load_trained(killed)
+    capsys.readouterr()
+    _, repaired = train(config, killed, resume=True, progress=False)
+    assert "resuming from an earlier checkpoint" in capsys.readouterr().err
+    assert _leaves_equal(straight, repaired) and _leaves_equal(straight, trained.load_trained(killed)[1])
+    assert [r["iou"] for r in read_metrics(killed)] == [r["iou"] for r in straight_lines]
+
+    # Killed before the first checkpoint: the run starts again from its beginning.
+    early = tmp_path / "early"
+    early.mkdir()
+    (early / checkpoint.CONFIG_FILE).write_text(json.dumps(config.to_json()))
+    _, restarted = train(config, early, resume=True, progress=False)
+    assert _leaves_equal(straight, restarted)
+
+
+@pytest.mark.parametrize("damaged", ["data", "_METADATA"])
+def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(tmp_path, damaged):
+    """Truncated files are named as damage (not blamed on an edited config.json), and the newest
+    intact checkpoint is found."""
+    weights = [jax.random.normal(jax.random.key(chunk), (64, 64)) for chunk in (0, 1)]  # incompressible
+    for chunk in (0, 1):
+        checkpoint.save_state(tmp_path, chunk, {"w": weights[chunk]})
+    files = [p for p in (tmp_path / checkpoint.CHECKPOINT_DIR / "1").rglob("*") if p.is_file()]
+    cut = max(files, key=lambda p: p.stat().st_size) if damaged == "data" else next(p for p in files if p.name == damaged)
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    like = {"w": jnp.zeros((64, 64))}
+    with pytest.raises(checkpoint.DamagedCheckpoint, match="checkpoint 1 cannot be read .truncated or corrupt files"):
+        checkpoint.restore_state(tmp_path, like, 1)
+    chunk, state, notes = checkpoint.restore_latest(tmp_path, like)
+    assert chunk == 0 and np.array_equal(state["w"], weights[0]) and "checkpoint 1 cannot be read" in notes[0]
+    with pytest.raises(ValueError, match="does not hold the state"):  # every checkpoint mismatches: the config's fault
+        checkpoint.restore_latest(tmp_path, {"w": jnp.zeros((2, 2))})
+    with pytest.raises(ValueError, match="metrics.jsonl records 1 chunk"):  # checkpoints gone, metrics kept
+        import shutil
+
+        shutil.rmtree(tmp_path / checkpoint.CHECKPOINT_DIR)
+        (tmp_path / checkpoint.METRICS_FILE).write_text('{"chunk": 0}\n')
+        from agents.driver import _resume_point
+
+        _resume_point(tmp_path, like, print)
 
 
 def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
     train(config, tmp_path / "run", progress=False)
-    with pytest.raises(ValueError, match="already holds a run"):
+    with pytest.raises(ValueError, match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(a run: continue"):
         train(config, tmp_path / "run", progress=False)
     with pytest.raises(ValueError, match="config.json is missing"):
         train(config, tmp_path / "empty", resume=True, progress=False)
@@ -151,6 +200,12 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     again = evaluate_task("1d-static-sin", lambda env: trained.checkpoint_policy(env, out), static_episodes=4)
     assert again.mean == pytest.approx(evaluation["1d-static-sin"]["mean"])
 
+    from snac_jax.cli import main  # and `snac render --checkpoint` draws the trained policy
+
+    gif = tmp_path / "run.gif"
+    assert main(["render", "--task", "1d-static-sin", "--checkpoint", str(out), "--out", str(gif), "--max-steps", "8"]) == 0
+    assert gif.stat().st_size > 0
+
 
 def test_checkpoint_policy_rejects_another_task(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
@@ -158,8 +213,10 @@ def test_checkpoint_policy_rejects_another_task(tmp_path):
     from snac_jax.tasks import make
 
     env, _ = make("1d-static-step")
-    with pytest.raises(ValueError, match="trained on '1d-static-sin'"):
-        trained.checkpoint_policy(env, tmp_path)
+    with pytest.MonkeyPatch.context() as patch:  # refused from config.json, before any checkpoint is read
+        patch.setattr(trained, "load_trained", lambda *a: pytest.fail("the checkpoint was loaded"))
+        with pytest.raises(ValueError, match="trained on '1d-static-sin'"):
+            trained.checkpoint_policy(env, tmp_path)
 
 
 def test_a_checkpoint_with_empty_slots_restores_into_a_state_without_them(tmp_path):
@@ -188,3 +245,243 @@ def test_a_checkpoint_of_another_shape_is_refused_before_reading(tmp_path):
         checkpoint.restore_state(tmp_path, {"w": jnp.zeros((4, 3)), "b": jnp.zeros(3)})
     with pytest.raises(ValueError, match="missing c; unexpected b"):
         checkpoint.restore_state(tmp_path, {"w": jnp.zeros((2, 3)), "c": jnp.zeros(3)})
+
+
+# --- run directories: nothing is overwritten, two processes never share one ----------------------
+
+
+def test_a_new_run_refuses_any_non_empty_directory(tmp_path):
+    """A finished run whose checkpoints/ is gone, or an unrelated config.json, is not written over
+    (refused before anything is built, so it takes milliseconds)."""
+    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
+    finished = tmp_path / "finished"
+    finished.mkdir()
+    for name in ("config.json", "metrics.jsonl", "eval.json"):
+        (finished / name).write_text("{}\n")
+    unrelated = tmp_path / "mine"
+    unrelated.mkdir()
+    (unrelated / "config.json").write_text('{"mine": true}\n')
+    for directory in (finished, unrelated):
+        before = {p.name: p.read_text() for p in directory.iterdir()}
+        with pytest.raises(ValueError, match=r"is not empty \(config.json.*a new run needs a new or empty directory"):
+            train(config, directory, progress=False)
+        assert {p.name: p.read_text() for p in directory.iterdir()} == before
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="is a file, not a run directory"):
+        train(config, tmp_path / "file", progress=False)
+    with pytest.raises(ValueError, match="is not a directory"):
+        train(config, tmp_path / "file" / "run", progress=False)
+
+
+def test_two_processes_cannot_work_on_one_run_directory(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
+         "f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)", str(run / checkpoint.LOCK_FILE)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
+        with pytest.raises(ValueError, match="is in use by process 4242: one run directory takes one process"):
+            train(config, run, progress=False)
+        assert [p.name for p in run.iterdir()] == [checkpoint.LOCK_FILE]  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    with checkpoint.lock_run(run), checkpoint.lock_run(run):  # free again (the kernel dropped it); re-entrant
+        assert f"process {os.getpid()}" in (run / checkpoint.LOCK_FILE).read_text()
+
+
+def test_metrics_lines_survive_a_torn_last_line(tmp_path):
+    path = tmp_path / checkpoint.METRICS_FILE
+    path.write_text('{"chunk": 0, "iou": [0.1]}\n{"chunk": 1, "iou": [0.2]}\n{"chunk": 2, "io')
+    assert [r["chunk"] for r in checkpoint.read_metrics_lines(path)] == [0, 1]
+    path.write_text('{"chunk": 0}\n{"chu\n{"chunk": 2}\n')
+    with pytest.raises(ValueError, match=r"metrics.jsonl:2: not a JSON line"):
+        checkpoint.read_metrics_lines(path)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("{\"algorithm\": \"ppo\", ", r"config.json is not valid JSON"),
+    ("[1, 2]", r"config.json must hold a JSON object, got list"),
+    ('{"algorithm": "ppo", "hidden_size": -3}', r"config.json: hidden_size must be an int >= 1"),
+    ('{"algorithm": "nope"}', r"config.json: unknown algorithm 'nope'"),
+])
+def test_a_corrupt_config_json_is_named(tmp_path, content, message):
+    (tmp_path / checkpoint.CONFIG_FILE).write_text(content)
+    with pytest.raises(ValueError, match=message):
+        checkpoint.read_config(tmp_path)
+
+
+def _cli(argv, capsys) -> tuple[int, str, str]:
+    from snac_jax.cli import main
+
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+TINY_FLAGS = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
+              "--hidden-size", "8", "--rnn-size", "8", "--no-progress", "--devices", "1"]
+
+
+def test_resume_refuses_options_the_run_fixed(tmp_path, capsys):
+    from agents.config import save_config
+
+    save_config(make_config("ppo", "1d-static-sin", total_steps=128, **TINY), tmp_path / checkpoint.CONFIG_FILE)
+    code, _, err = _cli(["train", "ppo", "--resume", str(tmp_path), "--total-steps", "5000", "--task", "1d-static-step"], capsys)
+    assert code == 2
+    assert err.startswith("snac train ppo: error: --resume continues the run as ") and "--task, --total-steps cannot change it" in err
+    code, _, err = _cli(["train", "dqn", "--resume", str(tmp_path)], capsys)
+    assert code == 2 and "holds a ppo run, not dqn" in err
+
+
+def test_training_banner_and_memory_checks_come_before_any_training(tmp_path, capsys):
+    """--total-steps 1 trains one whole update (16 worlds x 8 steps): the banner says 128, not 1.
+    Sizes whose memory cannot fit are refused with the estimate before anything is allocated:
+    the final evaluation's episodes too, before the training rather than after it."""
+    out = tmp_path / "a"
+    code, _, err = _cli(["train", "ppo", "--total-steps", "1", *TINY_FLAGS, "--out", str(out),
+                         "--eval-episodes", "1000000000000"], capsys)
+    assert "128 env steps (total_steps 1 rounded to whole updates of 128) x 1 seed(s)" in err
+    assert code == 2 and "snac train ppo: error: 1,000,000,000,000 episodes at once needs about" in err
+    huge = [f if f != "16" else "1000000000" for f in TINY_FLAGS]
+    code, _, err = _cli(["train", "ppo", "--total-steps", "1", *huge, "--out", str(out)], capsys)
+    assert code == 2 and "snac train ppo: error: training 1 seed(s) x 1,000,000,000 worlds needs about" in err
+    assert "more than the" in err and not out.exists()
+
+
+@pytest.mark.slow  # a whole CLI run with its evaluations, then eval and render of it: ~45 s on 2 cores
+def test_a_cli_run_keeps_its_options_and_its_files_are_readable(tmp_path, capsys, monkeypatch):
+    """One tiny `snac train` run with a short step limit and few evaluation episodes, then:
+    its files are 0644 under umask 022; a resume evaluates with the run's own options (not the
+    protocol's 500 episodes at the task's step limit); `snac eval --checkpoint` scores it on its
+    step limit and refuses another task before loading it; `snac render --checkpoint` draws it."""
+    import imageio.v3 as iio
+
+    old_umask = os.umask(0o022)
+    try:
+        run = tmp_path / "run"
+        code, out, err = _cli(["train", "ppo", "--total-steps", "256", "--chunks", "2", *TINY_FLAGS, "--max-steps", "40",
+                               "--eval-episodes", "2", "--out", str(run)], capsys)
+    finally:
+        os.umask(old_umask)
+    assert code == 0, err
+    for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json"):
+        assert (run / name).stat().st_mode & 0o777 == 0o644, name
+    assert json.loads((run / "run.json").read_text()) == {"eval_episodes": 2, "no_eval": False}
+    first = json.loads((run / "eval.json").read_text())["1d-static-sin"]
+    assert first["episodes"] == 2 and first["mean_length"] <= 40
+
+    code, out, err = _cli(["train", "ppo", "--resume", str(run), "--no-progress"], capsys)
+    assert code == 0, err
+    again = json.loads((run / "eval.json").read_text())["1d-static-sin"]
+    assert again["episodes"] == 2 and again["mean_length"] <= 40 and again["mean"] == first["mean"]
+    assert len(read_metrics(run)) == 2  # one run's chunks, once
+
+    code, out, err = _cli(["eval", "--checkpoint", str(run), "--episodes", "3"], capsys)
+    assert code == 0, err
+    assert "{'max_steps': 40}" in err and "| 1d-static-sin | 3 |" in out
+    monkeypatch.setattr(trained, "load_trained", lambda *a: pytest.fail("the checkpoint was loaded"))
+    code, _, err = _cli(["eval", "--checkpoint", str(run), "--task", "1d-static"], capsys)
+    assert code == 2 and "trained on '1d-static-sin'; it cannot be evaluated on 1d-static-gauss, 1d-static-step" in err
+    monkeypatch.undo()
+
+    gif = tmp_path / "run.gif"
+    code, out, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(gif),
+                           "--max-steps", "12"], capsys)
+    assert code == 0, err
+    assert f"1d-static-sin, policy " in out and "final IoU" in out
+    assert iio.imread(gif, index=None).shape[0] >= 2
+
+
+KILLER = textwrap.dedent(
+    """
+    import json, os, pathlib, signal, sys
+    from agents import driver
+    from agents.config import TrainConfig
+    from agents.registry import config_from_json
+    from snac_jax.devices import env_mesh
+
+    out, where, chunk = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    config = config_from_json(json.loads(sys.argv[4]))
+    die = lambda: os.kill(os.getpid(), signal.SIGKILL)
+
+    if where == "mid-chunk":  # chunk computed, nothing of it written yet
+        summarize, seen = driver.summarize_chunk, []
+        def hook(metrics):
+            if len(seen) == chunk:
+                die()
+            seen.append(1)
+            return summarize(metrics)
+        driver.summarize_chunk = hook
+    elif where == "metrics-line":  # half of the chunk's metrics line written
+        open_path = pathlib.Path.open
+        def hook(self, mode="r", *args, **kwargs):
+            f = open_path(self, mode, *args, **kwargs)
+            if self.name == "metrics.jsonl" and mode == "a" and sum(1 for _ in open_path(self)) == chunk:
+                write = f.write
+                class Torn:
+                    def __enter__(s): return s
+                    def __exit__(s, *a): f.close()
+                    def write(s, text):
+                        write(text[: len(text) // 2]); f.flush(); die()
+                return Torn()
+            return f
+        pathlib.Path.open = hook
+    elif where == "checkpoint-write":  # every file of the checkpoint written, its commit (rename) not
+        from orbax.checkpoint._src.path import async_path
+        rename = async_path.rename
+        async def hook(src, dst, *args, **kwargs):
+            if pathlib.Path(str(dst)).name == str(chunk):
+                die()
+            return await rename(src, dst, *args, **kwargs)
+        async_path.rename = hook
+    driver.train(config, out, progress=False, mesh=env_mesh(1))
+    """
+)
+
+
+@pytest.mark.slow  # three killed training subprocesses and their resumes: ~1-2 min on 2 cores
+def test_sigkill_at_any_point_then_resume_equals_an_uninterrupted_run(tmp_path):
+    """SIGKILL after a chunk is computed, halfway through its metrics line, and while its
+    checkpoint is being written (files there, commit not): `resume` ends equal to a run that was
+    never interrupted, state and metrics alike."""
+    from snac_jax.devices import env_mesh
+
+    config = make_config("ppo", "1d-static-gauss", recurrent=True, total_steps=4 * 16 * 8, chunks=4, **TINY)
+    _, straight = train(config, tmp_path / "straight", progress=False, mesh=env_mesh(1))
+    expected = [(r["chunk"], r["iou"], r["return"]) for r in read_metrics(tmp_path / "straight")]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env.pop("XLA_FLAGS", None)
+    for where in ("mid-chunk", "metrics-line", "checkpoint-write"):
+        out = tmp_path / where
+        done = subprocess.run([sys.executable, "-c", KILLER, str(out), where, "2", json.dumps(config.to_json())],
+                              capture_output=True, text=True, env=env, timeout=600)
+        assert done.returncode == -9, (where, done.stderr[-3000:])  # killed, not finished
+        assert checkpoint.latest_chunk(out) == 1, where
+        _, resumed = train(config, out, resume=True, progress=False, mesh=env_mesh(1))
+        assert _leaves_equal(straight, resumed), where
+        assert [(r["chunk"], r["iou"], r["return"]) for r in read_metrics(out)] == expected, where
+
+
+def test_run_files_are_readable_by_others(tmp_path):
+    """Every file of a run goes through `snac_jax.atomic` and gets 0666 less the umask (0644
+    under 022), not the 0600 of a bare temporary file."""
+    from agents.driver import _start_run
+    from agents.plotting import plot_curve
+    from snac_jax.atomic import atomic_write_json
+
+    config = make_config("ppo", "1d-static-sin", total_steps=128, **TINY)
+    old_umask = os.umask(0o022)
+    try:
+        _start_run(config, tmp_path, {"eval_episodes": 2, "no_eval": False})
+        records = [{"chunk": 0, "env_steps": 128, "iou": [0.1], "return": [1.0]}]
+        plot_curve(records, config.task, "title", tmp_path / "curve.png")
+        atomic_write_json(tmp_path / "eval.json", {})
+    finally:
+        os.umask(old_umask)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
+    assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}

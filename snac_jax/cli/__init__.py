@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from snac_jax import plugins
@@ -78,11 +79,28 @@ def join_processes_from(argv: list[str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one subcommand. Bad input (`ValueError`) and files that cannot be read or written
+    (`OSError`) end with one line, `snac CMD: error: ...`, and exit status 2; anything else is a
+    bug and keeps its traceback (as does every error with `SNAC_TRACEBACK=1`)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     use_cpu_devices_from(argv)
     join_processes_from(argv)
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as error:
+        if os.environ.get("SNAC_TRACEBACK"):
+            raise
+        command = " ".join(part for part in (args.command, getattr(args, "algorithm", None)) if part)
+        print(f"snac {command}: error: {_describe(error)}", file=sys.stderr)
+        return 2
+
+
+def _describe(error: BaseException) -> str:
+    """One line for the user: the message, and for an OSError without one its kind and file."""
+    if isinstance(error, OSError) and error.filename is not None and error.strerror:
+        return f"{error.strerror}: {error.filename}"
+    return str(error) or type(error).__name__
 
 
 if __name__ == "__main__":

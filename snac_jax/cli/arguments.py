@@ -25,6 +25,20 @@ def bounded_number(kind: type, minimum: float, strict: bool = False):
 
 positive_int = bounded_number(int, 1)
 
+MAX_SEED = 2**32 - 1  # as snac_jax.tasks.MAX_SEED (not imported: the task registry imports JAX)
+
+
+def seed(text: str) -> int:
+    """An argparse type: a seed in 0..2**32-1 (`jax.random.key` keeps 32 bits: larger seeds
+    would repeat smaller ones)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an int in 0..{MAX_SEED}, got {text!r}")
+    return value
+
 
 def task_id(text: str) -> str:
     from snac_jax.tasks import TASKS  # here, not at import: the task registry imports JAX

@@ -11,8 +11,8 @@ import sys
 import time
 from pathlib import Path
 
-from snac_jax.atomic import atomic_write_json
-from snac_jax.cli.arguments import add_devices_argument, positive_int
+from snac_jax.atomic import atomic_write_json, check_writable
+from snac_jax.cli.arguments import add_devices_argument, positive_int, seed
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_TASKS
 from snac_jax.policies import POLICIES
@@ -59,7 +59,7 @@ def add_parser(subparsers) -> None:
         help=f"episodes per design: static tasks (each 1D shape) and each dynamic test design "
         f"(default: the paper's {STATIC_EPISODES} static, {EPISODES_PER_TEST_DESIGN} per test design)",
     )
-    parser.add_argument("--seed", type=int, default=TUNING_EVAL_SEED,
+    parser.add_argument("--seed", type=seed, default=TUNING_EVAL_SEED,
                         help=f"evaluation key (default {TUNING_EVAL_SEED}, the tuning one; reported results use "
                              f"{REPORT_EVAL_SEED}, snac_jax.evaluation.REPORT_EVAL_SEED)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here (atomically)")
@@ -70,6 +70,12 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+def _environment_tasks(task: str) -> tuple[str, ...]:
+    from snac_jax.evaluation import environment_tasks
+
+    return tuple(t for column in (PAPER_TASKS if task == "all" else (task,)) for t in environment_tasks(column))
+
+
 def run(args: argparse.Namespace) -> int:
     from snac_jax.evaluation import evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_row
@@ -77,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
 
     sources = [args.policy, args.checkpoint, args.human]
     if sum(source is not None for source in sources) != 1:
-        raise SystemExit("snac eval: give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+        raise ValueError("give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+    if args.json is not None:
+        check_writable(args.json, "--json")  # before the evaluation, not after it
     if args.human is not None:
         from snac_jax.human.records import human_report
 
@@ -86,11 +94,17 @@ def run(args: argparse.Namespace) -> int:
     if args.checkpoint is not None:
         from snac_jax.plugins import checkpoint_loader
 
-        builder, run_task, method = checkpoint_loader()(args.checkpoint)
+        builder, run_task, method, *rest = checkpoint_loader()(args.checkpoint)
         args.task = args.task or run_task
+        others = [t for t in _environment_tasks(args.task) if t != run_task]
+        if others:
+            raise ValueError(f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
+                             f"{', '.join(others)} (leave out --task to evaluate it on its own)")
+        run_overrides = rest[0] if rest else {}
         policy_name = f"checkpoint {args.checkpoint}"
     else:
         builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy
+        run_overrides = {}
     paper = paper_row(load_paper_results(args.paper_results), method)
     args.task = args.task or "all"
     tasks = PAPER_TASKS if args.task == "all" else (args.task,)
@@ -98,10 +112,13 @@ def run(args: argparse.Namespace) -> int:
     if args.episodes is not None:
         episodes = {"static_episodes": args.episodes, "episodes_per_test_design": args.episodes}
 
+    if run_overrides:
+        print(f"with the run's training settings {run_overrides} (the protocol's numbers assume the task's own)",
+              file=sys.stderr)
     results = []
     start = time.perf_counter()
     for task in tasks:
-        result = evaluate_task(task, builder, seed=args.seed, num_devices=args.devices, **episodes)
+        result = evaluate_task(task, builder, seed=args.seed, num_devices=args.devices, **episodes, **run_overrides)
         results.append(result)
         print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
     total_s = time.perf_counter() - start

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from snac_jax.cli.arguments import positive_int, task_id
+from snac_jax.cli.arguments import positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
 DEFAULT_RECORD = "runs/human.jsonl"
@@ -21,7 +21,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--task", type=task_id, required=True, help=f"one of: {', '.join(TASKS)}")
     parser.add_argument("--mode", choices=("train", "eval"), default="train")
-    parser.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
+    parser.add_argument("--seed", type=seed, default=0, help="episode i uses seed + i")
     parser.add_argument("--record", default=DEFAULT_RECORD, metavar="FILE",
                         help=f"JSONL file the finished episodes are appended to (default {DEFAULT_RECORD})")
     parser.add_argument("--player", default=None, help="a name stored with each episode")
@@ -37,8 +37,28 @@ def run(args: argparse.Namespace) -> int:
     session = GameSession(
         args.task, mode=args.mode, seed=args.seed, max_steps=args.max_steps, record_path=args.record, player=args.player
     )
-    recorded = run_window(session, max_episodes=args.episodes)
+    try:
+        run_window(session, max_episodes=args.episodes)
+    finally:  # even when the window fails, no finished episode is lost
+        unsaved = len(session.unsaved)
+        fallback = _save_unsaved(session)
     for record in session.records:
         print(f"episode seed {record.seed}: {record.steps} steps, {record.bricks_used} bricks, IoU {record.iou:.3f}")
-    print(f"{recorded} episode(s) appended to {args.record}", file=sys.stderr if not recorded else sys.stdout)
+    saved = len(session.records) - unsaved
+    print(f"{saved} episode(s) appended to {args.record}", file=sys.stderr if not saved else sys.stdout)
+    if unsaved:
+        print(f"snac play: error: {unsaved} episode(s) could not be appended to {args.record} "
+              f"({session.save_error}); they were written to {fallback}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _save_unsaved(session) -> str | None:
+    """Write the episodes the record file could not take elsewhere; as a last resort print them
+    (one JSON line each) so that they can be pasted into a record file."""
+    try:
+        return str(session.save_unsaved())
+    except OSError as error:
+        for record in session.unsaved:
+            print(record.to_json())
+        return f"standard output above (the temporary folder failed too: {error})"

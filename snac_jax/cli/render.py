@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from snac_jax.cli.arguments import positive_int, task_id
+from snac_jax.cli.arguments import bounded_number, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
 def _policy_names() -> list[str]:
@@ -32,12 +32,12 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--checkpoint", default=None, metavar="DIR", help="a trained agent's checkpoint directory")
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the reset, the strides and the policy")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the reset, the strides and the policy")
     parser.add_argument("--max-steps", type=positive_int, default=None, help="override the task's step limit")
     parser.add_argument("--every", type=positive_int, default=1, help="draw every k-th step (default 1: all)")
     parser.add_argument("--fps", type=positive_int, default=20)
     parser.add_argument("--hold", type=float, default=1.5, help="seconds the final frame is held")
-    parser.add_argument("--cell", type=positive_int, default=None, help="pixels per cell (default: per dimension)")
+    parser.add_argument("--cell", type=bounded_number(int, 4), default=None, help="pixels per cell, >= 4 (default: per dimension)")
     parser.set_defaults(func=run)
 
 
@@ -49,41 +49,59 @@ def frame_indices(length: int, every: int) -> list[int]:
     return indices
 
 
+def frame_bytes(env, params, cell: int | None) -> int:
+    """An upper bound of one frame's bytes at `cell` pixels per cell: a frame drawn at the
+    smallest cell, scaled (both sides grow in proportion to the cell; the caption does not)."""
+    import jax
+
+    from snac_jax.rendering import render
+    from snac_jax.rendering.world import DEFAULT_CELL
+
+    cell = DEFAULT_CELL[env.config.dim] if cell is None else cell
+    small = render(env, env.reset(jax.random.key(0), params)[1], params, cell=4, caption=["", ""])
+    return int(small.shape[0] * small.shape[1] * 3 * (cell / 4) ** 2)
+
+
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from snac_jax import make, metrics
+    from snac_jax import make, memory, metrics
+    from snac_jax.atomic import check_writable
     from snac_jax.policies import build_policy
     from snac_jax.recording import record_episode
     from snac_jax.rendering import render, save_gif
 
     if not str(args.out).lower().endswith(".gif"):
-        print(f"snac render: error: --out must name a .gif file, got {args.out!r}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--out must name a .gif file, got {args.out!r}")
     if args.hold < 0:
-        print(f"snac render: error: --hold must be >= 0 seconds, got {args.hold}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--hold must be >= 0 seconds, got {args.hold}")
     if args.policy is not None and args.checkpoint is not None:
-        print("snac render: error: give --policy NAME or --checkpoint DIR, not both", file=sys.stderr)
-        return 2
+        raise ValueError("give --policy NAME or --checkpoint DIR, not both")
+    check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
+    env, params = make(args.task, **overrides)
+    one_frame = frame_bytes(env, params, args.cell)
+    memory.require(f"one frame at --cell {args.cell}", one_frame, "lower --cell")
     try:
-        env, params = make(args.task, **overrides)
         if args.checkpoint is None:
             policy = build_policy(name, env)
         else:
             from snac_jax.plugins import checkpoint_loader
 
-            builder, _, _ = checkpoint_loader()(args.checkpoint)
+            builder, run_task, *_ = checkpoint_loader()(args.checkpoint)
+            if run_task != args.task:
+                raise ValueError(f"it was trained on {run_task!r}, not {args.task!r}")
             policy = builder(env)
     except (ValueError, FileNotFoundError) as error:
-        print(f"snac render: error: policy {name!r}: {error}", file=sys.stderr)
-        return 2
+        raise ValueError(f"policy {name!r}: {error}") from error
 
     start = time.perf_counter()
     trajectory = record_episode(env, params, policy, jax.random.key(args.seed))
     episode_s = time.perf_counter() - start
+    num_frames = len(frame_indices(trajectory.length, args.every))
+    # the frames, and the GIF encoder's copy of them
+    memory.require(f"{num_frames} frames at --cell {args.cell}", 2 * num_frames * one_frame, "lower --cell or raise --every")
 
     start = time.perf_counter()
     frames = []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from snac_jax.cli.arguments import add_devices_argument, positive_int, task_id
+from snac_jax.cli.arguments import add_devices_argument, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
 
@@ -14,7 +14,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--task", type=task_id, default="2d-static-dense", help=f"one of: {', '.join(TASKS)}")
     parser.add_argument("--num-envs", type=positive_int, default=4096)
     parser.add_argument("--steps", type=positive_int, default=1000)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed, default=0)
     add_devices_argument(parser)
     parser.set_defaults(func=run)
 

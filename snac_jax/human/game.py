@@ -13,17 +13,21 @@ evaluation mode hides rewards. The IoU appears when the episode ends.
 from __future__ import annotations
 
 import datetime
+import os
+import sys
+import tempfile
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from snac_jax.atomic import check_writable
 from snac_jax.config import DOWN, LEFT, RIGHT, UP, EnvConfig
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.human.records import MODES, EpisodeRecord, append_record
 from snac_jax.rendering import CAPTION_BG, CAPTION_FG, draw_text, render_observation
-from snac_jax.tasks import make, task_spec
+from snac_jax.tasks import MAX_SEED, make, task_spec
 
 _DIRECTION_WORDS = {LEFT: "left", RIGHT: "right", DOWN: "down", UP: "up"}
 _MOVE_KEYS = _DIRECTION_WORDS  # pygame names the arrow keys by their direction
@@ -68,10 +72,13 @@ def key_legend(config: EnvConfig) -> str:
 class GameSession:
     """A sequence of episodes of one task played through key presses.
 
-    Episode `i` uses seed `seed + i` (reset key `jax.random.key(seed + i)`; the stride of step
+    Episode `i` uses seed `seed + i` (modulo 2**32; reset key `jax.random.key(seed + i)`; the stride of step
     t comes from `fold_in` of that key with t + 1). In evaluation mode a dynamic task cycles
     through its ten test designs (episode i plays test design i mod 10), as the protocol does.
-    Each finished episode is appended to `record_path` (if given) as an `EpisodeRecord`.
+    Each finished episode is appended to `record_path` (if given) as an `EpisodeRecord`. The path
+    is checked when the session starts; an episode whose append fails later (disk full,
+    permissions changed) is kept in `unsaved` and never dropped: `save_unsaved` writes it
+    elsewhere.
     """
 
     def __init__(
@@ -87,9 +94,13 @@ class GameSession:
     ):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
+            raise ValueError(f"seed must be an int in 0..{MAX_SEED}, got {seed!r}")
         self.task, self.mode, self.seed = task, mode, seed
         self.player = player
-        self.record_path = None if record_path is None else Path(record_path)
+        self.record_path = None if record_path is None else check_writable(record_path, "record file")
+        self.unsaved: list[EpisodeRecord] = []
+        self.save_error: str | None = None
         self._clock = clock
         self._overrides = {} if max_steps is None else {"max_steps": max_steps}
         # A dynamic task's training design bank takes seconds to draw: build it on first use only.
@@ -119,7 +130,7 @@ class GameSession:
             self.params = self._train_params
         else:
             _, self.params = make(self.task, test_design=self.test_design, **self._overrides)
-        self.episode_seed = self.seed + self.episode_index
+        self.episode_seed = (self.seed + self.episode_index) % (MAX_SEED + 1)
         key = jax.random.key(self.episode_seed)
         self._key_reset, self._key_steps = jax.random.split(key)
         self.obs, self.state = self.env.reset(self._key_reset, self.params)
@@ -178,7 +189,24 @@ class GameSession:
         )
         self.records.append(record)
         if self.record_path is not None:
-            append_record(self.record_path, record)
+            try:
+                append_record(self.record_path, record)
+            except OSError as error:
+                self.unsaved.append(record)
+                self.save_error = f"could not append to {self.record_path}: {error}"
+                print(f"snac play: {self.save_error}; the episode is kept and saved elsewhere at exit", file=sys.stderr)
+
+    def save_unsaved(self, folder: str | Path | None = None) -> Path | None:
+        """Append the episodes `record_path` could not take to a new file in `folder` (default:
+        the temporary folder); its path, or None when nothing was unsaved."""
+        if not self.unsaved:
+            return None
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        path = Path(folder or tempfile.gettempdir()) / f"snac-play-unsaved-{stamp}-{os.getpid()}.jsonl"
+        for record in self.unsaved:
+            append_record(path, record)
+        self.unsaved = []
+        return path
 
     # --- the screen ----------------------------------------------------------------------------
 
@@ -194,7 +222,8 @@ class GameSession:
         lines.append(key_legend(self.config))
         if self.over:
             why = "out of bricks or stuck" if self.terminated else "step limit"
-            lines.append(f"Episode over ({why}): IoU {self.final_iou:.3f}")
+            unsaved = "   NOT SAVED (see the terminal)" if self.records[-1] in self.unsaved else ""
+            lines.append(f"Episode over ({why}): IoU {self.final_iou:.3f}{unsaved}")
             lines.append("enter: next episode   esc: quit")
         return lines
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Iterable
@@ -17,8 +18,10 @@ from typing import Any, Iterable
 import numpy as np
 
 from snac_jax.atomic import atomic_write
+from snac_jax.config import PLAN_SIZE_1D, PLAN_SIZE_2D
+from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.paper import paper_column
-from snac_jax.tasks import TASKS
+from snac_jax.tasks import MAX_INT32, MAX_SEED, TASKS, task_spec
 
 RECORD_VERSION = 1
 MODES = ("train", "eval")
@@ -62,16 +65,53 @@ class EpisodeRecord:
         return record
 
     def validate(self) -> None:
+        """What can be checked without the environment: types, ranges, lengths, the design's
+        shape, the test design's presence (`verify_record` replays the rest)."""
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; allowed: {', '.join(TASKS)}")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        _require_int("seed", self.seed, 0, MAX_SEED)
+        _require_int("max_steps", self.max_steps, 1, MAX_INT32)
+        _require_int("bricks_used", self.bricks_used, 0, MAX_INT32)
+        if not isinstance(self.actions, list) or not isinstance(self.strides, list):
+            raise ValueError("actions and strides must be lists")
         if len(self.actions) != len(self.strides) or not self.actions:
             raise ValueError("a record needs one stride per action and at least one action")
-        if any(s not in (1, 2, 3) for s in self.strides):
+        if len(self.actions) > self.max_steps:
+            raise ValueError(f"{len(self.actions)} actions, more than the step limit max_steps={self.max_steps}")
+        if any(not _is_int(a) or a < 0 for a in self.actions):
+            raise ValueError("actions must be ints >= 0")
+        if any(not _is_int(s) or s not in (1, 2, 3) for s in self.strides):
             raise ValueError("strides must be 1, 2 or 3")
-        if not 0.0 <= self.iou <= 1.0:
-            raise ValueError(f"iou must be in [0, 1], got {self.iou}")
+        if not isinstance(self.iou, (int, float)) or not 0.0 <= self.iou <= 1.0:
+            raise ValueError(f"iou must be in [0, 1], got {self.iou!r}")
+        if not isinstance(self.total_reward, (int, float)) or not math.isfinite(self.total_reward):
+            raise ValueError(f"total_reward must be a number, got {self.total_reward!r}")
+        if not isinstance(self.terminated, bool):
+            raise ValueError(f"terminated must be true or false, got {self.terminated!r}")
+        spec = task_spec(self.task)
+        plays_test_designs = spec.dynamic and self.mode == "eval"
+        if plays_test_designs:
+            _require_int("test_design", self.test_design, 0, NUM_TEST_DESIGNS - 1)
+        elif self.test_design is not None:
+            raise ValueError(f"test_design must be null: only dynamic tasks in eval mode play test designs, got {self.test_design!r}")
+        shape = (1, PLAN_SIZE_1D) if spec.dim == 1 else (PLAN_SIZE_2D, PLAN_SIZE_2D)
+        try:
+            design = np.asarray(self.design)
+        except ValueError:
+            design = np.zeros(0)
+        if design.shape != shape or not np.issubdtype(design.dtype, np.integer):
+            raise ValueError(f"design must be {shape[0]} x {shape[1]} ints for {self.task}, got shape {design.shape}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _require_int(name: str, value: Any, low: int, high: int) -> None:
+    if not _is_int(value) or not low <= value <= high:
+        raise ValueError(f"{name} must be an int in {low}..{high}, got {value!r}")
 
 
 def append_record(path: str | os.PathLike, record: EpisodeRecord) -> Path:
@@ -106,13 +146,8 @@ def load_records(path: str | os.PathLike) -> list[EpisodeRecord]:
     return records
 
 
-def replay_iou(record: EpisodeRecord) -> float:
-    """The final IoU of replaying the record's actions and strides on its design.
-
-    Equal to `record.iou` for every honest record: `summarize_records` checks this. (The game
-    plays without landmarks, so the reset depends on the design alone.)
-    """
-    from snac_jax.replay import replay
+def _record_env(record: EpisodeRecord):
+    """The environment the game played the record in, with the record's design as its only one."""
     from snac_jax.tasks import make, make_params
 
     env, params = make(record.task, max_steps=record.max_steps)
@@ -120,6 +155,73 @@ def replay_iou(record: EpisodeRecord) -> float:
     params = params.replace(
         designs=fresh.designs, design_max_bricks=fresh.design_max_bricks, design_volume=fresh.design_volume
     )
+    return env, params
+
+
+def expected_design(record: EpisodeRecord) -> np.ndarray:
+    """The design the game gives the record's episode: the static task's, the test design played,
+    or (dynamic tasks in training mode) the one the reset with the record's seed draws from the
+    task's training designs (the game's reset key is the first half of `key(seed)`)."""
+    import jax
+
+    from snac_jax.designs import fixed_design
+    from snac_jax.tasks import make
+
+    spec = task_spec(record.task)
+    if not spec.dynamic:
+        return fixed_design(spec.design)
+    if record.test_design is not None:
+        return fixed_design(f"{record.task}-test{record.test_design}")
+    env, params = make(record.task)
+    key_reset, _ = jax.random.split(jax.random.key(record.seed))
+    return np.asarray(env.reset(key_reset, params)[1].design)
+
+
+def verify_record(record: EpisodeRecord, tolerance: float = 1e-6) -> None:
+    """Replay the record and compare: `ValueError` naming the first claim the replay contradicts.
+
+    Checked: the design is the one the game gives this episode (`expected_design`), the actions
+    are the task's, the episode ends exactly at the last action (not before: later actions would
+    be ignored; not after: it would be unfinished), and the claimed IoU, bricks used, total
+    reward and termination are the replay's.
+    """
+    from snac_jax.replay import replay
+
+    record.validate()
+    who = f"record of {record.task} seed {record.seed}"
+    if not np.array_equal(np.asarray(record.design), expected_design(record)):
+        which = "its test design" if record.test_design is not None else "the design the game gives this episode"
+        raise ValueError(f"{who}: its design is not {which}")
+    env, params = _record_env(record)
+    try:
+        out = replay(env, params, record.actions, record.strides)
+    except ValueError as error:
+        raise ValueError(f"{who}: {error}") from error
+    done = out["terminated"] | out["truncated"]
+    ended = np.flatnonzero(done)
+    if ended.size and ended[0] < len(record.actions) - 1:
+        raise ValueError(f"{who}: the episode ends at step {ended[0] + 1}, but the record goes on to {len(record.actions)} actions")
+    if not done[-1]:
+        raise ValueError(f"{who}: the episode has not ended after its {len(record.actions)} actions")
+    claims = {
+        "IoU": (record.iou, out["final_iou"]),
+        "bricks used": (record.bricks_used, out["bricks_used"]),
+        "total reward": (record.total_reward, float(np.sum(out["rewards"], dtype=np.float64))),
+        "terminated": (record.terminated, bool(out["terminated"][-1])),
+    }
+    for name, (claimed, replayed) in claims.items():
+        if abs(float(claimed) - float(replayed)) > tolerance:
+            raise ValueError(f"{who} claims {name} {claimed}, its replay gives {replayed}")
+
+
+def replay_iou(record: EpisodeRecord) -> float:
+    """The final IoU of replaying the record's actions and strides on its design.
+
+    Equal to `record.iou` for every honest record (`verify_record` checks it, and the rest).
+    """
+    from snac_jax.replay import replay
+
+    env, params = _record_env(record)
     return replay(env, params, record.actions, record.strides)["final_iou"]
 
 
@@ -128,7 +230,8 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
 
     Strata are as in the protocol: the shape (1d-static), the test design (dynamic tasks in eval
     mode), or the task's training designs. `mode` keeps only one mode's episodes; `verify`
-    replays every record and raises `ValueError` when its IoU differs from the recorded one.
+    replays every record and raises `ValueError` when it contradicts its record
+    (`verify_record`).
     """
     from snac_jax.evaluation import TaskResult
 
@@ -137,9 +240,7 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
     chosen = [r for r in records if mode is None or r.mode == mode]
     if verify:
         for r in chosen:
-            replayed = replay_iou(r)
-            if abs(replayed - r.iou) > 1e-6:
-                raise ValueError(f"record of {r.task} seed {r.seed} claims IoU {r.iou}, its replay gives {replayed}")
+            verify_record(r)
     groups: dict[str, list[EpisodeRecord]] = {}
     for r in chosen:
         groups.setdefault(paper_column(r.task), []).append(r)

@@ -1,0 +1,242 @@
+"""Bad and edge inputs against the `snac` command line and the Python API, each judged against
+what it should do (issue 18's re-measurement):
+
+    python bench/robustness.py --out bench/results          # ~10 min on a busy 2-core CPU
+
+Every case is an input a new, careless or hostile user might give, with the outcome it should
+have: refused with a message naming the problem, or done right (a check of the result). Each is
+judged
+
+- `good`: the right outcome, delivered well (a refusal is one line, `snac CMD: error: ...` or
+  argparse's usage error, exit status 2, or a `ValueError` from the API);
+- `poor`: the right message, delivered poorly (a traceback, another exit status, another
+  exception type);
+- `bad`: silently wrong: accepted when it should be refused, or a wrong or lost result.
+
+Writes only under `--out`: `robustness.json` (every case: command, exit status, the output's last
+lines, verdict) and `robustness.md` (the table). Scratch runs live in a temporary folder there,
+removed at the end. The cases are in `bench/robustness_cases.py` (command line) and
+`bench/robustness_api.py` (Python API).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.dont_write_bytecode = True  # nothing but the results is written
+
+from bench.robustness_cases import TINY, cli_cases, setup  # noqa: E402
+
+VERDICTS = ("good", "poor", "bad")
+
+
+def snac(work: Path, *argv: str, timeout: float = 600) -> dict:
+    """`python -m snac_jax.cli ARGV` in `work`: exit status, stdout, stderr, seconds."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy",
+           "PYTHONPATH": str(ROOT)}
+    env.pop("SNAC_TRACEBACK", None)
+    start = time.perf_counter()
+    try:
+        done = subprocess.run([sys.executable, "-m", "snac_jax.cli", *argv], cwd=work, env=env, capture_output=True,
+                              text=True, timeout=timeout)
+        code, out, err = done.returncode, done.stdout, done.stderr
+    except subprocess.TimeoutExpired as expired:
+        code, out, err = "timeout", expired.stdout or "", expired.stderr or ""
+        out, err = (x.decode() if isinstance(x, bytes) else x for x in (out, err))
+    return {"code": code, "out": out, "err": err, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def judge_refusal(result: dict, phrase: str) -> tuple[str, str]:
+    """A refusal: `phrase` (in any case) in one clean error line with status 2 is good; the
+    phrase with a traceback or another status is poor; no phrase (accepted, or another error)
+    is bad."""
+    text = result["err"] + result["out"]
+    lines = [line for line in result["err"].strip().splitlines() if line.strip()]
+    last = lines[-1] if lines else ""
+    if phrase.lower() not in text.lower():
+        return "bad", f"exit {result['code']}: {last or result['out'].strip()[-200:]}"
+    clean = result["code"] == 2 and "Traceback" not in text and ("error:" in last)
+    return ("good" if clean else "poor"), f"exit {result['code']}: {last}"
+
+
+def run_cli_case(work: Path, case: dict) -> dict:
+    holder = None
+    if "hold_lock" in case:
+        holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); "
+                                   "fcntl.flock(f, fcntl.LOCK_EX); print('locked', flush=True); time.sleep(600)",
+                                   str(case["hold_lock"] / ".lock")], stdout=subprocess.PIPE, text=True)
+        holder.stdout.readline()
+    try:
+        result = snac(work, *case["argv"], timeout=case.get("timeout", 600))
+    finally:
+        if holder is not None:
+            holder.kill()
+            holder.wait()
+    if "refuse" in case:
+        verdict, note = judge_refusal(result, case["refuse"])
+        if verdict == "good" and "also" in case and not case["also"]():
+            verdict, note = "bad", "refused, but the files were changed"
+        if "banner" in case and case["banner"] not in result["err"]:
+            verdict, note = "bad", f"banner wrong: {result['err'].splitlines()[:1]}"
+    else:
+        ok = result["code"] == 0 and case.get("phrase_ok", "") in result["err"] + result["out"]
+        try:
+            ok = ok and case["check"]()
+        except (OSError, ValueError, KeyError) as error:
+            ok, result["err"] = False, result["err"] + f"\ncheck failed: {error}"
+        lines = [line for line in (result["err"] + result["out"]).strip().splitlines() if line.strip()]
+        verdict = "good" if ok else ("poor" if result["code"] == 0 else "bad")
+        note = f"exit {result['code']}: {lines[-1] if lines else ''}"
+    return {"what": case["what"], "input": "snac " + " ".join(case["argv"]), "verdict": verdict, "note": note[:300],
+            "seconds": result["seconds"]}
+
+
+def api_cases(work: Path, skip_memory: bool) -> list[dict]:
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "robustness_api.py"), str(work),
+                           "skip-memory" if skip_memory else "all"], capture_output=True, text=True, env=env, cwd=work,
+                          timeout=1200)
+    if done.returncode:
+        raise RuntimeError(done.stderr[-3000:])
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def other_cases(work: Path) -> list[dict]:
+    """The run's files, the golden-trace tests, the throughput bench, and a SIGKILL."""
+    results = []
+    modes = {name: oct((work / "run" / name).stat().st_mode & 0o777) for name in
+             ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json") if (work / "run" / name).exists()}
+    results.append({"what": "file modes of a run (umask 022)", "input": "stat run/*", "note": json.dumps(modes),
+                    "verdict": "good" if set(modes.values()) == {"0o644"} else "bad"})
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "SNAC_GOLDEN_TRACES": str(work / "empty_traces.json")}
+    tests = ["tests/test_conformance.py::test_replay_matches_golden_trace",
+             "tests/test_numpy_engine.py::test_numpy_engine_replays_every_golden_trace"]
+    done = subprocess.run([sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", "-q", *tests], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=600)
+    summary = done.stdout.strip().splitlines()[-1]
+    results.append({"what": "SNAC_GOLDEN_TRACES pointing at an empty file", "input": "pytest " + " ".join(tests),
+                    "note": summary, "verdict": "good" if done.returncode == 1 and "passed" not in summary else "bad"})
+
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "throughput.py"), "--tasks", "1d-static-sin", "--num-envs",
+                           "1", "--steps", "10", "--numpy-steps", "100", "--no-e2e", "--json", str(work / "rows.json")],
+                          capture_output=True, text=True, cwd=work, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    results.append({"what": "bench/throughput.py --json PATH (without --out)", "input": "python bench/throughput.py --json PATH",
+                    "note": ((done.stderr + done.stdout).strip().splitlines() or [""])[-1][:200],
+                    "verdict": "good" if done.returncode == 2 and not (work / "rows.json").exists() else "bad"})
+
+    results.append(sigkill_case(work))
+    return results
+
+
+def sigkill_case(work: Path) -> dict:
+    """`snac train` SIGKILLed once its second chunk is logged, then resumed: its metrics equal
+    those of a run never interrupted."""
+    argv = ["train", "ppo", "--task", "1d-static-gauss", *TINY, "--total-steps", "1024", "--chunks", "8", "--no-eval"]
+    snac(work, *argv, "--out", "straight")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    child = subprocess.Popen([sys.executable, "-m", "snac_jax.cli", *argv, "--out", "killed"], cwd=work, env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    metrics = work / "killed" / "metrics.jsonl"
+    while child.poll() is None and not (metrics.is_file() and metrics.read_text().count("\n") >= 2):
+        time.sleep(0.02)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    resumed = snac(work, "train", "ppo", "--resume", "killed", "--no-progress")
+
+    def lines(name):
+        return [(r["chunk"], r["iou"], r["return"]) for r in
+                (json.loads(line) for line in (work / name / "metrics.jsonl").read_text().splitlines() if line)]
+
+    same = resumed["code"] == 0 and lines("killed") == lines("straight")
+    return {"what": "SIGKILL after the second chunk is logged, then --resume", "input": "snac " + " ".join(argv),
+            "verdict": "good" if same else "bad",
+            "note": f"killed with exit {child.returncode}; resumed metrics equal the uninterrupted run's: {same}"}
+
+
+def markdown(results: list[dict], seconds: float, before: dict | None = None) -> str:
+    def count(rows):
+        return ", ".join(f"{sum(r['verdict'] == v for r in rows)} {v}" for v in (*VERDICTS, "not run")
+                         if v != "not run" or any(r["verdict"] == v for r in rows))
+
+    lines = [
+        "# Robustness: bad and edge inputs, re-measured",
+        "",
+        f"`python bench/robustness.py --out bench/results` ({len(results)} inputs, {seconds / 60:.0f} min). Each input is "
+        "judged against what it should do: **good** = the right outcome, delivered well (a refusal is one line "
+        "`snac CMD: error: ...` or argparse's usage error with exit status 2, or a `ValueError` from the API); "
+        "**poor** = the right message, delivered poorly (a traceback, another status or exception type); "
+        "**bad** = silently wrong (accepted when it should be refused, or a wrong or lost result). "
+        "Paths are relative to a scratch folder holding a tiny trained run `run` (`--max-steps 40 --eval-episodes 2`) "
+        "and damaged copies of it.",
+        "",
+        f"**Now: {count(results)}.**" + ("" if before is None else f" Before the fixes: {count(list(before.values()))}."),
+        "",
+    ]
+    if before is None:
+        lines += ["| # | input | command | verdict | what happened |", "|---:|---|---|---|---|"]
+    else:
+        lines += ["| # | input | command | before | what happened before | now | what happens now |",
+                  "|---:|---|---|---|---|---|---|"]
+    for i, r in enumerate(results, start=1):
+        note = r["note"].replace("|", "\\|").replace("\n", " ")
+        command = r["input"].replace("|", "\\|")
+        old = (before or {}).get(r["what"], {"verdict": "—", "note": ""})
+        old_note = old["note"][:160].replace("|", "\\|").replace("\n", " ")
+        was = "" if before is None else f" {old['verdict']} | {old_note} |"
+        lines.append(f"| {i} | {r['what']} | `{command}` |{was} {r['verdict']} | {note} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="directory for robustness.json and robustness.md")
+    parser.add_argument("--only", default=None, help="run only the CLI cases whose description contains this")
+    parser.add_argument("--skip-memory", action="store_true",
+                        help="leave out the oversized inputs (for code without the memory checks: they would exhaust memory)")
+    parser.add_argument("--before", type=Path, default=None, metavar="JSON",
+                        help="robustness.json of the same cases on the code before the fixes: shown as a column")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(dir=args.out, prefix=".robustness-") as scratch:
+        work = Path(scratch)
+        made = setup(work, snac)
+        if made["run"]["code"] != 0:
+            raise RuntimeError(made["run"]["err"][-3000:])
+        results = []
+        for case in cli_cases(work):
+            if args.only and args.only not in case["what"]:
+                continue
+            if case.get("memory") and args.skip_memory:
+                results.append({"what": case["what"], "input": "snac " + " ".join(case["argv"]), "verdict": "not run",
+                                "note": "memory case skipped (--skip-memory)", "seconds": 0})
+                continue
+            results.append(run_cli_case(work, case))
+            print(f"{results[-1]['verdict']:5s} {results[-1]['what']} ({results[-1]['seconds']} s)", flush=True)
+        if not args.only:
+            results += api_cases(work, args.skip_memory)
+            results += other_cases(work)
+    seconds = time.perf_counter() - start
+    from snac_jax.atomic import atomic_write_json, atomic_write_text
+
+    atomic_write_json(args.out / "robustness.json", results)
+    before = None if args.before is None else {r["what"]: r for r in json.loads(args.before.read_text())}
+    atomic_write_text(args.out / "robustness.md", markdown(results, seconds, before))
+    counts = {v: sum(r["verdict"] == v for r in results) for v in VERDICTS}
+    print(f"{counts}; wrote {args.out / 'robustness.md'}")
+    return 0 if not counts["bad"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

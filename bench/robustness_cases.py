@@ -1,0 +1,188 @@
+"""The command-line cases of `bench/robustness.py` and the scratch folder they run in: a tiny
+trained run, damaged copies of it, doctored human records, files in the way."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+SHORT = ["--total-steps", "256", "--num-envs", "16", "--rollout-steps", "8", "--no-progress", "--eval-episodes", "2"]
+TINY = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
+        "--hidden-size", "8", "--rnn-size", "8", "--no-progress", "--devices", "1"]
+
+
+def setup(work: Path, snac) -> dict:
+    """The run, records and files the cases use (`snac(work, *argv)` runs the command)."""
+    made = {}
+    made["run"] = snac(work, "train", "ppo", "--task", "1d-static-sin", *TINY, "--total-steps", "256", "--chunks", "2",
+                       "--max-steps", "40", "--eval-episodes", "2", "--out", "run")
+    run = work / "run"
+    for name in ("finished", "torn", "damaged", "damaged-eval", "edited"):
+        shutil.copytree(run, work / name)
+    shutil.rmtree(work / "finished" / "checkpoints")
+    with (work / "torn" / "metrics.jsonl").open("a") as f:
+        f.write('{"chunk": 2, "wa')
+    for name in ("damaged", "damaged-eval"):
+        cut = work / name / "checkpoints" / "1" / "default" / "_METADATA"
+        cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    edited = json.loads((work / "edited" / "config.json").read_text())
+    (work / "edited" / "config.json").write_text(json.dumps({**edited, "hidden_size": 16}))
+    (work / "corrupt").mkdir()
+    (work / "corrupt" / "config.json").write_text('{"algorithm": "ppo", ')
+    (work / "mine").mkdir()
+    (work / "mine" / "config.json").write_text('{"mine": true}\n')
+    (work / "locked").mkdir()
+    (work / "file").write_text("a file, not a folder\n")
+    (work / "bad_paper.json").write_text("{")
+    (work / "empty_traces.json").write_text("[]")
+    human_records(work)
+    return made
+
+
+def human_records(work: Path) -> None:
+    """An honest record from the game, and doctored copies of it, one file each."""
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    import numpy as np
+
+    from snac_jax.human.game import GameSession
+    from snac_jax.human.records import EpisodeRecord
+
+    session = GameSession("2d-static-sparse", "eval", seed=3, max_steps=3)
+    for key in ("space", "right", "space"):
+        session.press(key)
+    honest = session.records[0]
+    one_brick = np.zeros((20, 20), int)
+    one_brick[0, 0] = 1
+    doctored = {
+        "honest": {},
+        "action-99": {"actions": [99, *honest.actions[1:]]},
+        "too-many-actions": {"actions": honest.actions + [4, 4], "strides": honest.strides + [1, 1]},
+        "design-shape": {"design": [[1]]},
+        "one-brick-design": {"design": one_brick.tolist(), "iou": 1.0, "actions": [4], "strides": [1], "max_steps": 1,
+                             "total_reward": 5.0, "bricks_used": 1},
+        "bricks": {"bricks_used": honest.bricks_used + 3},
+        "reward": {"total_reward": honest.total_reward + 50},
+        "terminated": {"terminated": not honest.terminated},
+    }
+    for name, changes in doctored.items():  # written as they are (append_record would refuse most of them)
+        (work / f"human-{name}.jsonl").write_text(EpisodeRecord(**{**vars(honest), **changes}).to_json() + "\n")
+    text = (work / "human-honest.jsonl").read_text()
+    (work / "human-torn.jsonl").write_text(text + text[: len(text) // 2])
+
+
+def cli_cases(work: Path) -> list[dict]:
+    """(what, argv, phrase of the refusal) or (what, argv, check of a success) per case."""
+    def file_unchanged(path: Path):
+        before = path.read_bytes()
+        return lambda: path.read_bytes() == before
+
+    def eval_json(name):
+        return json.loads((work / name / "eval.json").read_text())["1d-static-sin"]
+
+    def metrics_chunks(name):
+        return [json.loads(line)["chunk"] for line in (work / name / "metrics.jsonl").read_text().splitlines() if line]
+
+    return [
+        # run directories
+        dict(what="train --out DIR holding a finished run without checkpoints/", argv=["train", "ppo", *SHORT, "--out", "finished"],
+             refuse="is not empty", also=file_unchanged(work / "finished" / "metrics.jsonl")),
+        dict(what="train --out DIR holding an unrelated config.json", argv=["train", "ppo", *SHORT, "--out", "mine"],
+             refuse="is not empty", also=file_unchanged(work / "mine" / "config.json")),
+        dict(what="train --out DIR while another process holds DIR", argv=["train", "ppo", *SHORT, "--out", "locked"],
+             refuse="is in use by", hold_lock=work / "locked"),
+        dict(what="train --out FILE/run (parent is a file)", argv=["train", "ppo", *SHORT, "--out", "file/run"],
+             refuse="not a directory"),
+        dict(what="train --resume RUN --total-steps 512 (changing the run)", argv=["train", "ppo", "--resume", "run",
+             "--total-steps", "512"], refuse="cannot change it"),
+        dict(what="train dqn --resume RUN (a ppo run)", argv=["train", "dqn", "--resume", "run"], refuse="holds a ppo run"),
+        dict(what="train --resume RUN keeps --eval-episodes 2 and --max-steps 40", argv=["train", "ppo", "--resume", "run"],
+             check=lambda: eval_json("run")["episodes"] == 2 and eval_json("run")["mean_length"] <= 40
+             and metrics_chunks("run") == [0, 1]),
+        dict(what="train --resume RUN whose metrics.jsonl ends in a torn line", argv=["train", "ppo", "--resume", "torn"],
+             check=lambda: metrics_chunks("torn") == [0, 1]),
+        dict(what="train --resume RUN whose newest checkpoint is truncated", argv=["train", "ppo", "--resume", "damaged"],
+             check=lambda: metrics_chunks("damaged") == [0, 1] and (work / "damaged" / "checkpoints" / "1").is_dir(),
+             phrase_ok="resuming from an earlier checkpoint"),
+        dict(what="eval --checkpoint RUN whose newest checkpoint is truncated", argv=["eval", "--checkpoint", "damaged-eval"],
+             refuse="is intact: `snac train ppo --resume"),
+        dict(what="train --resume RUN with an edited config.json (hidden_size)", argv=["train", "ppo", "--resume", "edited"],
+             refuse="does not hold the state its config.json describes"),
+        dict(what="train --resume DIR with a corrupt config.json", argv=["train", "ppo", "--resume", "corrupt"],
+             refuse="corrupt/config.json is not valid JSON"),
+        dict(what="train --resume RUN whose checkpoints/ is gone", argv=["train", "ppo", "--resume", "finished"],
+             refuse="records 2 chunk(s) but there is no checkpoint"),
+        dict(what="train --total-steps 1 (banner) with --eval-episodes 10**12", argv=["train", "ppo", *TINY, "--total-steps", "1",
+             "--eval-episodes", "1000000000000", "--out", "b1"], refuse="episodes at once needs about",
+             also=lambda: True, banner="128 env steps (total_steps 1 rounded"),
+        dict(what="train --num-envs 1000000000", argv=["train", "ppo", "--num-envs", "1000000000", "--out", "big"],
+             refuse="1,000,000,000 worlds needs about", memory=True),
+        dict(what="train --total-steps 10**20", argv=["train", "ppo", "--total-steps", str(10**20), "--out", "long"],
+             refuse="updates are counted in int32"),
+        dict(what="train --seed 4294967296", argv=["train", "ppo", "--seed", "4294967296"], refuse="seed: must be an int in"),
+        dict(what="train --task 4d-static", argv=["train", "ppo", "--task", "4d-static"], refuse="unknown task"),
+        # human records
+        *[dict(what=f"eval --human: {what}", argv=["eval", "--human", f"human-{name}.jsonl"], refuse=phrase)
+          for name, what, phrase in [
+              ("action-99", "an action out of range (99)", "actions must be in 0..4, got 99"),
+              ("too-many-actions", "more actions than the step limit", "more than the step limit"),
+              ("design-shape", "a 1x1 design on a 20x20 task", "design must be 20 x 20"),
+              ("one-brick-design", "a one-brick design on a 20x20 task claiming IoU 1", "its design is not"),
+              ("bricks", "more bricks claimed than used", "claims bricks used"),
+              ("reward", "a larger reward claimed", "claims total reward"),
+              ("terminated", "the termination flag flipped", "claims terminated"),
+              ("torn", "a file whose last line is cut", "not a valid human record"),
+              ("missing", "a file that does not exist", "no human record file"),
+          ]],
+        dict(what="eval --human: an honest record", argv=["eval", "--human", "human-honest.jsonl"],
+             check=lambda: True, phrase_ok="| 2d-static-sparse | 1 |"),
+        # play
+        dict(what="play --record DIR", argv=["play", "--task", "1d-static-sin", "--record", "."], refuse="is a directory",
+             timeout=120),
+        dict(what="play --record FILE/h.jsonl", argv=["play", "--task", "1d-static-sin", "--record", "file/h.jsonl"],
+             refuse="not a directory", timeout=120),
+        # sizes
+        dict(what="rollout --num-envs 1000000000", argv=["rollout", "--num-envs", "1000000000", "--steps", "2"],
+             refuse="worlds needs about", memory=True),
+        dict(what="eval --episodes 1000000000", argv=["eval", "--policy", "random", "--task", "1d-static-sin", "--episodes",
+             "1000000000"], refuse="episodes at once needs about", memory=True),
+        dict(what="render --cell 100000", argv=["render", "--task", "2d-static-dense", "--out", "x.gif", "--cell", "100000"],
+             refuse="one frame at --cell 100000 needs about", memory=True),
+        dict(what="render --cell 3", argv=["render", "--task", "2d-static-dense", "--out", "x.gif", "--cell", "3"],
+             refuse="must be an int >= 4"),
+        # trained runs, rendered and evaluated
+        dict(what="render --checkpoint RUN", argv=["render", "--task", "1d-static-sin", "--checkpoint", "run", "--out", "run.gif"],
+             check=lambda: (work / "run.gif").stat().st_size > 0),
+        dict(what="render --checkpoint RUN on another task", argv=["render", "--task", "1d-static-step", "--checkpoint", "run",
+             "--out", "other.gif"], refuse="trained on '1d-static-sin'"),
+        dict(what="eval --checkpoint RUN (trained with --max-steps 40)", argv=["eval", "--checkpoint", "run", "--episodes", "3",
+             "--json", "ev.json"], check=lambda: json.loads((work / "ev.json").read_text())["1d-static-sin"]["mean_length"] <= 40,
+             phrase_ok="{'max_steps': 40}"),
+        dict(what="eval --checkpoint RUN --task 1d-static (other shapes)", argv=["eval", "--checkpoint", "run", "--task",
+             "1d-static"], refuse="cannot be evaluated on 1d-static-gauss"),
+        dict(what="eval --checkpoint DIR that is not a run", argv=["eval", "--checkpoint", "mine"], refuse="mine/config.json"),
+        dict(what="eval --checkpoint DIR that does not exist", argv=["eval", "--checkpoint", "nowhere"],
+             refuse="not a training run directory"),
+        # outputs checked first
+        dict(what="eval --json DIR", argv=["eval", "--policy", "random", "--task", "1d-static-sin", "--json", "."],
+             refuse="is a directory"),
+        dict(what="eval --json FILE/x.json", argv=["eval", "--policy", "random", "--task", "1d-static-sin", "--json",
+             "file/x.json"], refuse="not a directory"),
+        dict(what="render --out FILE/x.gif", argv=["render", "--task", "1d-static-sin", "--out", "file/x.gif"],
+             refuse="not a directory"),
+        dict(what="render --out x.png", argv=["render", "--task", "1d-static-sin", "--out", "x.png"], refuse="must name a .gif"),
+        dict(what="eval --paper-results (corrupt JSON)", argv=["eval", "--policy", "random", "--task", "1d-static-sin",
+             "--episodes", "2", "--paper-results", "bad_paper.json"], refuse="bad_paper.json: not valid JSON"),
+        # numbers
+        dict(what="rollout --seed 4294967296", argv=["rollout", "--seed", "4294967296"], refuse="must be an int in 0..4294967295"),
+        dict(what="eval --seed -1", argv=["eval", "--policy", "random", "--task", "1d-static-sin", "--episodes", "2", "--seed",
+             "-1"], refuse="must be an int in 0..4294967295"),
+        dict(what="render --max-steps 2147483648", argv=["render", "--task", "1d-static-sin", "--out", "m.gif", "--max-steps",
+             "2147483648"], refuse="max_steps must be an int in 1..2147483647"),
+        dict(what="rollout --steps 0", argv=["rollout", "--steps", "0"], refuse="must be an int >= 1"),
+        dict(what="rollout --task 2d-static", argv=["rollout", "--task", "2d-static"], refuse="allowed: 1d-static-sin"),
+        dict(what="eval --policy nope", argv=["eval", "--policy", "nope"], refuse="registered policies"),
+        dict(what="eval with two sources", argv=["eval", "--policy", "random", "--human", "human-honest.jsonl"],
+             refuse="exactly one of"),
+    ]
