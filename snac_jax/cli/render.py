@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 from snac_jax.cli.arguments import bounded_number, positive_int, seed, task_id
