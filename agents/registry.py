@@ -37,6 +37,8 @@ ALGORITHMS: dict[str, Entry] = {
     "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
                  "network (PQN-RNN with --recurrent)"),
     "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
+    "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
+                            "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
 }
 
 
