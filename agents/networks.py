@@ -281,9 +281,12 @@ class ActorCritic(nn.Module):
 
     @nn.compact
     def __call__(
-        self, carry: jax.Array, obs: jax.Array, resets: jax.Array
+        self, carry: jax.Array, obs: jax.Array, resets: jax.Array, privileged=None
     ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`."""
+        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`.
+
+        `privileged` is ignored: this critic reads what the actor reads (the asymmetric one of
+        `agents.privileged` reads it)."""
         x = ObservationEncoder(self.layout, self.hidden_size)(obs)
         if self.rnn_size:
             carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))

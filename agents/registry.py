@@ -39,6 +39,8 @@ ALGORITHMS: dict[str, Entry] = {
     "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
     "rainbow": Entry("agents.rainbow", "RainbowConfig", "Rainbow",
                      "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
+    "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
+                            "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
 }
 
 

@@ -5,7 +5,7 @@ distributional one (Rainbow); and the values at truncations that PPO's and PQN's
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -117,14 +117,15 @@ def q_lambda(
 
 
 def truncation_values(
-    score: Callable[[jax.Array, jax.Array], jax.Array],
+    score: Callable[[jax.Array, Any], jax.Array],
     truncated: jax.Array,
-    final_obs: jax.Array,
+    final_obs: Any,
     carry_after: jax.Array,
 ) -> jax.Array:
     """`(T, B)` values `score(carry (N, C), obs (N, O)) -> (N,)` of the final observations where
     `truncated (T, B)`, 0 elsewhere; `final_obs (T, B, O)` and `carry_after (T, B, C)` (the
-    recurrent state that saw the episode) per step.
+    recurrent state that saw the episode) per step. `final_obs` may be a pytree of `(T, B, ...)`
+    arrays (a critic's other inputs beside the observation); `score` then receives it per step.
 
     Why not score every step: truncations are rare (one per step limit per world), and a
     forward pass over all `T * B` final observations costs as much as the rollout's own. The
@@ -133,12 +134,13 @@ def truncation_values(
     """
     t, n = truncated.shape
     truncated = truncated.reshape(-1)
-    final_obs = final_obs.reshape(t * n, -1)
+    final_obs = jax.tree.map(lambda x: x.reshape((t * n,) + x.shape[2:]), final_obs)
     carry_after = carry_after.reshape(t * n, -1)
 
     def gathered():
         (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
-        values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index]), 0.0)
+        chosen = jax.tree.map(lambda x: x[index], final_obs)
+        values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], chosen), 0.0)
         return jnp.zeros((t * n,), values.dtype).at[index].add(values)
 
     def every_step():
