@@ -15,8 +15,9 @@ learner, while the CPU-time rate (env steps per CPU-second) barely moves. So whe
 already holds an idle machine's rate for the algorithm on `--reference` (an entry copied from a
 results page, without `load_avg`), the reference is measured in the same run and every entry's
 `steps_per_s` is its CPU-time rate times the reference's idle wall rate over its CPU-time rate
-(how many cores the learner keeps busy when it has the machine). Otherwise `steps_per_s` is
-the wall-clock rate, with the load average beside it.
+(how many cores the learner keeps busy when it has the machine). Without such a reference,
+`--cores N` takes the CPU-time rate times N, and otherwise `steps_per_s` is the wall-clock
+rate, with the load average beside it.
 """
 
 from __future__ import annotations
@@ -66,9 +67,14 @@ def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: in
     return entry
 
 
-def calibrated(entry: dict, reference: dict | None, reference_task: str) -> dict:
-    """`steps_per_s` of a measured entry: CPU-time rate x the idle reference's cores in use."""
+def calibrated(entry: dict, reference: dict | None, reference_task: str, cores: float | None = None) -> dict:
+    """`steps_per_s` of a measured entry: CPU-time rate x the idle reference's cores in use (or
+    x `cores` without a reference), else the wall-clock rate."""
     entry = dict(entry)
+    if reference is None and cores is not None:
+        entry["steps_per_s"] = round(entry["cpu_steps_per_s"] * cores)
+        entry["source"] = f"{entry['measured']}: CPU-time rate x {cores:g} (--cores; no idle run to calibrate with)"
+        return entry
     if reference is None:
         entry["steps_per_s"] = entry["wall_steps_per_s"]
         entry["source"] = f"{entry['measured']}: wall-clock rate at load average {entry['load_avg']}"
@@ -89,6 +95,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="timed chunks")
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--reference", default="1d-static-sin", help="task whose idle rate calibrates the CPU-time rates")
+    parser.add_argument("--cores", type=float, default=None,
+                        help="without an idle reference: steps_per_s = CPU-time rate x CORES (default: the wall rate)")
     parser.add_argument("--eval", action="store_true", help="also time the reporting protocol on seed 0's policy")
     parser.add_argument("--write", action="store_true", help=f"merge the entries into {RATES_FILE}")
     args = parser.parse_args()
@@ -97,6 +105,7 @@ def main() -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")
 
     from snac_jax import devices
+    from snac_jax.atomic import atomic_write_text
 
     devices.use_cpu_devices(1)  # as `snac table` trains on a CPU
     for algorithm in args.algorithms:
@@ -109,7 +118,7 @@ def main() -> None:
             print(json.dumps({"algorithm": algorithm, "reference": args.reference, **ref}), flush=True)
         for task in args.tasks:
             entry = calibrated(measure(algorithm, task, args.chunk_steps, args.repeats, args.seeds, args.eval),
-                               reference, args.reference)
+                               reference, args.reference, args.cores)
             print(json.dumps({"algorithm": algorithm, "task": task, **entry}), flush=True)
             if args.write:
                 rates = json.loads(RATES_FILE.read_text()) if RATES_FILE.is_file() else {}
@@ -117,7 +126,7 @@ def main() -> None:
                 if "load_avg" not in old and "steps_per_s" in old:  # keep an idle machine's figure
                     entry = {**old, **{k: v for k, v in entry.items() if k.startswith("eval")}}
                 rates[algorithm][task] = entry
-                RATES_FILE.write_text(json.dumps(rates, indent=1, sort_keys=True) + "\n")
+                atomic_write_text(RATES_FILE, json.dumps(rates, indent=1, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":

@@ -69,8 +69,9 @@ def test_evaluation_estimates_scale_with_the_episodes():
 
     rates = {"dqn": {"1d-static-sin": {"eval_s": 10.0}}}
     # Another learner's figure for the nearest task; 10 x 200 episodes against the 500 it was timed on.
-    assert eval_seconds(rates, "ppo", "1d-dynamic", PRESETS["paper"]) == (40.0, "1d-static-sin")
-    assert eval_seconds(rates, "ppo", "1d-static-gauss", PRESETS["smoke"]) == (10.0 * 2 / 500, "1d-static-sin")
+    assert eval_seconds(rates, "ppo", "1d-dynamic", PRESETS["paper"]) == (40.0, "dqn's 1d-static-sin")
+    assert eval_seconds(rates, "ppo", "1d-static-gauss", PRESETS["smoke"]) == (10.0 * 2 / 500, "dqn's 1d-static-sin")
+    assert eval_seconds(rates, "dqn", "1d-static-gauss", PRESETS["paper"]) == (10.0, "1d-static-sin")
     assert eval_seconds(rates, "ppo", "2d-static-dense", PRESETS["paper"]) is None
 
 

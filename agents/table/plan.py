@@ -123,15 +123,17 @@ def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float,
 
 
 def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
-    """Seconds of the preset's protocol for one seed: measured (the full protocol) for the
-    algorithm, else any algorithm, on the task or its kin, scaled by the episode counts."""
-    found = measured(rates, algorithm, task, "eval_s")
-    if found is None:  # another learner's: the protocol's cost is mostly the environment's
-        found = next((m for a in sorted(rates) if (m := measured(rates, a, task, "eval_s"))), None)
-    if found is None:
-        return None
-    full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
-    return found[0] * expected_episodes(task, preset.protocol) / expected_episodes(found[1], full), found[1]
+    """Seconds of the preset's protocol for one seed, and where the figure comes from: measured
+    (the full protocol) for the algorithm, else for any algorithm (the protocol's cost is mostly
+    the environment's), on the task or its kin, scaled by the episode counts."""
+    for source in [algorithm, *sorted(set(rates) - {algorithm})]:
+        found = measured(rates, source, task, "eval_s")
+        if found is not None:
+            seconds, measured_on = found
+            full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
+            scale = expected_episodes(task, preset.protocol) / expected_episodes(measured_on, full)
+            return seconds * scale, measured_on if source == algorithm else f"{source}'s {measured_on}"
+    return None
 
 
 @dataclasses.dataclass(frozen=True)
