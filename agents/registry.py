@@ -39,6 +39,7 @@ ALGORITHMS: dict[str, Entry] = {
     "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
     "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
+    "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
 }
 
 
