@@ -135,9 +135,6 @@ class RunnerState:
     env_steps: jax.Array  # int32, env steps taken per world batch (all worlds of the seed)
 
 
-# --- pure pieces the tests check one by one --------------------------------------------------------
-
-
 # --- the algorithm -----------------------------------------------------------------------------------
 
 
@@ -303,15 +300,16 @@ class DQN:
         first = jnp.zeros_like(resets).at[0].set(True)
         return self.layout.with_previous_step(obs, previous_obs, last_action, resets | first)
 
-    def sequence_q(self, params, frames: jax.Array, resets: jax.Array) -> jax.Array:
-        """Q-values `(T - burn_in, S, A)` of a sampled window from a zero LSTM state; the burn-in
-        only warms the state (its carry is cut from the gradient)."""
+    def sequence_q(self, params, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, Any]:
+        """Q-values `(T - burn_in, S, A)` of a sampled window from a zero LSTM state, and what the
+        network sowed along them (auxiliary heads, `agents.auxiliary`); the burn-in only warms the
+        state (its carry is cut from the gradient)."""
         carry = self.network.initial_carry(frames.shape[1])
         if self.burn_in:
             carry, _ = self.network.apply(params, carry, frames[: self.burn_in], resets[: self.burn_in])
             carry = jax.lax.stop_gradient(carry)
-        _, q = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :])
-        return q
+        (_, q), sown = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :], mutable="intermediates")
+        return q, sown
 
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
         cfg = self.config
@@ -320,8 +318,8 @@ class DQN:
         inputs = self.network_inputs(obs, batch.action, batch.reset)[p:]
         frames = stack_frames(inputs, batch.reset[p:], k)
         resets = batch.reset[p + k - 1 :]
-        q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
-        q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
+        q, sown = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
+        q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets)[0])
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target
         next_action = jnp.argmax(greedy_from, axis=-1)
         values = jnp.take_along_axis(q_target, next_action[..., None], axis=-1)[..., 0]
@@ -333,7 +331,12 @@ class DQN:
         weights = mask[c : c + length]
         errors = optax.huber_loss(q_taken, jax.lax.stop_gradient(targets), delta=cfg.huber_delta)
         loss = (errors * weights).sum() / jnp.maximum(weights.sum(), 1.0)
-        return loss, {"loss": loss, "q_mean": (q_taken * weights).sum() / jnp.maximum(weights.sum(), 1.0)}
+        info = {"loss": loss, "q_mean": (q_taken * weights).sum() / jnp.maximum(weights.sum(), 1.0)}
+        return self.auxiliary_losses(loss, info, sown, batch, weights)
+
+    def auxiliary_losses(self, loss, info, sown, batch: Step, weights) -> tuple[jax.Array, dict]:
+        """A hook for losses on what the network sowed (`agents.auxiliary`): none in DQN."""
+        return loss, info
 
     def gradient_step(self, state: RunnerState) -> tuple[RunnerState, dict]:
         key, key_sample = jax.random.split(state.key)
@@ -359,8 +362,8 @@ class DQN:
             state, info = jax.lax.scan(lambda s, _: self.gradient_step(s), state, None, length=cfg.gradient_steps)
             return state, jax.tree.map(jnp.mean, info)
 
-        def wait(state):
-            return state, {"loss": jnp.zeros(()), "q_mean": jnp.zeros(())}
+        def wait(state):  # zeros in place of every metric a gradient step reports
+            return state, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(learn, state)[1])
 
         ready = self.buffer.can_sample(buffer) & (state.env_steps >= cfg.learning_starts)
         state, info = jax.lax.cond(ready, learn, wait, state)

@@ -270,9 +270,12 @@ class ActorCritic(nn.Module):
 
     @nn.compact
     def __call__(
-        self, carry: jax.Array, obs: jax.Array, resets: jax.Array
+        self, carry: jax.Array, obs: jax.Array, resets: jax.Array, privileged=None
     ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`."""
+        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`.
+
+        `privileged` is ignored: this critic reads what the actor reads (the asymmetric one of
+        `agents.privileged` reads it)."""
         x = ObservationEncoder(self.layout, self.hidden_size)(obs)
         if self.rnn_size:
             carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
@@ -300,6 +303,9 @@ class QNetwork(nn.Module):
     hidden_size: int = 128
     lstm_size: int = 0  # 0: feed-forward
     dueling: bool = True
+    # Heads on the core's features for auxiliary losses (`agents.auxiliary`); their outputs are
+    # sown into "intermediates", which only a training loss asks for, so acting never computes them.
+    auxiliary_heads: nn.Module | None = None
 
     @property
     def carry_size(self) -> int:
@@ -317,6 +323,8 @@ class QNetwork(nn.Module):
             x = x[..., 0, :]
         if self.lstm_size:
             carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
+        if self.auxiliary_heads is not None:
+            self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         if self.dueling:
             value = mlp_head(x, self.hidden_size, 1, 1.0)
             advantage = mlp_head(x, self.hidden_size, self.num_actions, 1.0)

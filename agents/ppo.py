@@ -102,6 +102,10 @@ class Transition(NamedTuple):
     done: jax.Array
     final_obs: jax.Array  # the episode's last observation where `done`
     carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
+    # What a subclass's critic and training losses read beside `obs` (None in PPO): the
+    # privileged state where `obs` was observed, and where the episode ended (`done`).
+    privileged: Any = None
+    final_privileged: Any = None
 
 
 class PPO:
@@ -134,6 +138,23 @@ class PPO:
         end = config.ent_coef if config.ent_coef_end is None else config.ent_coef_end
         self.ent_coef = optax.linear_schedule(config.ent_coef, end, max(1, config.num_updates - 1))
 
+    # --- hooks: where a subclass adds training-only signals (`agents.privileged`) -----------------
+
+    def _step(self, keys: jax.Array, env_state, action: jax.Array, env_params):
+        """Every world's auto-resetting step: `(obs, env_state, reward, terminated, truncated, info)`."""
+        return jax.vmap(self.env.step, in_axes=(0, 0, 0, None))(keys, env_state, action, env_params)
+
+    def _privileged(self, env_state, env_params) -> Any:
+        """What the network reads beside the observation for training, per world: nothing in PPO
+        (its critic reads what the actor reads). A subclass returns the environment's privileged
+        state, and its `_step` adds the ended episodes' last one as `info["final_privileged"]`."""
+        return None
+
+    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
+        """Losses on what the network sowed into "intermediates" (auxiliary heads), added to
+        `loss` and reported in `info`: none in PPO."""
+        return loss, info
+
     # --- pure functions -------------------------------------------------------------------------
 
     def init(self, key: jax.Array) -> RunnerState:
@@ -146,7 +167,8 @@ class PPO:
             reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
         )
         net_obs = self._network_obs(worlds)
-        params = self.network.init(key_params, carry[:1], net_obs[None, :1], jnp.ones((1, 1), bool))
+        privileged = jax.tree.map(lambda x: x[None, :1], self._privileged(env_state, self.env_params))
+        params = self.network.init(key_params, carry[:1], net_obs[None, :1], jnp.ones((1, 1), bool), privileged)
         return RunnerState(
             params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
         )
@@ -156,16 +178,18 @@ class PPO:
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         n = self.config.num_envs
-        step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
 
         def env_step(carry, _):
             worlds, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
             net_obs = self._network_obs(worlds)
-            new_carry, logits, value = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            privileged = self._privileged(worlds.env_state, env_params)
+            new_carry, logits, value = self.network.apply(
+                state.params, worlds.carry, net_obs[None], worlds.reset[None], _one_step(privileged)
+            )
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
-            obs, env_state, reward, terminated, truncated, info = step(
+            obs, env_state, reward, terminated, truncated, info = self._step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )
             done = terminated | truncated
@@ -174,6 +198,7 @@ class PPO:
             transition = Transition(
                 obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
                 reward=reward, terminated=terminated, done=done, final_obs=final_obs, carry_after=new_carry,
+                privileged=privileged, final_privileged=info.get("final_privileged"),
             )
             stats = {
                 "episodes": done.sum(),
@@ -192,9 +217,10 @@ class PPO:
         stats = jax.tree.map(jnp.sum, stats)
         return state.replace(worlds=worlds, key=key), batch, stats
 
-    def _advantages(self, params, batch: Transition, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
+    def _advantages(self, params, batch: Transition, worlds: Worlds, env_params) -> tuple[jax.Array, jax.Array]:
         cfg = self.config
-        _, _, last_value = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
+        privileged = _one_step(self._privileged(worlds.env_state, env_params))
+        _, _, last_value = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None], privileged)
         following = jnp.concatenate([batch.value[1:], last_value], axis=0)
         next_values = jnp.where(batch.done, self._final_values(params, batch), following)
         return gae(
@@ -215,24 +241,29 @@ class PPO:
         truncated = (batch.done & ~batch.terminated).reshape(-1)
         final_obs = batch.final_obs.reshape(t * n, -1)
         carry_after = batch.carry_after.reshape(t * n, -1)
+        final_privileged = jax.tree.map(lambda x: x.reshape((t * n,) + x.shape[2:]), batch.final_privileged)
 
-        def score(carry, obs):
-            _, _, value = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
+        def score(carry, obs, privileged):
+            resets = jnp.zeros((1, obs.shape[0]), bool)
+            _, _, value = self.network.apply(params, carry, obs[None], resets, _one_step(privileged))
             return value[0]
 
         def gathered():
             (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
-            values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index]), 0.0)
+            chosen = jax.tree.map(lambda x: x[index], final_privileged)
+            values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], final_obs[index], chosen), 0.0)
             return jnp.zeros((t * n,), values.dtype).at[index].add(values)
 
         def every_step():
-            return jnp.where(truncated, score(carry_after, final_obs), 0.0)
+            return jnp.where(truncated, score(carry_after, final_obs, final_privileged), 0.0)
 
         return jax.lax.cond(truncated.sum() <= n, gathered, every_step).reshape(t, n)
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
         cfg = self.config
-        _, logits, value = self.network.apply(params, carry0, batch.obs, batch.reset)
+        (_, logits, value), sown = self.network.apply(
+            params, carry0, batch.obs, batch.reset, batch.privileged, mutable="intermediates"
+        )
         pi = distrax.Categorical(logits=logits)
         log_prob = pi.log_prob(batch.action)
         clipped_value = batch.value + jnp.clip(value - batch.value, -cfg.clip_eps, cfg.clip_eps)
@@ -245,16 +276,16 @@ class PPO:
         entropy = pi.entropy().mean()
         total = actor_loss + cfg.vf_coef * value_loss - ent_coef * entropy
         approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
-        return total, {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss,
-                       "entropy": entropy, "approx_kl": approx_kl}
+        return self._auxiliary_losses(total, {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss,
+                                              "entropy": entropy, "approx_kl": approx_kl}, sown, batch)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
         carry0 = state.worlds.carry
         state, batch, stats = self.rollout(state, env_params)
         # The final observations are only needed for the bootstrap values.
-        advantages, targets = self._advantages(state.params, batch, state.worlds)
-        batch = batch._replace(final_obs=None, carry_after=None)
+        advantages, targets = self._advantages(state.params, batch, state.worlds, env_params)
+        batch = batch._replace(final_obs=None, carry_after=None, final_privileged=None)
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         ent_coef = self.ent_coef(state.update)
         m = cfg.num_minibatches
@@ -313,6 +344,11 @@ class PPO:
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
         return Policy(init, act, params, f"ppo-{kind}")
+
+
+def _one_step(tree: Any) -> Any:
+    """A per-world pytree `(B, ...)` as one time step `(1, B, ...)`."""
+    return jax.tree.map(lambda x: x[None], tree)
 
 
 def make_train(config: PPOConfig):

@@ -34,6 +34,9 @@ ALGORITHMS: dict[str, Entry] = {
     "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
     "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
+    "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
+                            "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
+    "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
 }
 
 

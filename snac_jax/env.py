@@ -12,7 +12,7 @@ from gymnax.environments import environment, spaces
 
 from snac_jax import batched_step, metrics, observation, threefry
 from snac_jax.config import EnvConfig
-from snac_jax.state import EnvParams, EnvState
+from snac_jax.state import EnvParams, EnvState, PrivilegedState
 from snac_jax.transition import PADDING, is_stuck, transition
 
 
@@ -188,6 +188,23 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         state, reward, terminated = transition(self.config, state, jnp.asarray(action), jnp.asarray(stride))
         info = {"final_iou": metrics.iou(state), "stride": jnp.asarray(stride, jnp.int32)}
         return self.get_obs(state, params), state, reward, terminated, info
+
+    def privileged(self, state: EnvState, params: EnvParams | None = None) -> PrivilegedState:
+        """The world's hidden truth for training signals only (SPEC §12): the true plan position,
+        the bricks built on the plan, the design and whether the robot is stuck.
+
+        Why: a learner may train its critic or auxiliary losses on what the robot cannot see
+        (asymmetric actor-critic, localisation losses), while the policy it is scored with still
+        reads only `step`'s observation. `step` and its observation are unchanged; vmap this over
+        a batch of states as `step` is.
+        """
+        (pr, pc), (h, w) = self.config.pad, self.config.plan_shape
+        return PrivilegedState(
+            position=state.position.astype(jnp.int32),
+            built=state.grid[pr : pr + h, pc : pc + w],
+            design=state.design,
+            stuck=is_stuck(self.config, state),
+        )
 
     @property
     def observation_layout(self) -> observation.ObservationLayout:

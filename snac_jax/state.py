@@ -38,3 +38,14 @@ class EnvParams:
     design_volume: jax.Array  # int32 (K,), sum of each design: the union of an empty grid
     stride_probs: jax.Array  # float32 (3,), P(d = 1, 2, 3)
     max_steps_in_episode: int = struct.field(pytree_node=True, default=600)
+
+
+@struct.dataclass
+class PrivilegedState:
+    """What `SNACEnv.privileged` reveals of one world for training (SPEC §12); never an
+    observation: an evaluated policy sees only `step`'s observation."""
+
+    position: jax.Array  # int32 (2,), the true plan position (row, col; row 0 in 1D)
+    built: jax.Array  # the plan part of the grid: bricks on each plan cell (0/1 in 2D)
+    design: jax.Array  # int16 plan-shaped design of the episode
+    stuck: jax.Array  # bool, the robot cannot move (SPEC §4; always False without obstacles)
