@@ -142,12 +142,17 @@ def test_the_greedy_policy_reads_observations_only():
     # The critic and the auxiliary heads are not on the acting path: NaN weights there change nothing.
     names = set(params["params"])
     assert {"PrivilegedEncoder_0", "auxiliary_heads"} <= names
-    critic = {"PrivilegedEncoder_0", "auxiliary_heads", "Dense_2", "Dense_3"}  # Dense_0/1: the actor's head
-    poisoned = {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in critic else v
+
+    def poison(names):
+        return {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in names else v
                            for k, v in params["params"].items()}}
+
+    critic = {"PrivilegedEncoder_0", "auxiliary_heads", "Dense_2", "Dense_3"}  # Dense_0/1: the actor's head
     action, after = policy.act(params, policy_state, obs, key)
-    action_poisoned, after_poisoned = policy.act(poisoned, policy_state, obs, key)
+    action_poisoned, after_poisoned = policy.act(poison(critic), policy_state, obs, key)
     assert int(action) == int(action_poisoned) and _same(after, after_poisoned)
+    _, after_poisoned_memory = policy.act(poison({"ScannedRNN_0"}), policy_state, obs, key)
+    assert np.all(np.isnan(after_poisoned_memory["carry"]))  # poison where acting does read shows
 
 
 def test_with_every_signal_off_the_learners_are_ppo_and_drqn():
