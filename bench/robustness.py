@@ -183,6 +183,15 @@ def markdown(results: list[dict], seconds: float, before: dict | None = None) ->
         f"**Now: {count(results)}.**" + ("" if before is None else f" Before the fixes: {count(list(before.values()))}."),
         "",
     ]
+    if before is not None:
+        lines += [
+            "The *before* column is the same script run on the code before the fixes (`--skip-memory --out DIR` in a "
+            "checkout of it, then `--before DIR/robustness.json` here). The oversized inputs were not run there (they "
+            "exhaust the machine's memory; the issue reports what they did). A refusal there whose wording differs from "
+            "today's (an `OverflowError` instead of the allowed range, a shape error deep in JAX) is judged by today's "
+            "phrase, so it counts as bad where a reader might call it poor.",
+            "",
+        ]
     if before is None:
         lines += ["| # | input | command | verdict | what happened |", "|---:|---|---|---|---|"]
     else:
