@@ -171,6 +171,7 @@ def test_with_every_signal_off_the_learner_is_ppo():
             np.testing.assert_array_equal(*scores)
 
 
+@pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 @pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense")])
 def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task):
     agent = build_algorithm(make_config(algorithm, task, **PPO_TINY, **ALL_SIGNALS, max_steps=6))
@@ -190,6 +191,7 @@ def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task
     assert float(first["p_stride_1"][0]) == 1.0
 
 
+@pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
     from agents.driver import read_metrics, train
     from agents.trained import checkpoint_policy

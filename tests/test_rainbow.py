@@ -161,6 +161,7 @@ def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     assert not np.allclose(noisy_q, agent.expected(logits))
 
 
+@pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
     from agents.driver import read_metrics, train
 

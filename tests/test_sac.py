@@ -158,6 +158,7 @@ def test_greedy_policy_is_the_argmax_of_the_actors_logits():
     assert policy.name == "sac"
 
 
+@pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver(tmp_path):
     from agents.checkpoint import read_config
     from agents.driver import read_metrics, train
