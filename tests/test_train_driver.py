@@ -46,7 +46,7 @@ def test_checkpoint_round_trip(tmp_path):
     assert jax.dtypes.issubdtype(restored.key.dtype, jax.dtypes.prng_key)
 
 
-def test_resume_equals_uninterrupted(tmp_path, capsys):
+def test_resume_equals_uninterrupted(tmp_path):
     config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=4 * 16 * 8, chunks=4, **TINY)
     _, straight = train(config, tmp_path / "straight", progress=False)
     straight_lines = read_metrics(tmp_path / "straight")
@@ -63,6 +63,15 @@ def test_resume_equals_uninterrupted(tmp_path, capsys):
     resumed_lines = read_metrics(killed)
     assert [r["chunk"] for r in resumed_lines] == [0, 1, 2, 3]
     assert [r["iou"] for r in resumed_lines] == [r["iou"] for r in straight_lines]
+
+
+@pytest.mark.slow  # four tiny training runs: ~1-2 min on a loaded 2-core CPU
+def test_resume_past_a_damaged_checkpoint_or_before_the_first_equals_uninterrupted(tmp_path, capsys):
+    config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=4 * 16 * 8, chunks=4, **TINY)
+    _, straight = train(config, tmp_path / "straight", progress=False)
+    straight_lines = read_metrics(tmp_path / "straight")
+    killed = tmp_path / "killed"
+    train(config, killed, progress=False)
 
     # The newest checkpoint damaged (its metadata cut in half): evaluating it is refused with the
     # way out, and a resume recomputes its chunk from the one before, to the same state.
@@ -109,6 +118,8 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
         from agents.driver import _resume_point
 
         _resume_point(tmp_path, like, print)
+    (tmp_path / checkpoint.METRICS_FILE).write_text("")  # killed before its first chunk ended: start again
+    assert _resume_point(tmp_path, like, print) == (0, like, [])
 
 
 def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
