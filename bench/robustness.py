@@ -219,7 +219,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.out, prefix=".robustness-") as scratch:
-        work = Path(scratch)
+        work = Path(scratch).resolve()
         made = setup(work, snac)
         if made["run"]["code"] != 0:
             raise RuntimeError(made["run"]["err"][-3000:])
