@@ -24,14 +24,11 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
 
     if cell.status == "done":
         return True
-    cell.directory.mkdir(parents=True, exist_ok=True)
-    if cell.status == "new":  # what a run killed before its first complete checkpoint left
-        for stale in (checkpoint.METRICS_FILE, EVAL_FILE):
-            (cell.directory / stale).unlink(missing_ok=True)
-        shutil.rmtree(cell.directory / checkpoint.CHECKPOINT_DIR, ignore_errors=True)
-    atomic_write_json(cell.directory / CELL_FILE, cell.record())
+    if cell.status == "new":  # a run killed before its first checkpoint left nothing to keep
+        shutil.rmtree(cell.directory, ignore_errors=True)  # a new run needs an empty directory
     algorithm, state = train(cell.config, cell.directory, resume=cell.status == "partial", progress=progress,
                              stop_after_chunks=stop_after_chunks, mesh=devices.env_mesh(num_devices, cell.config.num_envs))
+    atomic_write_json(cell.directory / CELL_FILE, cell.record())
     last = checkpoint.latest_chunk(cell.directory)
     if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
         cell.status = "partial"
