@@ -7,7 +7,7 @@ from __future__ import annotations
 import shutil
 
 from agents import checkpoint
-from agents.table.plan import CELL_FILE, EVAL_FILE, Cell
+from agents.table.plan import CELL_FILE, Cell
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
