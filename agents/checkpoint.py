@@ -50,10 +50,13 @@ def check_new_run_directory(directory: str | Path) -> Path:
     entries = sorted(p.name for p in directory.iterdir() if p.name != LOCK_FILE) if directory.is_dir() else []
     if entries:
         shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
-        hint = (" (a run: continue it with --resume / resume=True)" if CONFIG_FILE in entries
-                else "")
+        hint = " (if it holds a run, continue it with --resume / resume=True)" if CONFIG_FILE in entries else ""
         raise ValueError(f"{directory} is not empty ({shown}){hint}; a new run needs a new or empty directory")
-    check_writable(directory / CONFIG_FILE, "run directory file")
+    if directory.is_dir():
+        if not os.access(directory, os.W_OK | os.X_OK):
+            raise ValueError(f"run directory {directory} cannot be written: no permission")
+    else:
+        check_writable(directory, "run directory")
     return directory
 
 

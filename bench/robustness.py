@@ -215,8 +215,14 @@ def main(argv=None) -> int:
                         help="leave out the oversized inputs (for code without the memory checks: they would exhaust memory)")
     parser.add_argument("--before", type=Path, default=None, metavar="JSON",
                         help="robustness.json of the same cases on the code before the fixes: shown as a column")
+    parser.add_argument("--from-json", type=Path, default=None, metavar="JSON",
+                        help="run nothing: rebuild robustness.md from an earlier robustness.json (and --before)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    before = None if args.before is None else {r["what"]: r for r in load_results(args.before)[0]}
+    if args.from_json is not None:
+        results, seconds = load_results(args.from_json)
+        return write(args.out, results, seconds, before)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.out, prefix=".robustness-") as scratch:
         work = Path(scratch).resolve()
@@ -236,14 +242,22 @@ def main(argv=None) -> int:
         if not args.only:
             results += api_cases(work, args.skip_memory)
             results += other_cases(work)
-    seconds = time.perf_counter() - start
+    return write(args.out, results, time.perf_counter() - start, before)
+
+
+def load_results(path: Path) -> tuple[list[dict], float]:
+    """`(results, seconds)` of a robustness.json."""
+    data = json.loads(path.read_text())
+    return (data, 0.0) if isinstance(data, list) else (data["results"], data["seconds"])
+
+
+def write(out: Path, results: list[dict], seconds: float, before: dict | None) -> int:
     from snac_jax.atomic import atomic_write_json, atomic_write_text
 
-    atomic_write_json(args.out / "robustness.json", results)
-    before = None if args.before is None else {r["what"]: r for r in json.loads(args.before.read_text())}
-    atomic_write_text(args.out / "robustness.md", markdown(results, seconds, before))
+    atomic_write_json(out / "robustness.json", {"seconds": round(seconds, 1), "results": results})
+    atomic_write_text(out / "robustness.md", markdown(results, seconds, before))
     counts = {v: sum(r["verdict"] == v for r in results) for v in VERDICTS}
-    print(f"{counts}; wrote {args.out / 'robustness.md'}")
+    print(f"{counts}; wrote {out / 'robustness.md'}")
     return 0 if not counts["bad"] else 1
 
 

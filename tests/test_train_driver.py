@@ -125,7 +125,7 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
 def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
     train(config, tmp_path / "run", progress=False)
-    with pytest.raises(ValueError, match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(a run: continue"):
+    with pytest.raises(ValueError, match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(if it holds a run, continue it with --resume"):
         train(config, tmp_path / "run", progress=False)
     with pytest.raises(ValueError, match="config.json is missing"):
         train(config, tmp_path / "empty", resume=True, progress=False)
