@@ -1,4 +1,5 @@
-"""Auxiliary localisation and map losses on a learner's recurrent state, and the stride curriculum.
+"""Auxiliary localisation and map losses on a learner's recurrent state, the stride curriculum, and
+DRQN trained with them (`drqn-aux`).
 
 The robot must localise from what its window shows (SPEC §11): the handcrafted policy keeps an
 explicit estimate of its position, a recurrent learner only what its memory happens to hold.
@@ -13,7 +14,7 @@ environment's privileged state (SPEC §12, training only):
 Each is on when its coefficient is above 0 (`AuxiliaryOptions`); its head then exists and its loss
 is added to the learner's. The heads read the memory, never feed the policy: the greedy policy's
 action is the same function of its observations whatever the heads hold, and it never sees the
-privileged state. `agents.privileged` adds them to PPO.
+privileged state. `agents.privileged` adds them to PPO; `DRQNAux` here adds them to DRQN.
 
 `stride_curriculum` anneals the stride noise from none (every move one cell, the paper's
 "-uncertainty") to the task's distribution over a share of the run, through `EnvParams`, which the
@@ -23,16 +24,19 @@ update takes as an argument; the evaluation always uses the task's distribution.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from flax import struct
 
 from agents.config import option
+from agents.drqn import DRQN, DRQNConfig
 from agents.networks import ObsLayout, mlp_head
+from agents.offpolicy import Step
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams
 
@@ -40,7 +44,7 @@ from snac_jax.state import EnvParams
 @dataclasses.dataclass(frozen=True)
 class AuxiliaryOptions:
     """The auxiliary losses' weights (0: off) and the stride curriculum, shared by the learners
-    that train with them (`agents.privileged.PrivilegedPPOConfig`)."""
+    that train with them (`agents.privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`)."""
 
     position_coef: float = option(0.05, "weight of the loss predicting the true plan position from the recurrent "
                                   "state (0: off)", low=0)
@@ -177,3 +181,56 @@ def add_losses(total: jax.Array, info: dict, losses: dict[str, tuple[float, jax.
     for coef, loss in losses.values():
         total = total + coef * loss
     return total, {**info, **{name: loss for name, (_, loss) in losses.items()}}
+
+
+# --- DRQN with the auxiliary losses ---------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class DRQNAuxConfig(AuxiliaryOptions, DRQNConfig):
+    """DRQN (`agents.drqn`) with auxiliary localisation and map losses on its LSTM state."""
+
+    algorithm: ClassVar[str] = "drqn-aux"
+    paper_method: ClassVar[str] = "drqn"
+
+
+@struct.dataclass
+class AuxiliaryStep(Step):
+    position: jax.Array  # int8 (2,), the true plan position where `obs` was observed
+    built: jax.Array | None  # int16 plan-shaped bricks there; None without the map loss (it is large)
+
+
+class DRQNAux(StrideCurriculum, DRQN):
+    """DRQN whose replayed steps also record the privileged targets, and whose loss adds the
+    auxiliary losses on the LSTM outputs of the learning steps (the burn-in has none)."""
+
+    def __init__(self, config: DRQNAuxConfig):
+        self.auxiliary = Auxiliary.from_config(config)  # first: the replay's memory check reads `_example_step`
+        super().__init__(config)
+        self.network = self.network.clone(auxiliary_heads=self.auxiliary.heads(config.hidden_size))
+
+    def _example_step(self) -> AuxiliaryStep:
+        base = super()._example_step()
+        built = jnp.zeros(self.layout.plan_shape, jnp.int16) if "map" in self.auxiliary.coefs else None
+        return AuxiliaryStep(**{f.name: getattr(base, f.name) for f in dataclasses.fields(Step)},
+                             position=jnp.zeros((2,), jnp.int8), built=built)
+
+    def _world_step(self, worlds, keys: jax.Array, action: jax.Array, env_params):
+        env_state, obs, reward, done, info, step, after = super()._world_step(worlds, keys, action, env_params)
+        privileged = jax.vmap(self.env.privileged, in_axes=(0, None))(worlds.env_state, env_params)
+        built = privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None
+        step = AuxiliaryStep(**{f.name: getattr(step, f.name) for f in dataclasses.fields(Step)},
+                             position=privileged.position.astype(jnp.int8), built=built)
+        return env_state, obs, reward, done, info, step, after
+
+    def auxiliary_losses(self, loss, info, sown, batch: AuxiliaryStep, weights) -> tuple[jax.Array, dict]:
+        if not self.auxiliary.coefs:
+            return loss, info
+        c, length = self.config.context, self.config.sequence_length
+        outputs = jax.tree.map(lambda x: x[:length], sown["intermediates"]["auxiliary"][0])
+        cells, valid = move_targets(batch.position, batch.action, batch.reset, jnp.asarray(self.auxiliary.is_move))
+        steps = slice(c, c + length)  # the learning steps: output 0 is batch row c
+        built = None if batch.built is None else batch.built[steps]
+        losses = self.auxiliary.losses(outputs, batch.position[steps].astype(jnp.int32), built, cells[steps],
+                                       valid[steps], weights)
+        return add_losses(loss, info, losses)

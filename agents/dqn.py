@@ -107,15 +107,26 @@ class DQN(ReplayLearner):
 
     # --- learning ----------------------------------------------------------------------------------
 
-    def sequence_q(self, params, frames: jax.Array, resets: jax.Array) -> jax.Array:
+    def sequence_q(self, params, frames: jax.Array, resets: jax.Array, sown: bool = False):
         """Q-values `(T - burn_in, S, A)` of a sampled window from a zero LSTM state; the burn-in
-        only warms the state (its carry is cut from the gradient)."""
+        only warms the state (its carry is cut from the gradient). With `sown`, `(q, what the
+        network sowed along them)` (auxiliary heads, `agents.auxiliary`)."""
         carry = self.network.initial_carry(frames.shape[1])
         if self.burn_in:
             carry, _ = self.network.apply(params, carry, frames[: self.burn_in], resets[: self.burn_in])
             carry = jax.lax.stop_gradient(carry)
+        if sown:
+            (_, q), intermediates = self.network.apply(
+                params, carry, frames[self.burn_in :], resets[self.burn_in :], mutable="intermediates"
+            )
+            return q, intermediates
         _, q = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :])
         return q
+
+    def auxiliary_losses(self, loss, info, sown, batch: Step, weights) -> tuple[jax.Array, dict]:
+        """Losses on what the network sowed along the learning steps (auxiliary heads), added to
+        `loss` and reported in `info`: none in DQN (`agents.auxiliary.DRQNAux` adds them)."""
+        return loss, info
 
     def replayed_frames(self, batch: Step, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         """`(frames, resets)` the network reads along a sampled window, from the row after the
@@ -128,7 +139,7 @@ class DQN(ReplayLearner):
         cfg = self.config
         length, c = cfg.sequence_length, cfg.context
         frames, resets = self.replayed_frames(batch, obs)
-        q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
+        q, sown = self.sequence_q(params, frames, resets, sown=True)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target
         next_action = jnp.argmax(greedy_from, axis=-1)
@@ -141,4 +152,5 @@ class DQN(ReplayLearner):
         weights = mask[c : c + length]
         errors = optax.huber_loss(q_taken, jax.lax.stop_gradient(targets), delta=cfg.huber_delta)
         loss = (errors * weights).sum() / jnp.maximum(weights.sum(), 1.0)
-        return loss, {"loss": loss, "q_mean": (q_taken * weights).sum() / jnp.maximum(weights.sum(), 1.0)}
+        info = {"loss": loss, "q_mean": (q_taken * weights).sum() / jnp.maximum(weights.sum(), 1.0)}
+        return self.auxiliary_losses(loss, info, sown, batch, weights)

@@ -348,6 +348,9 @@ class QNetwork(nn.Module):
     atoms: int = 1  # 1: Q-values (T, B, A); more: logits (T, B, A, atoms)
     noisy: bool = False
     sigma0: float = 0.1  # of the noisy layers
+    # Heads on the core's features for auxiliary losses (`agents.auxiliary`); their outputs are
+    # sown into "intermediates", which only a training loss asks for, so acting never computes them.
+    auxiliary_heads: nn.Module | None = None
 
     @property
     def carry_size(self) -> int:
@@ -367,6 +370,8 @@ class QNetwork(nn.Module):
             x = x[..., 0, :]
         if self.lstm_size:
             carry, x = ScannedRNN(self.lstm_size, "lstm")(carry, (x, resets))
+        if self.auxiliary_heads is not None:
+            self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         per_action = (self.num_actions,) if self.atoms == 1 else (self.num_actions, self.atoms)
         advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer).reshape(
             x.shape[:-1] + per_action)

@@ -41,6 +41,7 @@ ALGORITHMS: dict[str, Entry] = {
                      "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
     "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
+    "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
 }
 
 

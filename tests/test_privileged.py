@@ -1,6 +1,6 @@
 """Privileged training signals (SPEC §12): `env.privileged` on hand-made states, the auxiliary
 losses by hand, the stride curriculum, the honest greedy policy (it reads observations only),
-PPO unchanged when every new signal is off, tiny runs, compile-once, the driver with two
+PPO and DRQN unchanged when every new signal is off, tiny runs, compile-once, the driver with two
 seeds, and resume."""
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from snac_jax.tasks import make
 
 PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
                 hidden_size=16, rnn_size=16, recurrent=True)
+DRQN_TINY = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16,
+                 burn_in=2, sequence_length=4, learning_starts=0, buffer_size=8 * 40)
 ALL_SIGNALS = dict(position_coef=0.1, map_coef=0.1, move_coef=0.1, stride_curriculum=0.5)
 
 
@@ -153,12 +155,13 @@ def test_the_greedy_policy_reads_observations_only():
     assert np.all(np.isnan(after_poisoned_memory["carry"]))  # poison where acting does read shows
 
 
-def test_with_every_signal_off_the_learner_is_ppo():
-    """The hooks leave PPO as it was: the new learner with the privileged critic off and every
-    auxiliary weight 0 reproduces it exactly (truncations included: max_steps 5), and the
-    evaluator scores their greedy policies alike."""
+def test_with_every_signal_off_the_learners_are_ppo_and_drqn():
+    """The hooks leave PPO and DRQN as they were: the new learners with the privileged critic off
+    and every auxiliary weight 0 reproduce them exactly (truncations included: max_steps 5), and
+    the evaluator scores their greedy policies alike."""
     task, off = "1d-static-sin", dict(position_coef=0.0, map_coef=0.0, move_coef=0.0)
-    pairs = [("ppo", "ppo-privileged", dict(PPO_TINY, max_steps=5), dict(privileged_critic=False, **off))]
+    pairs = [("ppo", "ppo-privileged", dict(PPO_TINY, max_steps=5), dict(privileged_critic=False, **off)),
+             ("drqn", "drqn-aux", dict(DRQN_TINY, max_steps=5), off)]
     for base, new, options, switches in pairs:
         agents = [build_algorithm(make_config(name, task, **options, **extra)) for name, extra in ((base, {}), (new, switches))]
         (state_a, metrics_a), (state_b, metrics_b) = (_run(agent, 2) for agent in agents)
@@ -172,9 +175,11 @@ def test_with_every_signal_off_the_learner_is_ppo():
 
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
-@pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense")])
+@pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense"),
+                                            ("drqn-aux", "1d-static-sin")])
 def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task):
-    agent = build_algorithm(make_config(algorithm, task, **PPO_TINY, **ALL_SIGNALS, max_steps=6))
+    options = PPO_TINY if algorithm == "ppo-privileged" else DRQN_TINY
+    agent = build_algorithm(make_config(algorithm, task, **options, **ALL_SIGNALS, max_steps=6))
     traces = []
     update = agent.update
     agent.update = lambda state, env_params: (traces.append(1), update(state, env_params))[1]
@@ -211,12 +216,13 @@ def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
 
 
 @pytest.mark.slow  # three driver runs of each learner: over 20 s on a 2-core CPU
-@pytest.mark.parametrize("algorithm", ["ppo-privileged"])
+@pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux"])
 def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
     from agents.checkpoint import to_storable
     from agents.driver import train
 
-    config = make_config(algorithm, "1d-static-sin", **PPO_TINY, **ALL_SIGNALS, chunks=2, max_steps=6)
+    options = PPO_TINY if algorithm == "ppo-privileged" else DRQN_TINY
+    config = make_config(algorithm, "1d-static-sin", **options, **ALL_SIGNALS, chunks=2, max_steps=6)
     _, straight = train(config, tmp_path / "straight", progress=False)
     train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
     _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
@@ -226,7 +232,7 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 # --- configuration --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("algorithm,base", [("ppo-privileged", "ppo")])
+@pytest.mark.parametrize("algorithm,base", [("ppo-privileged", "ppo"), ("drqn-aux", "drqn")])
 def test_tuned_settings_are_the_base_learners(algorithm, base):
     def tables(name):
         return tomllib.loads((TUNED_DIR / f"{name}.toml").read_text())
