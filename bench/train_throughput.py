@@ -1,7 +1,10 @@
-"""Training throughput: env steps per second of PPO *including learning* (rollout, GAE and the
-update epochs), per task and network, with the tuned defaults of `agents/tuned/ppo.toml`.
+"""Training throughput: env steps per second of an on-policy learner *including learning*
+(rollout, returns and the update epochs), per task and network, with its tuned defaults
+(`agents/tuned/<algorithm>.toml`, else its config class's): PPO, or PQN (issue 19's target for
+PQN-RNN is measured with the second command).
 
     python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
+    python bench/train_throughput.py --algorithm pqn --tasks 1d-static-sin 1d-dynamic
 
 Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
 over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
@@ -10,7 +13,8 @@ same rollouts without learning. The load average is printed because a shared CPU
 To tell a slow implementation from a busy processor, each row also converts its rate into the
 arithmetic the network does: a dense or recurrent layer does one multiply-add per weight per
 sample, so one env step costs about `2 * params * (1 + 3 * epochs)` FLOPs (the acting forward
-pass, then a forward and a twice-as-costly backward pass per epoch). That is set beside the rate
+pass, then a forward and a twice-as-costly backward pass per epoch; PQN's Q(lambda) targets add
+one more forward pass, left out of the estimate). That is set beside the rate
 of a plain float32 matrix product as wide as the recurrent core (the hidden layers for a
 feed-forward network), one minibatch of rows, timed in the same run: when the two
 are close, the learner is compute-bound and only a smaller network or fewer epochs go faster.
@@ -26,6 +30,8 @@ import time
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--algorithm", choices=("ppo", "pqn"), default="ppo",
+                        help="the on-policy learner to time (both train from rollouts of many worlds)")
     parser.add_argument("--tasks", nargs="+", default=["1d-static-sin", "2d-static-dense"])
     parser.add_argument("--recurrent", choices=("yes", "no", "both"), default="yes")
     parser.add_argument("--updates", type=int, default=10, help="timed updates per repeat")
@@ -49,7 +55,7 @@ def main() -> None:
     from agents.networks import param_count
 
     variants = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
-    print(f"jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
+    print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
           f"median of {args.repeats} repeats of {args.updates} updates")
     print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
           "env-steps/s with learning | acting only (same run) | learning's share of the time | "
@@ -57,7 +63,7 @@ def main() -> None:
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for task in args.tasks:
         for recurrent in variants:
-            config = make_config("ppo", task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
+            config = make_config(args.algorithm, task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
                                  rnn_size=args.rnn_size, update_epochs=args.update_epochs,
                                  num_minibatches=args.num_minibatches, rollout_steps=args.rollout_steps)
             algorithm = build_algorithm(config)

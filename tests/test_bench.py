@@ -65,14 +65,15 @@ def test_quick_run_covers_every_task(tmp_path):
     assert e2e and all(item["wall_s"] > 0 and "env-steps/s" in item["output"] for item in e2e)
 
 
-def test_training_throughput_bench_prints_median_and_baseline():
+@pytest.mark.parametrize("algorithm", ["ppo", "pqn"])
+def test_training_throughput_bench_prints_median_and_baseline(algorithm):
     script = ROOT / "bench" / "train_throughput.py"
-    done = subprocess.run([sys.executable, str(script), "--tasks", "1d-static-step", "--updates", "1", "--repeats", "2",
+    done = subprocess.run([sys.executable, str(script), "--algorithm", algorithm, "--tasks", "1d-static-step", "--updates", "1", "--repeats", "2",
                            "--num-envs", "8", "--rollout-steps", "4", "--hidden-size", "8", "--rnn-size", "8",
                            "--update-epochs", "2"],
                           capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "median of 2 repeats of 1 updates" in done.stdout
+    assert f"{algorithm}; jax" in done.stdout and "median of 2 repeats of 1 updates" in done.stdout
     row = next(line for line in done.stdout.splitlines() if line.startswith("| 1d-static-step"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1] == "GRU 8, hidden 8" and cells[2] == "8"
