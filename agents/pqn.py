@@ -21,7 +21,7 @@ carry that saw the episode; a terminated one bootstraps nothing.
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +58,8 @@ class PQNConfig(TrainConfig):
     rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
     reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
                                  low=0, low_open=True)
+    stagger_starts: bool = option(False, "start each world a random number (up to an episode) of random steps in, "
+                                  "so that the worlds' rollouts hold different parts of their episodes")
 
     def check(self) -> None:
         if self.num_envs % self.num_minibatches:
@@ -108,6 +110,8 @@ class PQN:
         n = self.config.num_envs
         key, key_params, key_reset = jax.random.split(key, 3)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
+        if self.config.stagger_starts:
+            obs, env_state = self._stagger(jax.random.fold_in(key_reset, 1), obs, env_state)
         worlds = Worlds(
             env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
             reset=jnp.ones((n,), bool), carry=self.network.initial_carry(n), episode_return=jnp.zeros((n,), jnp.float32),
@@ -116,6 +120,30 @@ class PQN:
         return RunnerState(
             params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
         )
+
+    def _stagger(self, key: jax.Array, obs: jax.Array, env_state) -> tuple[jax.Array, Any]:
+        """Each world takes a uniformly random number (below the step limit) of uniformly random
+        actions before training starts. Why: all worlds start together, and on the tasks whose
+        episodes all run to the step limit (1D static) they stay in phase, so every rollout
+        would hold the same slice of the episode in every world and each update would learn from
+        one part of the episode only. These steps are neither learned from nor counted; the
+        first episode of each world is reported from its true start (its IoU) but its return
+        counts only the steps after them."""
+        n, limit = self.config.num_envs, int(self.env_params.max_steps_in_episode)
+        step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
+        key_count, key = jax.random.split(key)
+        count = jax.random.randint(key_count, (n,), 0, limit)
+
+        def random_step(t, carry):
+            obs, env_state, key = carry
+            key, key_action, key_step = jax.random.split(key, 3)
+            action = jax.random.randint(key_action, (n,), 0, self.env.num_actions)
+            stepped = step(jax.random.split(key_step, n), env_state, action, self.env_params)[:2]
+            keep = lambda new, old: jnp.where((t < count).reshape((n,) + (1,) * (new.ndim - 1)), new, old)
+            return (*jax.tree.map(keep, stepped, (obs, env_state)), key)
+
+        obs, env_state, _ = jax.lax.fori_loop(0, limit, random_step, (obs, env_state, key))
+        return obs, env_state
 
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)

@@ -159,6 +159,19 @@ def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
+def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes():
+    """Without staggering every world starts at step 0; with it each world is a random number of
+    random steps (below the step limit) into an episode of the task, the same numbers for the same key."""
+    plain = jax.jit(_pqn(num_envs=64).init)(jax.random.key(0)).worlds.env_state.time
+    assert np.all(np.asarray(plain) == 0)
+    staggered = _pqn(num_envs=64, stagger_starts=True)
+    times = np.asarray(jax.jit(staggered.init)(jax.random.key(0)).worlds.env_state.time)
+    limit = int(staggered.env_params.max_steps_in_episode)
+    assert np.all((times >= 0) & (times < limit)) and len(np.unique(times)) > 32
+    again = np.asarray(jax.jit(staggered.init)(jax.random.key(0)).worlds.env_state.time)
+    np.testing.assert_array_equal(times, again)
+
+
 def test_two_seeds_through_the_driver_differ(tmp_path):
     from agents.driver import read_metrics, train
 
