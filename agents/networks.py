@@ -175,6 +175,32 @@ class ObsLayout:
         return parts
 
 
+class StridedConv(nn.Module):
+    """`nn.Conv(features, (3, 3), strides=(2, 2), padding="SAME")` with the same parameters, computed
+    as one matrix product over the input's 3x3 patches (cut out by strided slices).
+
+    Why: inside the learners' update loops (`lax.scan` over epochs and minibatches) XLA's CPU
+    convolution and its gradient ran about ten times slower than the same call outside a loop,
+    which made every learner about a hundred times slower on the dynamic 2D and 3D tasks than on
+    the static ones (bench/results/ppo.md). A matrix product has no such slow path."""
+
+    features: int
+    kernel: int = 3
+    stride: int = 2
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        k, s = self.kernel, self.stride
+        weight = self.param("kernel", scaled_init(np.sqrt(2)), (k, k, x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
+        out = [-(-size // s) for size in x.shape[1:3]]  # "SAME": ceil(size / stride)
+        pads = [max((o - 1) * s + k - size, 0) for o, size in zip(out, x.shape[1:3])]
+        x = jnp.pad(x, [(0, 0)] + [(p // 2, p - p // 2) for p in pads] + [(0, 0)])
+        patches = jnp.stack([x[:, i : i + (out[0] - 1) * s + 1 : s, j : j + (out[1] - 1) * s + 1 : s]
+                             for i in range(k) for j in range(k)], axis=-2)  # (N, H', W', k*k, C), the kernel's order
+        return patches.reshape(patches.shape[:3] + (-1,)) @ weight.reshape(-1, self.features) + bias
+
+
 class DesignEncoder(nn.Module):
     """Features of a dynamic task's design: a dense layer over a row of column heights, a small
     strided conv over a 2D/3D plan.
@@ -192,8 +218,8 @@ class DesignEncoder(nn.Module):
             x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x))
         else:
             x = design.reshape((-1,) + plan + (1,))
-            x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
-            x = nn.relu(nn.Conv(16, (3, 3), strides=(2, 2), kernel_init=scaled_init(np.sqrt(2)))(x))
+            x = nn.relu(StridedConv(16, name="Conv_0")(x))
+            x = nn.relu(StridedConv(16, name="Conv_1")(x))
             x = x.reshape((x.shape[0], -1))
         x = nn.relu(nn.Dense(self.features, kernel_init=scaled_init(np.sqrt(2)))(x))
         return x.reshape(lead + (self.features,))

@@ -6,7 +6,7 @@ notebook subprocesses, which inherit the environment variables). Caching every p
 compiles each once; on a cold cache it cut tests/test_dqn.py, test_train_driver.py and
 test_ppo.py from 358 s to 293 s on 2 cores. A cache hit still traces and lowers, so the
 compile-once tests, which count traces and jit cache entries, are unaffected. Set
-`JAX_COMPILATION_CACHE_DIR` to use another directory.
+`JAX_COMPILATION_CACHE_DIR` to use another directory; a whole test run leaves about 100 MB there.
 """
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / "snac-jax-tests-xla-cache"))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(1 << 30))  # least recently used entries go first
+# No eviction (-1): jax's eviction reads every entry's access-time file, and a test that kills a
+# training process mid-write can leave an entry without one, after which every cache write warns.
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", "-1")
 
 import jax  # noqa: E402  (after the variables above, which jax reads when it is imported)
 import pytest  # noqa: E402
