@@ -35,7 +35,8 @@ from flax import struct
 
 from agents.config import option
 from agents.drqn import DRQN, DRQNConfig
-from agents.networks import ObsLayout, mlp_head
+from agents.inputs import ObsLayout
+from agents.networks import mlp_head
 from agents.offpolicy import Step
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams

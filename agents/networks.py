@@ -1,11 +1,10 @@
-"""Network pieces shared by every learner: observation layout and scaling, the design encoder,
-a GRU or LSTM scanned over time with resets at episode boundaries, and the actor-critic heads.
+"""Network pieces shared by every learner: the observation and design encoders, a GRU or LSTM
+scanned over time with resets at episode boundaries, and the actor-critic and Q heads. What they
+read, and how it is scaled, is `agents.inputs.ObsLayout`.
 
 Every network takes time-major inputs `(T, B, obs_size)` with `resets (T, B)` (True where the
 observation starts a new episode) and a carry `(B, carry_size)`, and returns the new carry.
 Feed-forward networks ignore the carry (a `(B, 1)` placeholder), so one training loop serves both.
-
-Observation scaling lives here, not in the environment: raw counters reach 1300 and heights 57.
 
 Initialisers are variance-scaling ones, never orthogonal: orthogonal init inside a jit vmapped
 over seeds deadlocked on 2 CPU cores.
@@ -13,19 +12,16 @@ over seeds deadlocked on 2 CPU cores.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-from typing import Callable, Sequence
+from typing import Callable
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agents.inputs import ObsLayout
 from agents.noisy import noisy_dense
-from snac_jax.env import SNACEnv
-from snac_jax.observation import ObservationLayout
-from snac_jax.state import EnvParams
 
 
 def scaled_init(gain: float) -> nn.initializers.Initializer:
@@ -38,141 +34,6 @@ Layer = Callable[[int, float], nn.Module]  # (features, gain) -> a dense layer; 
 
 def dense(features: int, gain: float) -> nn.Module:
     return nn.Dense(features, kernel_init=scaled_init(gain))
-
-
-@dataclasses.dataclass(frozen=True)
-class ObsLayout:
-    """What a network reads: the environment's observation, laid out as `env` (the library's
-    `snac_jax.observation.ObservationLayout`) says, optionally followed by the previous step
-    (`with_previous_step`), and how to scale each part to about [-1, 1]."""
-
-    env: ObservationLayout
-    height_scale: float  # the tallest design cell (1 in 2D)
-    brick_scale: float  # the largest brick budget
-    step_scale: float  # the step limit
-    # > 0: the learner appends the previous step to the environment's observation: the window
-    # before the last action, and that action one-hot in `num_actions + 1` entries.
-    num_actions: int = 0
-
-    @classmethod
-    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> "ObsLayout":
-        return cls(
-            env=env.observation_layout,
-            height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
-            brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
-            step_scale=float(int(params.max_steps_in_episode)),
-            num_actions=env.num_actions if previous_step else 0,
-        )
-
-    @property
-    def window_shape(self) -> tuple[int, int]:
-        return self.env.window_shape
-
-    @property
-    def plan_shape(self) -> tuple[int, int]:
-        return self.env.plan_shape
-
-    @property
-    def dynamic(self) -> bool:
-        return self.env.design is not None
-
-    @property
-    def window_size(self) -> int:
-        return self.env.window_size
-
-    @property
-    def design_size(self) -> int:
-        return self.env.design_size
-
-    @property
-    def env_obs_size(self) -> int:
-        return self.env.size
-
-    @property
-    def previous_step_size(self) -> int:
-        return self.window_size + self.num_actions + 1 if self.num_actions else 0
-
-    @property
-    def obs_size(self) -> int:
-        """What the network reads: the environment's observation (+ the previous step)."""
-        return self.env_obs_size + self.previous_step_size
-
-    def with_previous_step(
-        self, obs: jax.Array, previous_obs: jax.Array, last_action: jax.Array, reset: jax.Array
-    ) -> jax.Array:
-        """Append to `obs (..., env_obs_size)` the window of `previous_obs` and the one-hot of
-        `last_action`; where `reset` (an episode's first observation) there is no previous step:
-        the window repeats the current one and the action is "none" (index `num_actions`).
-
-        Why: the robot localises by how its window shifted after a move (SPEC §11). A recurrent
-        policy that samples its actions cannot tell from its own state which one was drawn, and
-        comparing two windows is far easier side by side than through a recurrent state; each of
-        the two inputs raised recurrent PPO's score (bench/results/ppo.md).
-        """
-        if not self.num_actions:
-            return obs
-        w = self.window_size
-        previous_window = jnp.where(reset[..., None], obs[..., :w], previous_obs[..., :w])
-        last_action = jnp.where(reset, self.num_actions, last_action)
-        action = jax.nn.one_hot(last_action, self.num_actions + 1, dtype=obs.dtype)
-        return jnp.concatenate([obs, previous_window.astype(obs.dtype), action], axis=-1)
-
-    def episode_start_memory(self) -> dict[str, jax.Array]:
-        """What a `Policy` keeps between steps to build its inputs, at an episode's start (the
-        `reset` flag also zeroes a recurrent carry)."""
-        return {
-            "reset": jnp.ones((), bool),
-            "previous_obs": jnp.zeros((self.env_obs_size,), jnp.float32),
-            "last_action": jnp.zeros((), jnp.int32),
-        }
-
-    def acting_inputs(self, obs: jax.Array, memory: dict[str, jax.Array]) -> jax.Array:
-        """The network's input for one observation, given the memory of the steps before it."""
-        return self.with_previous_step(obs, memory["previous_obs"], memory["last_action"], memory["reset"])
-
-    def remember(self, obs: jax.Array, action: jax.Array) -> dict[str, jax.Array]:
-        """The memory after acting `action` on `obs`: what the next step reads as its previous one."""
-        return {"reset": jnp.zeros((), bool), "previous_obs": obs.astype(jnp.float32), "last_action": action.astype(jnp.int32)}
-
-    @property
-    def num_height_classes(self) -> int:
-        """Landmark (-2), padding (-1), heights 0..tallest, and one class for anything taller."""
-        return int(self.height_scale) + 4
-
-    def height_classes(self, cells: jax.Array) -> jax.Array:
-        """One-hot `(..., n, num_height_classes)` of raw cell values.
-
-        Why: the policy must stop dropping exactly when a column reaches its design height
-        (+10 at equality, -1 above). A scaled height puts 19 and 20 bricks 0.03 apart; a one-hot
-        makes "is it exactly 20?" one weight, and a trained PPO policy without it missed its
-        columns by ~4 bricks even at the start cell, whose position it knows.
-        """
-        index = jnp.clip(cells.astype(jnp.int32) + 2, 0, self.num_height_classes - 1)
-        return jax.nn.one_hot(index, self.num_height_classes, dtype=jnp.float32)
-
-    def split(self, obs: jax.Array) -> dict[str, jax.Array]:
-        """Scaled parts of `obs (..., obs_size)`: window (..., wr, wc), its cells one-hot
-        (..., wr * wc, classes), counters (..., 2),
-        with the switches design (..., *plan_shape) and position (..., 1 or 2), and with
-        `num_actions` the previous window (scaled and one-hot) and the last action."""
-        lead, layout = obs.shape[:-1], self.env
-        window = obs[..., layout.window]
-        parts = {
-            "window": window.reshape(lead + self.window_shape) / self.height_scale,
-            "window_classes": self.height_classes(window),
-            "counters": obs[..., layout.counters] / jnp.array([self.brick_scale, self.step_scale]),
-        }
-        if layout.design is not None:
-            parts["design"] = layout.design_cells(obs[..., : layout.size]) / self.height_scale
-        if layout.position is not None:
-            parts["position"] = obs[..., layout.position] / max(self.plan_shape)
-        w = self.window_size
-        if self.num_actions:
-            previous_window = obs[..., self.env_obs_size : self.env_obs_size + w]
-            parts["previous_window"] = previous_window.reshape(lead + self.window_shape) / self.height_scale
-            parts["previous_window_classes"] = self.height_classes(previous_window)
-            parts["last_action"] = obs[..., self.env_obs_size + w :]
-        return parts
 
 
 class StridedConv(nn.Module):
@@ -352,9 +213,6 @@ class LayerNormQNetwork(nn.Module):
 
 def param_count(params) -> int:
     return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
-
-
-__all__: Sequence[str] = ("ObsLayout", "DesignEncoder", "ObservationEncoder", "ScannedRNN", "ActorCritic", "LayerNormQNetwork", "scaled_init")
 
 
 class QNetwork(nn.Module):

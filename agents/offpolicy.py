@@ -41,7 +41,8 @@ import optax
 from flax import struct
 
 from agents.config import TrainConfig, option
-from agents.networks import ObsLayout, frames_with_history
+from agents.inputs import ObsLayout
+from agents.networks import frames_with_history
 from snac_jax.policy import Policy
 
 

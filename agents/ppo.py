@@ -29,7 +29,8 @@ import optax
 from flax import struct
 
 from agents.config import TrainConfig, option
-from agents.networks import ActorCritic, ObsLayout
+from agents.inputs import ObsLayout
+from agents.networks import ActorCritic
 from agents.targets import gae, truncation_values
 from snac_jax.policy import Policy
 

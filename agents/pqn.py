@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import optax
 
 from agents.config import TrainConfig, option
-from agents.networks import LayerNormQNetwork, ObsLayout
+from agents.inputs import ObsLayout
+from agents.networks import LayerNormQNetwork
 from agents.ppo import RunnerState, Worlds
 from agents.targets import q_lambda, truncation_values
 from snac_jax.policy import Policy

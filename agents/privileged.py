@@ -33,7 +33,8 @@ import numpy as np
 
 from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_losses, move_targets
 from agents.config import option
-from agents.networks import ActorCritic, DesignEncoder, ObservationEncoder, ObsLayout, ScannedRNN, mlp_head, scaled_init
+from agents.inputs import ObsLayout
+from agents.networks import ActorCritic, DesignEncoder, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
 from agents.ppo import PPO, PPOConfig, Transition
 from snac_jax.state import PrivilegedState
 

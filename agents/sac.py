@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import optax
 
 from agents.config import option
-from agents.networks import ObservationEncoder, ObsLayout, scaled_init
+from agents.inputs import ObsLayout
+from agents.networks import ObservationEncoder, scaled_init
 from agents.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
 from agents.targets import n_step_targets
 

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from agents.inputs import ObsLayout
 from agents.registry import config_from_json, make_config
-from agents.networks import ActorCritic, ObsLayout
+from agents.networks import ActorCritic
 from agents.ppo import PPO, PPOConfig, make_train
 from agents.targets import gae
 from snac_jax.evaluation import run_episodes

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.networks import ActorCritic, LayerNormQNetwork, ObsLayout
+from agents.inputs import ObsLayout
+from agents.networks import ActorCritic, LayerNormQNetwork
 from agents.pqn import PQN
 from agents.registry import make_config
 from agents.targets import q_lambda, truncation_values

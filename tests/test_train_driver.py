@@ -404,7 +404,7 @@ def test_a_cli_run_keeps_its_options_and_its_files_are_readable(tmp_path, capsys
     code, out, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(gif),
                            "--max-steps", "12"], capsys)
     assert code == 0, err
-    assert f"1d-static-sin, policy " in out and "final IoU" in out
+    assert "1d-static-sin, policy " in out and "final IoU" in out
     assert iio.imread(gif, index=None).shape[0] >= 2
 
 
