@@ -8,7 +8,7 @@ The replay loop (`agents.offpolicy`), epsilon-greedy acting, the replayed window
 inputs, episode boundaries, the n steps to bootstrap from) and the greedy policy are DQN's. Rainbow
 changes the network (`make_network`: noisy layers, `atoms` logits per action), the replay
 (`make_buffer`: flashbax's prioritised trajectory buffer), how Q-values are read (`q_values`: each
-action's expected return, under fresh noise when acting with a third key, `acting_scores`; from the
+action's expected return, under fresh noise for each world when acting, `acting_scores`; from the
 noise-free mean network for the greedy policy, `action_scores`) and the learning step
 (`gradient_step`: prioritised sampling, importance weights, new priorities; the optimiser step and
 target copy are the replay loop's `apply_gradients`).
@@ -126,7 +126,13 @@ class Rainbow(DQN):
         return self.q_values(params, carry, frames, resets)
 
     def acting_scores(self, params, carry, frames, resets, keys: jax.Array):
-        return self.q_values(params, carry, frames, resets, keys[0])
+        """Q-values under noise drawn for each world apart. Why: one draw for all worlds perturbs
+        every world the same way, and at sigma0 = 0.1 that rarely changes the mean network's
+        choice, so all worlds took the same action and exploration collapsed (bench/results/rainbow.md)."""
+        one_world = lambda c, f, r, key: self.q_values(params, c[None], f[:, None], r[:, None], key)
+        keys = jax.random.split(keys[0], carry.shape[0])
+        carry, q = jax.vmap(one_world, in_axes=(0, 1, 1, 0), out_axes=(0, 1))(carry, frames, resets, keys)
+        return carry[:, 0], q[:, :, 0]
 
     # --- learning ----------------------------------------------------------------------------------
 

@@ -161,6 +161,23 @@ def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     assert not np.allclose(noisy_q, agent.expected(logits))
 
 
+def test_acting_draws_noise_for_each_world_apart(trained_1d):
+    """Worlds that see the same input get different Q-values when acting (each its own noise
+    draw); each world's values are those of the network under its own key."""
+    agent, state, _ = trained_1d
+    obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+    memory = agent.policy(state.params).init(jax.random.key(0), None)
+    frames = jnp.broadcast_to(agent.layout.acting_inputs(obs, memory), (1, 4, 1, agent.layout.obs_size))
+    carry, resets, key = agent.network.initial_carry(4), jnp.ones((1, 4), bool), jax.random.key(5)
+    _, q = agent.acting_scores(state.params, carry, frames, resets, key[None])
+    assert q.shape == (1, 4, agent.env.num_actions)
+    assert not np.allclose(q[0, 0], q[0, 1]) and not np.allclose(q[0, 2], q[0, 3])
+    world_keys = jax.random.split(key, 4)
+    for world in range(4):
+        _, alone = agent.q_values(state.params, carry[:1], frames[:, :1], resets[:, :1], world_keys[world])
+        np.testing.assert_allclose(q[0, world], alone[0, 0], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
     from agents.driver import read_metrics, train
