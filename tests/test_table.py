@@ -155,6 +155,9 @@ def test_aggregation_by_hand(tmp_path):
     text = markdown({"smoke": table}, {"smoke": "test preset"})
     assert "| **ppo** (ours) | 0.600 [0.600, 0.600] |" in text and "(3 of 10 columns)" in text
     assert "| ppo | 2 | 1k–2k* |" in text
+    # The paper's row shows every column it reports (ours has no 1d-dynamic), its IQM only ours' columns.
+    assert table["paper_rows"]["ppo"]["1d-dynamic"] == 0.791 and "| ppo (paper) | 0.776 | 0.791 |" in text
+    assert table["iqm"]["ppo"]["paper_columns"] == 3 and "(ours' 3 columns)" in text
     assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
 
 

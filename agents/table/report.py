@@ -97,7 +97,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
           reps: int = statistics.DEFAULT_REPS) -> dict[str, Any]:
     """table.json's content from the copied cells (`load_raw`)."""
     paper = load_paper_results() if paper is None else paper
-    learners, iqms, seed_matrix = {}, {}, {}
+    learners, iqms, seed_matrix, paper_rows = {}, {}, {}, {}
     for algorithm, tasks in raw.items():
         row = paper_row(paper, _paper_method(algorithm))
         learners[algorithm] = {}
@@ -115,12 +115,13 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
         columns = learners[algorithm]
         if columns and len({len(v) for v in seed_matrix[algorithm]}) == 1:
             scores = np.stack(seed_matrix[algorithm], axis=1)  # (seeds, columns)
-            reported = [row.get(c, {}).get("avg") for c in PAPER_TASKS]
-            reported = [v for v in reported if v is not None]
+            # the paper's IQM over the columns ours has, so that the two compare
+            reported = [row[c]["avg"] for c in columns if row.get(c, {}).get("avg") is not None]
             iqms[algorithm] = {**statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
                                "columns": list(columns),
                                "paper_iqm": statistics.iqm(reported) if reported else None,
                                "paper_columns": len(reported)}
+        paper_rows[algorithm] = {c: row.get(c, {}).get("avg") for c in PAPER_TASKS}
     human = paper_row(paper, "human")
     hand_paper = paper_row(paper, "handcrafted")
     hand = {column: {"mean": handcrafted[column]["mean"], "ci95": None, "seeds": [handcrafted[column]["mean"]],
@@ -133,6 +134,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
         "human": {column: {"paper": human.get(column, {}).get("avg")} for column in PAPER_TASKS},
         "handcrafted": hand, "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
         "learners": learners, "iqm": iqms,
+        "paper_rows": paper_rows,  # each learner's paper row on every column (None: not reported)
     }
 
 
@@ -175,7 +177,8 @@ def _header(table: dict) -> list[str]:
         "capped to fit the preset's wall-time limit per cell on the 2-core CPU (requested budgets and their "
         "sources are in table.json).",
         "- **Paper rows**: `snac_jax/data/paper_results.json` (the paper's appendix table; — where it reports "
-        "none). The paper's IQM is over the columns it reports, one number per column.", "",
+        "none), on every column it reports. A learner's paper IQM is over the columns ours has (one number per "
+        "column), so that it compares with ours; the human and handcrafted rows' IQM is over every column they have.", "",
     ]
 
 
@@ -199,10 +202,10 @@ def _section(table: dict, description: str) -> list[str]:
                 for c in columns]
         iqm_text = "—" if not iqm else (f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
                                         + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)"))
-        paper_iqm = (f"{iqm['paper_iqm']:.3f} ({iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
+        paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
                      else "—")
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
-        lines.append(f"| {learner} (paper) | " + " | ".join(_f(cells.get(c, {}).get("paper")) for c in columns)
+        lines.append(f"| {learner} (paper) | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
                      + f" | {paper_iqm} |")
     if not table["learners"]:
         lines += ["", "No finished cells yet: `snac table --preset "
