@@ -151,8 +151,9 @@ def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer
     return layer(out, gain)(x)
 
 
-class ActorCritic(nn.Module):
-    """Policy logits and value from the observation, with an optional GRU core."""
+class RecurrentCoreNetwork(nn.Module):
+    """Fields and carry of the networks with an optional GRU core (`ActorCritic`,
+    `LayerNormQNetwork`): a feed-forward one keeps a `(B, 1)` placeholder carry."""
 
     layout: ObsLayout
     num_actions: int
@@ -165,6 +166,10 @@ class ActorCritic(nn.Module):
 
     def initial_carry(self, batch: int) -> jax.Array:
         return jnp.zeros((batch, self.carry_size), jnp.float32)
+
+
+class ActorCritic(RecurrentCoreNetwork):
+    """Policy logits and value from the observation, with an optional GRU core."""
 
     @nn.compact
     def __call__(
@@ -182,7 +187,7 @@ class ActorCritic(nn.Module):
         return carry, logits, value
 
 
-class LayerNormQNetwork(nn.Module):
+class LayerNormQNetwork(RecurrentCoreNetwork):
     """Q-values `(T, B, A)` with LayerNorm before every hidden ReLU, an optional GRU core, and a
     linear Q layer on top (as in the paper's networks); the call and the carry are `ActorCritic`'s.
 
@@ -190,18 +195,6 @@ class LayerNormQNetwork(nn.Module):
     normalisation is what keeps its bootstrapped targets from diverging (their analysis of TD
     stability).
     """
-
-    layout: ObsLayout
-    num_actions: int
-    hidden_size: int = 64
-    rnn_size: int = 0  # 0: feed-forward
-
-    @property
-    def carry_size(self) -> int:
-        return self.rnn_size if self.rnn_size else 1
-
-    def initial_carry(self, batch: int) -> jax.Array:
-        return jnp.zeros((batch, self.carry_size), jnp.float32)
 
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
