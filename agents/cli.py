@@ -215,12 +215,10 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_column, paper_row
 
-    from agents.trained import run_overrides
-
     config = algorithm.config
     if counts is None:
         counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
-    overrides = run_overrides(config)  # scored on the episodes it trained on
+    overrides = config.env_overrides  # scored on the episodes it trained on
     if overrides:
         print(f"evaluated with the run's training settings {overrides} (the protocol's numbers assume the task's own)",
               file=sys.stderr)

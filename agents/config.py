@@ -116,6 +116,9 @@ class TrainConfig:
     max_steps: int = option(0, "episode step limit for training; 0 keeps the task's", low=0, high=2**31 - 1)
     rollout_steps: int = option(64, "steps per world between learning phases", low=1)
     previous_step: bool = option(True, "the network also reads the previous window and its last action")
+    switches: str = option("", "environment switches for training and evaluation, comma-separated key=value "
+                               "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=...; "
+                               "SPEC §9), as in the paper's ablations; empty: the task as defined")
 
     @property
     def steps_per_update(self) -> int:
@@ -134,16 +137,28 @@ class TrainConfig:
         if self.num_updates > MAX_UPDATES:
             raise ValueError(f"total_steps {self.total_steps:,} makes {self.num_updates:,} updates of {self.steps_per_update:,} "
                              f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)")
+        if self.switches:
+            from snac_jax.tasks import make
+
+            make(self.task, **self.env_overrides)  # every value checked by make, before anything is traced
         self.check()
 
     def check(self) -> None:
         """Rules that relate several fields (each field alone is checked from its declaration)."""
 
+    @property
+    def env_overrides(self) -> dict[str, Any]:
+        """The `snac_jax.make` overrides the run trains and is scored with: its switches and its
+        step limit, when it set them."""
+        from snac_jax.tasks import parse_switches
+
+        return {**parse_switches(self.switches), **({"max_steps": self.max_steps} if self.max_steps else {})}
+
     def make_env(self):
         """The training environment `(env, params)` of this config."""
         from snac_jax.tasks import make
 
-        return make(self.task, **({"max_steps": self.max_steps} if self.max_steps else {}))
+        return make(self.task, **self.env_overrides)
 
     def to_json(self) -> dict[str, Any]:
         return {"algorithm": self.algorithm, **dataclasses.asdict(self)}

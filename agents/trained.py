@@ -47,15 +47,10 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
 def checkpoint_builder(directory: str | Path):
     """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
     of its algorithm, the make overrides it trained with)`. The 1D static shapes are scored on the
-    shape the run trained on; a run trained with `max_steps` is scored on episodes that long."""
+    shape the run trained on; a run trained with switches or `max_steps` is scored with them."""
     config = read_config(directory)
 
     def builder(env, **options):
         return checkpoint_policy(env, directory, **options)
 
-    return builder, config.task, getattr(config, "paper_method", config.algorithm), run_overrides(config)
-
-
-def run_overrides(config) -> dict:
-    """The `snac_jax.make` overrides a run trained with (its step limit, when it set one)."""
-    return {"max_steps": config.max_steps} if config.max_steps else {}
+    return builder, config.task, getattr(config, "paper_method", config.algorithm), config.env_overrides

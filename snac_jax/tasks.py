@@ -68,6 +68,48 @@ OVERRIDES = {
     "design_seed": "int in 0..2**32-1, the seed of the design bank (dynamic tasks; default 0)",
 }
 
+SWITCHES = ("gps", "stride_probs", "obstacles", "landmarks", "reward_scheme")
+"""The overrides a training run may carry as text (`parse_switches`): the paper's ablation switches
+and the reward scheme. The step limit and the design bank are not among them: a training config
+has an option of its own for the step limit, and the bank is the task's."""
+
+
+def parse_switches(text: str) -> dict[str, Any]:
+    """`"gps=true,stride_probs=1/0/0"` -> `{"gps": True, "stride_probs": (1.0, 0.0, 0.0)}`.
+
+    Why text: a training config holds scalars (its fields become CLI flags and config.json
+    entries), so the switches of an ablation travel as one string. A value is `true`/`false`, an
+    integer, numbers joined by `/` (a tuple), or a word. The keys are checked here (`SWITCHES`),
+    the values by `make`. The empty string is no switches."""
+    if not isinstance(text, str):
+        raise ValueError(f"switches must be a string of comma-separated key=value pairs, got {text!r}")
+    switches: dict[str, Any] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, value = (s.strip() for s in item.partition("="))
+        if not sep or not value:
+            raise ValueError(f"switch {item!r} must be key=value; allowed keys: {', '.join(SWITCHES)}")
+        if key not in SWITCHES:
+            raise ValueError(f"unknown switch {key!r}; allowed: {', '.join(SWITCHES)}")
+        if key in switches:
+            raise ValueError(f"switch {key!r} is given twice in {text!r}")
+        switches[key] = _switch_value(value)
+    return switches
+
+
+def _switch_value(value: str) -> Any:
+    if value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    if "/" in value:
+        try:
+            return tuple(float(v) for v in value.split("/"))
+        except ValueError:
+            raise ValueError(f"{value!r}: numbers joined by '/' expected") from None
+    try:
+        return int(value)
+    except ValueError:
+        return value
+
+
 MAX_INT32 = 2**31 - 1
 """Step counts are int32 on device."""
 MAX_SEED = 2**32 - 1

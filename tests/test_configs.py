@@ -1,6 +1,7 @@
 """Configurations: every tuned (algorithm, task) resolves to the values it had when the tuned
 table moved into `agents/tuned/*.toml` (tests/data/resolved_configs.json, dumped from the code
-before the move), and bad values are refused from the fields' declarations."""
+before the move; options added since appear there with their defaults), and bad values are refused
+from the fields' declarations."""
 
 from __future__ import annotations
 
@@ -78,6 +79,23 @@ def test_cross_field_rules_and_unknown_names():
         make_config("a2c", "1d-static-sin")
     with pytest.raises(ValueError, match="unknown task"):
         make_config("dqn", "4d-static")
+
+
+def test_switches_reach_the_training_env_and_the_evaluation_and_are_checked_up_front():
+    config = make_config("drqn", "2d-static-dense", switches="gps=true,stride_probs=1/0/0", max_steps=50)
+    assert config.env_overrides == {"gps": True, "stride_probs": (1.0, 0.0, 0.0), "max_steps": 50}
+    env, params = config.make_env()
+    plain, plain_params = make_config("drqn", "2d-static-dense").make_env()
+    size = lambda env, params: env.observation_space(params).shape[0]
+    assert env.config.gps and size(env, params) == size(plain, plain_params) + 2 and params.max_steps_in_episode == 50
+    assert config_from_json(config.to_json()) == config
+    # A run's config.json from before the option existed loads with the task as defined.
+    old = {k: v for k, v in make_config("drqn", "2d-static-dense").to_json().items() if k != "switches"}
+    assert config_from_json(old).env_overrides == {}
+    with pytest.raises(ValueError, match="landmarks need a 2D or 3D task"):
+        make_config("ppo", "1d-static-sin", switches="landmarks=4")
+    with pytest.raises(ValueError, match="unknown switch 'gpss'"):
+        make_config("ppo", "1d-static-sin", switches="gpss=true")
 
 
 def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):

@@ -123,3 +123,27 @@ def test_3d_reward_scheme_changes_rewards_only():
 def test_max_steps_override_truncates():
     _, _, (_, (*_, trunc, _, _)) = _run("1d-static-sin", steps=100, max_steps=30)
     assert np.flatnonzero(trunc).tolist() == [29, 59, 89]
+
+
+def test_switches_as_text_parse_to_make_overrides():
+    from snac_jax.tasks import parse_switches
+
+    assert parse_switches("") == {}
+    assert parse_switches("gps=true, stride_probs=1/0/0,landmarks=8,obstacles=False,reward_scheme=height") == {
+        "gps": True, "stride_probs": (1.0, 0.0, 0.0), "landmarks": 8, "obstacles": False, "reward_scheme": "height"}
+    env, _ = make("2d-static-dense", **parse_switches("obstacles=true,landmarks=8"))
+    assert env.config.obstacles and env.config.num_landmarks == 8
+
+
+@pytest.mark.parametrize("text, message", [
+    ("gps", r"switch 'gps' must be key=value; allowed keys: gps, stride_probs, obstacles, landmarks, reward_scheme"),
+    ("max_steps=10", r"unknown switch 'max_steps'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme"),
+    ("gps=true,gps=false", "switch 'gps' is given twice"),
+    ("stride_probs=1/a/0", "numbers joined by '/' expected"),
+    (None, "switches must be a string"),
+])
+def test_bad_switch_text_is_refused(text, message):
+    from snac_jax.tasks import parse_switches
+
+    with pytest.raises(ValueError, match=message):
+        parse_switches(text)

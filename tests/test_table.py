@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from agents.table import statistics
-from agents.table.plan import TRAIN_SEED, expand_tasks, format_plan, load_presets, make_plan
+from agents.table import ablation, statistics
+from agents.table.plan import TRAIN_SEED, Variant, expand_tasks, format_plan, load_presets, make_plan
 from agents.table.report import build, markdown
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 
@@ -117,6 +118,16 @@ def test_bootstrap_intervals():
         statistics.stratified_bootstrap_ci([0.1, np.nan])
 
 
+def test_difference_intervals_by_hand():
+    # Constant arms: the difference is exact.
+    assert statistics.difference_summary([0.5, 0.5], [0.2, 0.2]) == {"delta": pytest.approx(0.3),
+                                                                      "ci95": [pytest.approx(0.3)] * 2}
+    # Arm seeds 0 and 1 against a constant base 0: resampled differences 0, 0.5, 1 with
+    # probabilities 1/4, 1/2, 1/4, so the 2.5th and 97.5th percentiles are 0 and 1.
+    assert statistics.difference_summary([0.0, 1.0], [0.0, 0.0, 0.0]) == {"delta": 0.5, "ci95": [0.0, 1.0]}
+    assert statistics.difference_summary([0.4, 0.6], [0.7, 0.9])["delta"] == pytest.approx(-0.3)
+
+
 # --- aggregation ---------------------------------------------------------------------------------
 
 
@@ -159,6 +170,45 @@ def test_aggregation_by_hand(tmp_path):
     assert table["paper_rows"]["ppo"]["1d-dynamic"] == 0.791 and "| ppo (paper) | 0.776 | 0.791 |" in text
     assert table["iqm"]["ppo"]["paper_columns"] == 3 and "(ours' 3 columns)" in text
     assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
+
+
+def _arm(task: str, arm: str, paper_arm: str, switches: str, means: list[float]) -> dict:
+    files = _files("drqn", task, means, 1000)
+    files["cell"].update(task=task, variant=arm, paper_variant=paper_arm, switches=switches)
+    return files
+
+
+def test_ablation_preset_has_every_arm_of_the_papers_table():
+    preset = PRESETS["ablation"]
+    paper = json.loads((Path(__file__).parents[1] / "snac_jax" / "data" / "paper_results.json").read_text())["ablation_drqn"]
+    arms = {task: {v.paper for v in preset.variants if task in v.tasks} for task in preset.tasks}
+    assert arms == {task: set(paper[task]) - {"source"} for task in paper if task != "source"}
+    assert preset.algorithms == ("drqn",) and preset.seeds >= 3
+    cells = make_plan(preset, ["drqn"], ["2d-static-sparse"], None, Path("unused"), rates={})
+    assert [c.directory.name for c in cells] == ["2d-static-sparse.base", "2d-static-sparse.gps",
+                                                 "2d-static-sparse.no-uncertainty", "2d-static-sparse.obstacles",
+                                                 "2d-static-sparse.landmarks"]
+    assert cells[0].config.switches == "" and cells[3].config.env_overrides == {"obstacles": True}
+    assert cells[1].record()["paper_variant"] == "+gps" and cells[1].budget.requested == 10_000 * 600
+
+
+def test_ablation_report_by_hand():
+    raw = {"drqn": {
+        "2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5, 0.7]),
+        "2d-static-dense.gps": _arm("2d-static-dense", "gps", "+gps", "gps=true", [0.8, 0.8]),
+        "3d-static-dense.no-obstacles": _arm("3d-static-dense", "no-obstacles", "-obstacle", "obstacles=false", [0.4]),
+    }}
+    table = ablation.build(raw, arms=["base", "gps", "no-obstacles"], preset="ablation", reps=2000)
+    dense = table["ablation"]["drqn"]["2d-static-dense"]
+    assert list(dense) == ["base", "gps"] and dense["base"]["paper"] == 0.772 and "delta" not in dense["base"]
+    # gps: 0.8 - mean(0.5, 0.7); the base's resampled means are 0.5, 0.6, 0.7 -> differences 0.3 .. 0.1.
+    assert dense["gps"]["delta"] == {"delta": pytest.approx(0.2), "ci95": [pytest.approx(0.1), pytest.approx(0.3)]}
+    assert dense["gps"]["paper"] == 0.079  # the paper's change from its base
+    assert table["ablation"]["drqn"]["3d-static-dense"]["no-obstacles"]["delta"] is None  # no base cell yet
+    text = "\n".join(ablation.section(table, "test"))
+    assert "| drqn | 2d-static-dense | gps (+gps) | `gps=true` | 0.800 [0.800, 0.800] | +0.200 [+0.100, +0.300] | +0.079 | 1k |" in text
+    assert "| drqn | 2d-static-dense | base (base) | `—` | 0.600 [0.500, 0.700] | — | 0.772 | 1k |" in text
+    assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
 
 
 # --- the smoke preset, end to end ----------------------------------------------------------------
@@ -207,3 +257,28 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert copied == [f"table/smoke/ppo/{t}/{f}" for t in ("1d-static-gauss", "1d-static-sin")
                       for f in ("cell.json", "config.json", "eval.json")]
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
+
+
+@pytest.mark.slow  # three tiny trainings and six evaluations
+def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_path):
+    import dataclasses
+
+    from agents.table import run as table_run
+    from agents.table.report import write_report
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
+            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
+            Variant(name="no-uncertainty", paper="-uncertainty", switches="stride_probs=1/0/0", tasks=("1d-static-sin",)))
+    preset = dataclasses.replace(PRESETS["smoke"], name="ablation", variants=arms)
+    cells = make_plan(preset, ["ppo"], ["1d-static-sin"], None, runs)
+    assert table_run.run_cells(cells, progress=False) == 3
+    stored = json.loads((runs / "ablation" / "ppo" / "1d-static-sin.gps" / "config.json").read_text())
+    assert stored["switches"] == "gps=true"
+    assert make_plan(preset, ["ppo"], ["1d-static-sin"], None, runs)[1].status == "done"
+
+    paths = write_report("ablation", runs, results, reps=200)
+    table = json.loads(paths["json"].read_text())["ablation"]
+    rows = table["ablation"]["ppo"]["1d-static-sin"]
+    assert list(rows) == ["base", "gps", "no-uncertainty"] and rows["gps"]["delta"] is not None
+    assert "png:ablation" not in paths and "| ppo | 1d-static-sin | gps (+gps) | `gps=true` |" in paths["md"].read_text()

@@ -4,6 +4,7 @@ in one resumable command.
     snac table --preset paper --dry-run          # the plan and its estimated wall time
     snac table --preset paper                    # run it (again: finished cells are skipped)
     snac table --preset paper --report           # bench/results/table.md, table.json, table-paper.png
+    snac table --preset ablation                 # the paper's DRQN ablation: one switch at a time
 
 Plugged into the `snac` command through the `snac_jax.commands` entry point (pyproject.toml).
 Presets: `agents/table/budgets.toml`; measured rates for the estimates: `agents/table/rates.json`.
@@ -44,9 +45,9 @@ def add_parser(subparsers) -> None:
                         help="budget preset (" + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
                         + f"), from {BUDGETS_FILE.name}")
     parser.add_argument("--algorithms", nargs="+", default=None, metavar="ALGORITHM", choices=list(ALGORITHMS),
-                        help=f"default: every registered one ({', '.join(ALGORITHMS)})")
+                        help=f"default: the preset's, else every registered one ({', '.join(ALGORITHMS)})")
     parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK", type=_task,
-                        help=f"paper columns (default all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
+                        help=f"paper columns (default: the preset's, else all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
                              "or environment task ids")
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
     parser.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS_DIR,
@@ -69,8 +70,8 @@ def plan_from_args(args: argparse.Namespace):
     from snac_jax.paper import PAPER_TASKS
 
     preset = load_presets()[args.preset]
-    algorithms = args.algorithms or list(ALGORITHMS)
-    return make_plan(preset, algorithms, args.tasks or list(PAPER_TASKS), args.seeds, args.runs_dir)
+    algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
+    return make_plan(preset, algorithms, args.tasks or list(preset.tasks or PAPER_TASKS), args.seeds, args.runs_dir)
 
 
 def run(args: argparse.Namespace) -> int:

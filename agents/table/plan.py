@@ -19,11 +19,11 @@ from typing import Any
 
 from agents import checkpoint
 from agents.config import TrainConfig
-from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
+from agents.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_table
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
-from snac_jax.tasks import TASKS, task_spec
+from snac_jax.tasks import TASKS, parse_switches, task_spec
 
 HERE = Path(__file__).parent
 BUDGETS_FILE = HERE / "budgets.toml"
@@ -35,7 +35,18 @@ TRAIN_SEED = 1
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
 
 _PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settings", "static_episodes",
-                "episodes_per_test_design"}
+                "episodes_per_test_design", "algorithms", "tasks", "variants"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One arm of an ablation preset: the environment switches its cells train and are scored
+    with (`TrainConfig.switches`), the tasks it runs on, and its name in the paper's table."""
+
+    name: str
+    paper: str
+    switches: str
+    tasks: tuple[str, ...]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +61,9 @@ class Preset:
     settings: dict[str, Any]
     static_episodes: int = STATIC_EPISODES
     episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN
+    algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
+    tasks: tuple[str, ...] | None = None
+    variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -77,8 +91,19 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             settings=table.get("settings", {}),
             static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
             episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
+            algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
+            tasks=tuple(table["tasks"]) if "tasks" in table else None,
+            variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
         )
     return presets
+
+
+def _variant(path, preset: str, name: str, table: dict) -> Variant:
+    if set(table) != {"paper", "switches", "tasks"}:
+        raise ValueError(f"{path}: [{preset}.variants.{name}] must give exactly paper, switches and tasks")
+    parse_switches(table["switches"])
+    expand_tasks(table["tasks"])
+    return Variant(name=name, paper=table["paper"], switches=table["switches"], tasks=tuple(table["tasks"]))
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:
@@ -182,9 +207,10 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     return config.total_steps, f"{preset.name}: {why}"
 
 
-def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict) -> tuple[TrainConfig, Budget]:
+def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict,
+                switches: str = "") -> tuple[TrainConfig, Budget]:
     """The config a cell trains and its budget (capped to the preset's wall limit)."""
-    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED}
+    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, **({"switches": switches} if switches else {})}
     config = make_config(algorithm, task, **overrides)
     requested, source = requested_budget(preset, config)
     steps, capped = requested, False
@@ -218,6 +244,7 @@ class Cell:
     estimate_s: float | None = None
     estimate_from: str = ""
     metrics: list[dict] = dataclasses.field(default_factory=list)  # a started run's metrics.jsonl
+    variant: Variant | None = None  # an ablation preset's arm; its cell's directory is <task>.<arm>
 
     @property
     def total_steps(self) -> int:
@@ -226,9 +253,11 @@ class Cell:
 
     def record(self) -> dict[str, Any]:
         """cell.json: what the table needs beside config.json and eval.json."""
+        arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
+                                                "switches": self.variant.switches}
         return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
                 "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
-                "protocol": self.preset.protocol}
+                "protocol": self.preset.protocol, **arm}
 
 
 def expected_episodes(task: str, protocol: dict[str, int]) -> int:
@@ -250,7 +279,7 @@ def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int
 
 
 def _check_same_config(cell: Cell) -> None:
-    stored = json.loads((cell.directory / checkpoint.CONFIG_FILE).read_text())
+    stored = config_from_json(json.loads((cell.directory / checkpoint.CONFIG_FILE).read_text())).to_json()
     wanted = cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
     if differ:
@@ -303,7 +332,8 @@ def estimate(cell: Cell, rates: dict) -> None:
 
 def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: str | Path,
               rates: dict | None = None) -> list[Cell]:
-    """Every cell of the grid (algorithms x tasks), with its config, budget, status and estimate."""
+    """Every cell of the grid (algorithms x tasks, x an ablation's arms), with its config, budget,
+    status and estimate."""
     rates = load_rates() if rates is None else rates
     for algorithm in algorithms:
         if algorithm not in ALGORITHMS:
@@ -313,12 +343,14 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     cells = []
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
-            config, budget = cell_config(preset, algorithm, task, seeds, rates)
-            cell = Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget, preset=preset,
-                        directory=Path(runs_dir) / preset.name / algorithm / task)
-            cell_state(cell)
-            estimate(cell, rates)
-            cells.append(cell)
+            for variant in [v for v in preset.variants if task in v.tasks] if preset.variants else [None]:
+                config, budget = cell_config(preset, algorithm, task, seeds, rates, variant.switches if variant else "")
+                name = task if variant is None else f"{task}.{variant.name}"
+                cells.append(Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget,
+                                  preset=preset, directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant))
+    for cell in cells:
+        cell_state(cell)
+        estimate(cell, rates)
     return cells
 
 
@@ -336,13 +368,14 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
     if not cells:
         return "nothing to run"
     preset = cells[0].preset
+    width = max(18, *(len(c.directory.name) for c in cells))
     limit = "" if preset.wall_limit_s is None else f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
     lines = [f"snac table, preset {preset.name!r}: {preset.description}{limit}",
              f"{len(cells)} cells, {cells[0].config.seeds} seeds each (vmapped), under {Path(runs_dir) / preset.name}/", "",
-             f"{'algorithm':<10} {'task':<18} {'env steps/seed':>24} {'status':<9} {'estimate':>13}  estimate from"]
+             f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'status':<9} {'estimate':>13}  estimate from"]
     for c in cells:
         status = c.status if c.status != "partial" else f"{c.done_steps / max(c.total_steps, 1):.0%} done"
-        lines.append(f"{c.algorithm:<10} {c.task:<18} {c.budget.describe():>24} {status:<9} "
+        lines.append(f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {status:<9} "
                      f"{duration(c.estimate_s):>13}  {c.estimate_from}")
     lines += ["", "budgets:"]
     for source in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells):

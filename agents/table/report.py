@@ -1,10 +1,11 @@
 """`snac table --report`: the benchmark table from the finished cells.
 
 Each finished cell's small JSON files (`config.json`, `eval.json`, `cell.json`; never
-checkpoints) are copied from the runs directory to `bench/results/table/<preset>/<algorithm>/<task>/`,
+checkpoints) are copied from the runs directory to `bench/results/table/<preset>/<algorithm>/<task>/`
+(`agents.table.raw`),
 and the table is computed from those copies only, so it can be rebuilt from the repository:
 `bench/results/table.md` and `table.json` (every preset found there, one section each) and
-`table-<preset>.png`.
+`table-<preset>.png`. An ablation preset's section is `agents.table.ablation`'s.
 
 A column's per-seed value is that seed's protocol mean on the task; for `1d-static`, the mean
 over the three shapes of the same seed index. A cell shows the mean over seeds with its 95%
@@ -15,76 +16,23 @@ stratified bootstrap interval (`agents.table.statistics`).
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from agents import checkpoint
-from agents.table import statistics
-from agents.table.plan import CELL_FILE, EVAL_FILE, TRAIN_SEED, eval_is_valid, expected_episodes, load_presets
+from agents.table import ablation, statistics
+from agents.table.plan import TRAIN_SEED, load_presets
+from agents.table.raw import budget_record, budget_text, collect, load_raw, seed_means
 from snac_jax.atomic import atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
 
-RAW_FILES = (checkpoint.CONFIG_FILE, EVAL_FILE, CELL_FILE)
 BOOTSTRAP_SEED = 0
-
-
-def _finished(directory: Path) -> bool:
-    try:
-        config = json.loads((directory / checkpoint.CONFIG_FILE).read_text())
-        cell = json.loads((directory / CELL_FILE).read_text())
-    except (OSError, ValueError):
-        return False
-    episodes = expected_episodes(cell["task"], cell["protocol"])
-    return eval_is_valid(directory / EVAL_FILE, config["seeds"], episodes, seed=cell["eval_seed"])
-
-
-def collect(runs_dir: str | Path, results_dir: str | Path, preset: str) -> list[Path]:
-    """Copy every finished cell's JSON files under `results_dir/table/<preset>/`; returns the
-    cells copied."""
-    source, target = Path(runs_dir) / preset, Path(results_dir) / "table" / preset
-    copied = []
-    for directory in sorted(p.parent for p in source.glob(f"*/*/{EVAL_FILE}")):
-        if not _finished(directory):
-            continue
-        destination = target / directory.relative_to(source)
-        destination.mkdir(parents=True, exist_ok=True)
-        for name in RAW_FILES:
-            shutil.copyfile(directory / name, destination / name)
-        copied.append(destination)
-    return copied
-
-
-def load_raw(results_dir: str | Path, preset: str) -> dict[str, dict[str, dict]]:
-    """algorithm -> task -> {"config", "eval", "cell"} of the copied cells."""
-    raw: dict[str, dict[str, dict]] = {}
-    for directory in sorted(p.parent for p in (Path(results_dir) / "table" / preset).glob(f"*/*/{EVAL_FILE}")):
-        if _finished(directory):
-            files = {name.split(".")[0]: json.loads((directory / name).read_text()) for name in RAW_FILES}
-            raw.setdefault(directory.parent.name, {})[directory.name] = files
-    return raw
-
-
-def seed_means(files: dict) -> list[float]:
-    """Per-seed protocol means of one cell, in seed order (eval.json keeps it)."""
-    return [float(r["mean"]) for r in files["eval"].values()]
 
 
 def _column_tasks(column: str) -> tuple[str, ...]:
     return PAPER_GROUPS.get(column, (column,))
-
-
-def _budget(cells: list[dict]) -> dict[str, Any]:
-    budgets = [c["cell"]["budget"] for c in cells]
-    return {
-        "env_steps_per_seed": {c["config"]["task"]: c["config"]["total_steps"] for c in cells},
-        "requested_per_seed": {c["config"]["task"]: b["requested"] for c, b in zip(cells, budgets)},
-        "capped": any(b["capped"] for b in budgets),
-        "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
-    }
 
 
 def _paper_method(algorithm: str) -> str | None:
@@ -110,7 +58,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
                 raise ValueError(f"{algorithm} {column}: its tasks have different seed counts {[len(v) for v in per_task]}")
             values = np.mean(per_task, axis=0)
             learners[algorithm][column] = {**statistics.cell_summary(values, reps=reps, seed=BOOTSTRAP_SEED),
-                                           "budget": _budget(cells), "paper": row.get(column, {}).get("avg")}
+                                           "budget": budget_record(cells), "paper": row.get(column, {}).get("avg")}
             seed_matrix.setdefault(algorithm, []).append(values)
         columns = learners[algorithm]
         if columns and len({len(v) for v in seed_matrix[algorithm]}) == 1:
@@ -142,19 +90,9 @@ def _f(value, digits: int = 3) -> str:
     return "—" if value is None else f"{value:.{digits}f}"
 
 
-def _steps(n: int) -> str:
-    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k"
-
-
-def _budget_text(budget: dict) -> str:
-    steps = sorted(set(budget["env_steps_per_seed"].values()))
-    text = _steps(steps[0]) if len(steps) == 1 else f"{_steps(steps[0])}–{_steps(steps[-1])}"
-    return text + ("*" if budget["capped"] else "")
-
-
 def _header(table: dict) -> list[str]:
     """What every preset's section shares: how the numbers were made, which keys scored them."""
-    hand_keys = ", ".join(map(str, table["handcrafted_eval_seeds"])) or "—"
+    hand_keys = ", ".join(map(str, table.get("handcrafted_eval_seeds", []))) or "—"
     return [
         "# The benchmark table", "",
         "Generated by `snac table --report` from the raw results under `bench/results/table/<preset>/` (each "
@@ -216,16 +154,17 @@ def _section(table: dict, description: str) -> list[str]:
     for learner, cells in table["learners"].items():
         seeds = sorted({len(v["seeds"]) for v in cells.values()})
         lines.append(f"| {learner} | {', '.join(map(str, seeds))} | "
-                     + " | ".join(_budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns) + " |")
+                     + " | ".join(budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns) + " |")
     return lines + [""]
 
 
 def markdown(tables: dict[str, dict], descriptions: dict[str, str] | None = None) -> str:
     """table.md: the shared header, then one section per preset."""
     descriptions = descriptions or {}
-    lines = _header(next(iter(tables.values())))
+    lines = _header(next((t for t in tables.values() if t.get("kind") != "ablation"), next(iter(tables.values()))))
     for name, table in tables.items():
-        lines += _section(table, descriptions.get(name, ""))
+        write = ablation.section if table.get("kind") == "ablation" else _section
+        lines += write(table, descriptions.get(name, ""))
     return "\n".join(lines)
 
 
@@ -284,12 +223,16 @@ def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
                    key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
     hand_path = results_dir / "handcrafted.json"
     handcrafted = json.loads(hand_path.read_text()) if hand_path.is_file() else None
-    tables = {name: build(load_raw(results_dir, name), handcrafted=handcrafted, preset=name, reps=reps)
-              for name in found or [preset]}
+    tables = {}
+    for name in found or [preset]:
+        raw, arms = load_raw(results_dir, name), [v.name for v in presets[name].variants] if name in presets else []
+        tables[name] = (ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED) if arms
+                        else build(raw, handcrafted=handcrafted, preset=name, reps=reps))
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
     atomic_write_json(paths["json"], tables)
     for name, table in tables.items():
-        paths[f"png:{name}"] = results_dir / f"table-{name}.png"
-        figure(table, paths[f"png:{name}"])
+        if table.get("kind") != "ablation":
+            paths[f"png:{name}"] = results_dir / f"table-{name}.png"
+            figure(table, paths[f"png:{name}"])
     return paths

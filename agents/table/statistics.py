@@ -93,3 +93,17 @@ def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
         "tasks": scores.shape[1],
         "runs": scores.shape[0],
     }
+
+
+def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+    """An ablation's effect: the mean over seeds of `scores` minus that of `baseline`, with the
+    95% percentile interval of the difference when each side's seeds are resampled on their own
+    (the two arms are separate runs, so nothing pairs seed i of one with seed i of the other)."""
+    scores, baseline = _as_runs_by_tasks(scores)[:, 0], _as_runs_by_tasks(baseline)[:, 0]
+    if reps < 1:
+        raise ValueError(f"reps must be >= 1, got {reps}")
+    rng = np.random.default_rng(seed)
+    resampled = (scores[rng.integers(0, len(scores), size=(reps, len(scores)))].mean(axis=1)
+                 - baseline[rng.integers(0, len(baseline), size=(reps, len(baseline)))].mean(axis=1))
+    low, high = np.percentile(resampled, [2.5, 97.5])
+    return {"delta": float(scores.mean() - baseline.mean()), "ci95": [float(low), float(high)]}

@@ -1,0 +1,77 @@
+"""The ablation section of `snac table --report`: an ablation preset's arms (`budgets.toml`,
+`variants`) against its base arm, beside the paper's ablation table.
+
+The paper reports its DRQN ablation as the base IoU and, for each switch, the change from it
+(`paper_results.json`, "ablation_drqn"). Ours is the same shape: each arm's mean over seeds with
+its 95% bootstrap interval across seeds, and for every arm but the base, its difference from the
+base with the interval of that difference (`statistics.difference_summary`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from agents.table import statistics
+from agents.table.plan import TRAIN_SEED
+from agents.table.raw import budget_record, budget_text, seed_means
+from snac_jax.evaluation import REPORT_EVAL_SEED
+from snac_jax.paper import load_paper_results
+
+BASE = "base"
+PAPER_TABLE = "ablation_drqn"
+
+
+def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str = "", reps: int = statistics.DEFAULT_REPS,
+          bootstrap_seed: int = 0) -> dict[str, Any]:
+    """table.json's section of an ablation preset from its copied cells (`raw.load_raw`); `arms`:
+    the preset's arm names in the order the table lists them."""
+    paper = (load_paper_results() if paper is None else paper).get(PAPER_TABLE, {})
+    learners: dict[str, dict] = {}
+    for algorithm, cells in raw.items():
+        by_task: dict[str, dict[str, dict]] = {}
+        for files in cells.values():
+            by_task.setdefault(files["cell"]["task"], {})[files["cell"]["variant"]] = files
+        for task, found in by_task.items():
+            base = found.get(BASE)
+            rows = {}
+            for arm in sorted(found, key=arms.index):
+                files, scores = found[arm], seed_means(found[arm])
+                paper_arm = paper.get(task, {}).get(files["cell"]["paper_variant"], {})
+                row = {**statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
+                       "paper_variant": files["cell"]["paper_variant"], "switches": files["cell"]["switches"],
+                       "budget": budget_record([files]), "paper": paper_arm.get("avg")}
+                if arm != BASE:  # the paper's value of an arm is its change from the base
+                    row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
+                                    if base is not None else None)
+                rows[arm] = row
+            learners.setdefault(algorithm, {})[task] = rows
+    return {"preset": preset, "kind": "ablation", "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
+            "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
+            "ablation": learners}
+
+
+def _interval(value: float, ci: list[float], signed: bool = False) -> str:
+    sign = "+" if signed else ""
+    return f"{value:{sign}.3f} [{ci[0]:{sign}.3f}, {ci[1]:{sign}.3f}]"
+
+
+def section(table: dict, description: str) -> list[str]:
+    """table.md's section of an ablation preset."""
+    lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
+             "Each arm trains and is scored with its switches (SPEC §9). The paper's value of the base arm is its "
+             "IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
+             "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
+             "resampled on their own).", ""]
+    if not table["ablation"]:
+        return lines + [f"No finished cells yet: `snac table --preset {table['preset']} --dry-run` shows the plan.", ""]
+    lines += ["| learner | task | arm (paper's name) | switches | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
+              "|---|---|---|---|---:|---:|---:|---:|"]
+    for learner, tasks in table["ablation"].items():
+        for task, rows in tasks.items():
+            for arm, row in rows.items():
+                ours = _interval(row["mean"], row["ci95"])
+                delta = "—" if row.get("delta") is None else _interval(row["delta"]["delta"], row["delta"]["ci95"], True)
+                paper = "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
+                lines.append(f"| {learner} | {task} | {arm} ({row['paper_variant']}) | `{row['switches'] or '—'}` | {ours} | "
+                             f"{delta} | {paper} | {budget_text(row['budget'])} |")
+    return lines + [""]
