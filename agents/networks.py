@@ -237,9 +237,11 @@ class QNetwork(nn.Module):
         return jnp.zeros((batch, self.carry_size), jnp.float32)
 
     @nn.compact
-    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False):
-        """`noise`: the noisy layers draw their noise (rng "noise"); otherwise they are their mean."""
-        layer = noisy_dense(self.sigma0, noise) if self.noisy else dense
+    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False,
+                 noise_per_world: bool = False):
+        """`noise`: the noisy layers draw their noise (rng "noise"), one draw for the batch or, with
+        `noise_per_world`, one per (step, world); otherwise they are their mean."""
+        layer = noisy_dense(self.sigma0, noise, noise_per_world) if self.noisy else dense
         x = ObservationEncoder(self.layout, self.hidden_size)(frames, layer)  # (T, B, k, H)
         if frames.shape[-2] > 1:
             x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))

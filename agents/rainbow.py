@@ -106,20 +106,24 @@ class Rainbow(DQN):
 
     # --- the network -------------------------------------------------------------------------------
 
-    def logits(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None):
-        """`(carry, logits (T, B, A, atoms))`; with `key` the noisy layers draw fresh noise from it,
-        without it they are their mean."""
+    def logits(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None,
+               per_world: bool = False):
+        """`(carry, logits (T, B, A, atoms))`; with `key` the noisy layers draw fresh noise from it
+        (one draw for the batch, or with `per_world` one per step and world), without it they are
+        their mean."""
         if key is None or not self.config.noisy:
             return self.network.apply(params, carry, frames, resets)
-        return self.network.apply(params, carry, frames, resets, noise=True, rngs={"noise": key})
+        return self.network.apply(params, carry, frames, resets, noise=True, noise_per_world=per_world,
+                                  rngs={"noise": key})
 
     def expected(self, logits: jax.Array) -> jax.Array:
         """Each action's expected return under its predicted distribution."""
         return (jax.nn.softmax(logits) * self.support).sum(axis=-1)
 
-    def q_values(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None):
+    def q_values(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None,
+                 per_world: bool = False):
         """`(carry, Q-values (T, B, A))`; `key` draws a noisy network's noise, None: its mean (greedy)."""
-        carry, logits = self.logits(params, carry, frames, resets, key)
+        carry, logits = self.logits(params, carry, frames, resets, key, per_world)
         return carry, self.expected(logits)
 
     def action_scores(self, params, carry, frames, resets):
@@ -128,11 +132,8 @@ class Rainbow(DQN):
     def acting_scores(self, params, carry, frames, resets, keys: jax.Array):
         """Q-values under noise drawn for each world apart. Why: one draw for all worlds perturbs
         every world the same way, and at sigma0 = 0.1 that rarely changes the mean network's
-        choice, so all worlds took the same action and exploration collapsed (bench/results/rainbow.md)."""
-        one_world = lambda c, f, r, key: self.q_values(params, c[None], f[:, None], r[:, None], key)
-        keys = jax.random.split(keys[0], carry.shape[0])
-        carry, q = jax.vmap(one_world, in_axes=(0, 1, 1, 0), out_axes=(0, 1))(carry, frames, resets, keys)
-        return carry[:, 0], q[:, :, 0]
+        choice, so all worlds took the same action (bench/results/rainbow.md)."""
+        return self.q_values(params, carry, frames, resets, keys[0], per_world=True)
 
     # --- learning ----------------------------------------------------------------------------------
 

@@ -122,6 +122,27 @@ def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
     np.testing.assert_allclose(draws.mean(0)[0], mean[0], atol=0.05)
 
 
+def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
+    layer = NoisyDense(6, sigma0=0.5)
+    params = {"params": layer.init(jax.random.key(0), jnp.ones((1, 1, 4)))["params"]}
+    params["params"]["sigma_bias"] = jnp.linspace(0.1, 0.6, 6)  # away from the init, so the bias noise shows
+    shared, per_row = NoisyDense(6, sigma0=0.5, noise=True), NoisyDense(6, sigma0=0.5, noise=True, per_row=True)
+    # One row, same key: the same draws, so x (mu + sigma e_in e_out^T) + mu_b + sigma_b e_out computed as
+    # one kernel and as x mu + ((x e_in) sigma + sigma_b) e_out must agree.
+    x = jax.random.normal(jax.random.key(1), (1, 1, 4))
+    rngs = {"noise": jax.random.key(2)}
+    np.testing.assert_allclose(per_row.apply(params, x, rngs=rngs), shared.apply(params, x, rngs=rngs), rtol=1e-5, atol=1e-6)
+    # Identical rows (3 steps x 4 worlds, with an axis in between as the frame stack has): each
+    # (step, world) draws its own noise, broadcast over the axis in between.
+    x = jnp.ones((3, 4, 2, 4))
+    out = per_row.apply(params, x, rngs=rngs)
+    assert out.shape == (3, 4, 2, 6)
+    assert len({tuple(np.round(np.asarray(r), 6)) for r in out[:, :, 0].reshape(12, 6)}) == 12
+    np.testing.assert_array_equal(out[:, :, 0], out[:, :, 1])
+    draws = per_row.apply(params, jnp.ones((1, 4000, 4)), rngs=rngs)
+    np.testing.assert_allclose(draws[0].mean(0), layer.apply(params, jnp.ones((1, 1, 4)))[0, 0], atol=0.05)
+
+
 # --- runs ----------------------------------------------------------------------------------------------
 
 
@@ -163,7 +184,7 @@ def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
 
 def test_acting_draws_noise_for_each_world_apart(trained_1d):
     """Worlds that see the same input get different Q-values when acting (each its own noise
-    draw); each world's values are those of the network under its own key."""
+    draw); one world alone gets the values of the network under the batch's one draw."""
     agent, state, _ = trained_1d
     obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
     memory = agent.policy(state.params).init(jax.random.key(0), None)
@@ -172,10 +193,11 @@ def test_acting_draws_noise_for_each_world_apart(trained_1d):
     _, q = agent.acting_scores(state.params, carry, frames, resets, key[None])
     assert q.shape == (1, 4, agent.env.num_actions)
     assert not np.allclose(q[0, 0], q[0, 1]) and not np.allclose(q[0, 2], q[0, 3])
-    world_keys = jax.random.split(key, 4)
-    for world in range(4):
-        _, alone = agent.q_values(state.params, carry[:1], frames[:, :1], resets[:, :1], world_keys[world])
-        np.testing.assert_allclose(q[0, world], alone[0, 0], rtol=1e-5, atol=1e-6)
+    _, mean = agent.q_values(state.params, carry, frames, resets)
+    assert not np.allclose(q, mean)
+    _, one = agent.acting_scores(state.params, carry[:1], frames[:, :1], resets[:, :1], key[None])
+    _, shared = agent.q_values(state.params, carry[:1], frames[:, :1], resets[:, :1], key)
+    np.testing.assert_allclose(one, shared, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
