@@ -117,7 +117,7 @@ class TrainConfig:
     rollout_steps: int = option(64, "steps per world between learning phases", low=1)
     previous_step: bool = option(True, "the network also reads the previous window and its last action")
     switches: str = option("", "environment switches for training and evaluation, comma-separated key=value "
-                               "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=...; "
+                               "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=height|binary; "
                                "SPEC §9), as in the paper's ablations; empty: the task as defined")
 
     @property

@@ -39,6 +39,8 @@ class NoisyDense(nn.Module):
         sigma_bias = self.param("sigma_bias", sigma, (self.features,))
         if not self.noise:
             return x @ kernel + bias
+        if self.per_row and x.ndim < 3:
+            raise ValueError(f"per_row noise needs inputs (time, batch, ..., features), got shape {x.shape}")
         key_in, key_out = jax.random.split(self.make_rng("noise"))
         scale = lambda e: jnp.sign(e) * jnp.sqrt(jnp.abs(e))
         rows = x.shape[:2] + (1,) * (x.ndim - 3) if self.per_row else ()  # broadcast over any axes between

@@ -92,18 +92,18 @@ def parse_switches(text: str) -> dict[str, Any]:
             raise ValueError(f"unknown switch {key!r}; allowed: {', '.join(SWITCHES)}")
         if key in switches:
             raise ValueError(f"switch {key!r} is given twice in {text!r}")
-        switches[key] = _switch_value(value)
+        switches[key] = _switch_value(key, value)
     return switches
 
 
-def _switch_value(value: str) -> Any:
+def _switch_value(key: str, value: str) -> Any:
     if value.lower() in ("true", "false"):
         return value.lower() == "true"
     if "/" in value:
         try:
             return tuple(float(v) for v in value.split("/"))
         except ValueError:
-            raise ValueError(f"{value!r}: numbers joined by '/' expected") from None
+            raise ValueError(f"switch {key}={value!r}: numbers joined by '/' expected") from None
     try:
         return int(value)
     except ValueError:

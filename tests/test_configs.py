@@ -1,8 +1,7 @@
 """Configurations: every tuned (algorithm, task) resolves to the values it had when the tuned
 table moved into `agents/tuned/*.toml` (tests/data/resolved_configs.json, dumped from the code
-before the move; later deliberate changes, new options with their defaults and re-tuned entries, are
-made there with them), and bad values are refused
-from the fields' declarations."""
+before the move; later deliberate changes, new options with their defaults and re-tuned entries,
+are made there with them), and bad values are refused from the fields' declarations."""
 
 from __future__ import annotations
 

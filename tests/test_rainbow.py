@@ -139,6 +139,8 @@ def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
     assert out.shape == (3, 4, 2, 6)
     assert len({tuple(np.round(np.asarray(r), 6)) for r in out[:, :, 0].reshape(12, 6)}) == 12
     np.testing.assert_array_equal(out[:, :, 0], out[:, :, 1])
+    with pytest.raises(ValueError, match="per_row noise needs inputs"):
+        per_row.apply(params, jnp.ones((4, 4)), rngs=rngs)
     draws = per_row.apply(params, jnp.ones((1, 4000, 4)), rngs=rngs)
     np.testing.assert_allclose(draws[0].mean(0), layer.apply(params, jnp.ones((1, 1, 4)))[0, 0], atol=0.05)
 

@@ -211,6 +211,31 @@ def test_ablation_report_by_hand():
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
 
 
+def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only():
+    raw = {"drqn": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5]),
+                    "2d-static-dense.renamed": _arm("2d-static-dense", "renamed", "+gps", "gps=true", [0.7])},
+           "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])}}
+    assert ablation.is_ablation(raw) and not ablation.is_ablation({"ppo": {"1d-dynamic": _files("ppo", "1d-dynamic", [0.5], 10)}})
+    table = ablation.build(raw, arms=["base", "gps"], reps=200)
+    assert list(table["ablation"]["drqn"]["2d-static-dense"]) == ["base", "renamed"]  # an arm budgets.toml lost
+    assert table["ablation"]["drqn"]["2d-static-dense"]["renamed"]["paper"] == 0.079
+    assert table["ablation"]["ppo"]["2d-static-dense"]["base"]["paper"] is None  # the paper ablated DRQN
+
+
+def test_ablation_presets_are_checked_when_loaded(tmp_path):
+    base = '[a]\nseeds = 1\n[a.variants.base]\npaper = "base"\nswitches = ""\ntasks = ["1d-static"]\n'
+    (tmp_path / "ok.toml").write_text(base)
+    assert load_presets(tmp_path / "ok.toml")["a"].variants[0].tasks == ("1d-static-sin", "1d-static-gauss", "1d-static-step")
+    (tmp_path / "nobase.toml").write_text(base.replace("variants.base", "variants.gps"))
+    with pytest.raises(ValueError, match="needs an arm named base"):
+        load_presets(tmp_path / "nobase.toml")
+    (tmp_path / "bad.toml").write_text(base.replace('switches = ""', 'switches = "gpss=true"'))
+    with pytest.raises(ValueError, match=r"\[a.variants.base\]: unknown switch 'gpss'"):
+        load_presets(tmp_path / "bad.toml")
+    with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
+        make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
+
+
 # --- the smoke preset, end to end ----------------------------------------------------------------
 
 

@@ -408,6 +408,29 @@ def test_a_cli_run_keeps_its_options_and_its_files_are_readable(tmp_path, capsys
     assert iio.imread(gif, index=None).shape[0] >= 2
 
 
+@pytest.mark.slow  # a tiny 2D run, then eval and render of its checkpoint
+def test_a_run_with_switches_is_scored_and_drawn_with_them(tmp_path, capsys):
+    """A run trained with `--switches gps=true` (one more input per step) is evaluated, re-scored
+    from its checkpoint and rendered in a world with gps; a world without it is refused by name."""
+    from snac_jax import make
+
+    run = tmp_path / "run"
+    code, out, err = _cli(["train", "ppo", "--task", "2d-static-dense", "--total-steps", "256", "--chunks", "1",
+                           *TINY_FLAGS, "--switches", "gps=true", "--max-steps", "20", "--eval-episodes", "2",
+                           "--out", str(run)], capsys)
+    assert code == 0, err
+    assert "{'gps': True, 'max_steps': 20}" in err
+    code, out, err = _cli(["eval", "--checkpoint", str(run), "--episodes", "2"], capsys)
+    assert code == 0, err
+    assert "'gps': True" in err and "| 2d-static-dense | 2 |" in out
+    code, out, err = _cli(["render", "--task", "2d-static-dense", "--checkpoint", str(run), "--out",
+                           str(tmp_path / "run.gif"), "--max-steps", "6"], capsys)
+    assert code == 0, err
+    env, _ = make("2d-static-dense")
+    with pytest.raises(ValueError, match="trained with switches 'gps=true'; build the env with them"):
+        trained.checkpoint_policy(env, run)
+
+
 KILLER = textwrap.dedent(
     """
     import json, os, pathlib, signal, sys

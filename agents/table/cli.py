@@ -51,7 +51,8 @@ def add_parser(subparsers) -> None:
                              "or environment task ids")
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
     parser.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS_DIR,
-                        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/ (default {DEFAULT_RUNS_DIR})")
+                        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
+                             f"(default {DEFAULT_RUNS_DIR})")
     parser.add_argument("--dry-run", action="store_true", help="print the plan with estimated wall times and stop")
     parser.add_argument("--report", action="store_true",
                         help="copy the finished cells' JSON files under RESULTS_DIR/table/<preset>/ and write "

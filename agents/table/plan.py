@@ -19,7 +19,7 @@ from typing import Any
 
 from agents import checkpoint
 from agents.config import TrainConfig
-from agents.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_table
+from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
@@ -40,8 +40,7 @@ _PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settin
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
-    """One arm of an ablation preset: the environment switches its cells train and are scored
-    with (`TrainConfig.switches`), the tasks it runs on, and its name in the paper's table."""
+    """An ablation's arm: the switches its cells train and are scored with, its tasks, its paper name."""
 
     name: str
     paper: str
@@ -95,15 +94,21 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
             variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
         )
+        if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
+            raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
     return presets
 
 
 def _variant(path, preset: str, name: str, table: dict) -> Variant:
+    where = f"{path}: [{preset}.variants.{name}]"
     if set(table) != {"paper", "switches", "tasks"}:
-        raise ValueError(f"{path}: [{preset}.variants.{name}] must give exactly paper, switches and tasks")
-    parse_switches(table["switches"])
-    expand_tasks(table["tasks"])
-    return Variant(name=name, paper=table["paper"], switches=table["switches"], tasks=tuple(table["tasks"]))
+        raise ValueError(f"{where} must give exactly paper, switches and tasks")
+    try:
+        parse_switches(table["switches"])
+        tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
+    except ValueError as error:
+        raise ValueError(f"{where}: {error}") from None
+    return Variant(name=name, paper=table["paper"], switches=table["switches"], tasks=tasks)
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:
@@ -279,7 +284,7 @@ def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int
 
 
 def _check_same_config(cell: Cell) -> None:
-    stored = config_from_json(json.loads((cell.directory / checkpoint.CONFIG_FILE).read_text())).to_json()
+    stored = checkpoint.read_config(cell.directory).to_json()
     wanted = cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
     if differ:
@@ -348,6 +353,9 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
                 name = task if variant is None else f"{task}.{variant.name}"
                 cells.append(Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget,
                                   preset=preset, directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant))
+    if preset.variants and not cells:
+        arms = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
+        raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {arms}")
     for cell in cells:
         cell_state(cell)
         estimate(cell, rates)

@@ -226,8 +226,8 @@ def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
     tables = {}
     for name in found or [preset]:
         raw, arms = load_raw(results_dir, name), [v.name for v in presets[name].variants] if name in presets else []
-        tables[name] = (ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED) if arms
-                        else build(raw, handcrafted=handcrafted, preset=name, reps=reps))
+        tables[name] = (ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED)
+                        if arms or ablation.is_ablation(raw) else build(raw, handcrafted=handcrafted, preset=name, reps=reps))
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
     atomic_write_json(paths["json"], tables)

@@ -79,21 +79,21 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
-    env, params = make(args.task, **overrides)
-    one_frame = frame_bytes(env, params, args.cell)
-    memory.require(f"one frame at --cell {args.cell}", one_frame, "lower --cell")
     try:
-        if args.checkpoint is None:
-            policy = build_policy(name, env)
-        else:
+        if args.checkpoint is not None:
             from snac_jax.plugins import checkpoint_loader
 
-            builder, run_task, *_ = checkpoint_loader()(args.checkpoint)
+            builder, run_task, _, *rest = checkpoint_loader()(args.checkpoint)
             if run_task != args.task:
                 raise ValueError(f"it was trained on {run_task!r}, not {args.task!r}")
-            policy = builder(env)
+            # the run's switches (its observation and rules); the length is --max-steps'
+            overrides = {**{k: v for k, v in (rest[0] if rest else {}).items() if k != "max_steps"}, **overrides}
+        env, params = make(args.task, **overrides)
+        policy = build_policy(name, env) if args.checkpoint is None else builder(env)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
+    one_frame = frame_bytes(env, params, args.cell)
+    memory.require(f"one frame at --cell {args.cell}", one_frame, "lower --cell")
 
     start = time.perf_counter()
     trajectory = record_episode(env, params, policy, jax.random.key(args.seed))
