@@ -138,9 +138,7 @@ class TrainConfig:
             raise ValueError(f"total_steps {self.total_steps:,} makes {self.num_updates:,} updates of {self.steps_per_update:,} "
                              f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)")
         if self.switches:
-            from snac_jax.tasks import make
-
-            make(self.task, **self.env_overrides)  # every value checked by make, before anything is traced
+            self.env_config()  # every switch value checked by make, before anything is traced
         self.check()
 
     def check(self) -> None:
@@ -153,6 +151,15 @@ class TrainConfig:
         from snac_jax.tasks import parse_switches
 
         return {**parse_switches(self.switches), **({"max_steps": self.max_steps} if self.max_steps else {})}
+
+    def env_config(self):
+        """The static `EnvConfig` (observation, action table, rules) the run's switches give: what a
+        world must match for this run's policy. Built by `make`, which checks every value; a dynamic
+        task is pinned to one test design, so no training bank is drawn (`make_env` draws it)."""
+        from snac_jax.tasks import make, parse_switches, task_spec
+
+        pin = {"test_design": 0} if task_spec(self.task).dynamic else {}
+        return make(self.task, **parse_switches(self.switches), **pin)[0].config
 
     def make_env(self):
         """The training environment `(env, params)` of this config."""

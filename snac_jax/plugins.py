@@ -5,8 +5,9 @@ pyproject.toml a `train` subcommand (group `snac_jax.commands`: a module with
 `add_parser(subparsers)`) and a loader of trained policies (group `snac_jax.checkpoint_loaders`:
 `loader(run_directory) -> (builder(env, **options) -> Policy, the run's task, its paper row,
 the `make` overrides the run trained with)`, the last optional), and `snac eval --checkpoint` /
-`snac render --checkpoint` reach them here by name. The overrides (a training step limit) are
-applied when the run is evaluated, so it is scored on the episodes it learned.
+`snac render --checkpoint` reach them here by name (`load_checkpoint`). The overrides (the
+switches and step limit a run trained with) are applied when the run is evaluated, so it is
+scored in the world and on the episodes it learned.
 """
 
 from __future__ import annotations
@@ -31,3 +32,10 @@ def checkpoint_loader() -> Callable:
         raise ValueError(f"no package provides a checkpoint loader (entry point group {CHECKPOINT_LOADERS!r}); "
                          "install the project with `pip install -e .`, which includes the agents")
     return loaders[0].load()
+
+
+def load_checkpoint(directory) -> tuple[Callable, str, str, dict[str, Any]]:
+    """`(builder(env, **options) -> Policy, the run's task, its paper row, its make overrides)` of
+    run `directory`, through the installed loader (overrides `{}` where the loader gives none)."""
+    builder, task, paper_method, *rest = checkpoint_loader()(directory)
+    return builder, task, paper_method, (rest[0] if rest else {})

@@ -215,7 +215,7 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
 def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict,
                 switches: str = "") -> tuple[TrainConfig, Budget]:
     """The config a cell trains and its budget (capped to the preset's wall limit)."""
-    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, **({"switches": switches} if switches else {})}
+    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, "switches": switches}
     config = make_config(algorithm, task, **overrides)
     requested, source = requested_budget(preset, config)
     steps, capped = requested, False

@@ -97,8 +97,9 @@ def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
 
 def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
     """An ablation's effect: the mean over seeds of `scores` minus that of `baseline`, with the
-    95% percentile interval of the difference when each side's seeds are resampled on their own
-    (the two arms are separate runs, so nothing pairs seed i of one with seed i of the other)."""
+    95% percentile interval of the difference when each side's seeds are resampled on their own.
+    No pairing is assumed: the arms share training seeds, but in different worlds they diverge
+    from the first step."""
     scores, baseline = _as_runs_by_tasks(scores)[:, 0], _as_runs_by_tasks(baseline)[:, 0]
     if reps < 1:
         raise ValueError(f"reps must be >= 1, got {reps}")

@@ -92,15 +92,14 @@ def run(args: argparse.Namespace) -> int:
         print(human_report(args.human, paper_results=args.paper_results))
         return 0
     if args.checkpoint is not None:
-        from snac_jax.plugins import checkpoint_loader
+        from snac_jax.plugins import load_checkpoint
 
-        builder, run_task, method, *rest = checkpoint_loader()(args.checkpoint)
+        builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint)
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:
             raise ValueError(f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
                              f"{', '.join(others)} (leave out --task to evaluate it on its own)")
-        run_overrides = rest[0] if rest else {}
         policy_name = f"checkpoint {args.checkpoint}"
     else:
         builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy

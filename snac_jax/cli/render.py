@@ -81,13 +81,13 @@ def run(args: argparse.Namespace) -> int:
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
     try:
         if args.checkpoint is not None:
-            from snac_jax.plugins import checkpoint_loader
+            from snac_jax.plugins import load_checkpoint
 
-            builder, run_task, _, *rest = checkpoint_loader()(args.checkpoint)
+            builder, run_task, _, run_overrides = load_checkpoint(args.checkpoint)
             if run_task != args.task:
                 raise ValueError(f"it was trained on {run_task!r}, not {args.task!r}")
             # the run's switches (its observation and rules); the length is --max-steps'
-            overrides = {**{k: v for k, v in (rest[0] if rest else {}).items() if k != "max_steps"}, **overrides}
+            overrides = {**{k: v for k, v in run_overrides.items() if k != "max_steps"}, **overrides}
         env, params = make(args.task, **overrides)
         policy = build_policy(name, env) if args.checkpoint is None else builder(env)
     except (ValueError, FileNotFoundError) as error:
