@@ -13,7 +13,7 @@ compile included.
 On a shared CPU the wall-clock rate says more about the other processes than about the
 learner, while the CPU-time rate (env steps per CPU-second) barely moves. So when rates.json
 already holds an idle machine's rate for the algorithm on `--reference` (an entry copied from a
-results page, without `load_avg`), the reference is measured in the same run and every entry's
+results page, without `load_avg`) measured with as many seeds as `--seeds`, the reference is measured in the same run and every entry's
 `steps_per_s` is its CPU-time rate times the reference's idle wall rate over its CPU-time rate
 (how many cores the learner keeps busy when it has the machine). Without such a reference,
 `--cores N` takes the CPU-time rate times N, and otherwise `steps_per_s` is the wall-clock
@@ -112,7 +112,9 @@ def main() -> None:
         rates = json.loads(RATES_FILE.read_text()) if RATES_FILE.is_file() else {}
         idle = rates.get(algorithm, {}).get(args.reference)
         reference = None
-        if idle is not None and "load_avg" not in idle:
+        # An idle rate calibrates only a measurement with as many vmapped seeds: more seeds keep
+        # more of the cores busy, so another seed count's ratio would mis-scale the CPU-time rate.
+        if idle is not None and "load_avg" not in idle and idle.get("seeds", 1) == args.seeds:
             ref = measure(algorithm, args.reference, args.chunk_steps, args.repeats, args.seeds, False)
             reference = {"idle_steps_per_s": idle["steps_per_s"], "cpu_steps_per_s": ref["cpu_steps_per_s"]}
             print(json.dumps({"algorithm": algorithm, "reference": args.reference, **ref}), flush=True)
