@@ -67,6 +67,17 @@ def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: in
     return entry
 
 
+def idle_reference(rates: dict, algorithm: str, task: str, seeds: int) -> dict | None:
+    """The rates.json entry that may calibrate a measurement of `seeds` vmapped seeds: an idle
+    machine's rate (no `load_avg`) of `algorithm` on `task` with as many seeds. Why the seed
+    count must match: more seeds keep more of the cores busy, so another count's wall-over-CPU
+    ratio would mis-scale the CPU-time rate."""
+    entry = rates.get(algorithm, {}).get(task)
+    if entry is None or "load_avg" in entry or entry.get("seeds", 1) != seeds:
+        return None
+    return entry
+
+
 def calibrated(entry: dict, reference: dict | None, reference_task: str, cores: float | None = None) -> dict:
     """`steps_per_s` of a measured entry: CPU-time rate x the idle reference's cores in use (or
     x `cores` without a reference), else the wall-clock rate."""
@@ -110,11 +121,9 @@ def main() -> None:
     devices.use_cpu_devices(1)  # as `snac table` trains on a CPU
     for algorithm in args.algorithms:
         rates = json.loads(RATES_FILE.read_text()) if RATES_FILE.is_file() else {}
-        idle = rates.get(algorithm, {}).get(args.reference)
+        idle = idle_reference(rates, algorithm, args.reference, args.seeds)
         reference = None
-        # An idle rate calibrates only a measurement with as many vmapped seeds: more seeds keep
-        # more of the cores busy, so another seed count's ratio would mis-scale the CPU-time rate.
-        if idle is not None and "load_avg" not in idle and idle.get("seeds", 1) == args.seeds:
+        if idle is not None:
             ref = measure(algorithm, args.reference, args.chunk_steps, args.repeats, args.seeds, False)
             reference = {"idle_steps_per_s": idle["steps_per_s"], "cpu_steps_per_s": ref["cpu_steps_per_s"]}
             print(json.dumps({"algorithm": algorithm, "reference": args.reference, **ref}), flush=True)
