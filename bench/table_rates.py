@@ -27,9 +27,9 @@ import json
 import math
 import os
 import time
-from pathlib import Path
 
-RATES_FILE = Path(__file__).resolve().parents[1] / "agents" / "table" / "rates.json"
+from agents.table.rates import RATES_FILE
+
 
 
 def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: int, evaluate: bool) -> dict:

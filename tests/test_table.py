@@ -65,6 +65,27 @@ def test_paper_budgets_estimates_and_caps(tmp_path):
     assert "x the step limit (1D: 750)" in text
 
 
+def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, monkeypatch):
+    from agents import checkpoint
+    from agents.config import save_config
+
+    slow = {"drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
+    [cell] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path, slow)
+    assert cell.budget.env_steps == 1_700_000 and cell.budget.capped
+    cell.directory.mkdir(parents=True)
+    save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
+    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0)  # as if a chunk were saved
+
+    # Re-measured twice as fast: a new cell would get 3.5M, the started one keeps its 1.7M.
+    faster = {"drqn": {"1d-static-sin": {"steps_per_s": 6_000, "eval_s": 10.0}}}
+    [resumed] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path, faster)
+    assert resumed.status == "partial" and resumed.config.total_steps == 1_700_000
+    assert resumed.budget.env_steps == 1_700_000 and resumed.budget.capped and resumed.budget.requested == 7_500_000
+    # Any other setting that differs still refuses the directory.
+    with pytest.raises(ValueError, match="holds a run made with other settings"):
+        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path, faster)
+
+
 def test_evaluation_estimates_scale_with_the_episodes():
     from agents.table.plan import eval_seconds
 

@@ -20,6 +20,7 @@ from typing import Any
 from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
+from agents.table.rates import load_rates, measured
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
@@ -27,7 +28,6 @@ from snac_jax.tasks import TASKS, parse_switches, task_spec
 
 HERE = Path(__file__).parent
 BUDGETS_FILE = HERE / "budgets.toml"
-RATES_FILE = HERE / "rates.json"
 CELL_FILE = "cell.json"
 EVAL_FILE = "eval.json"
 TRAIN_SEED = 1
@@ -127,29 +127,6 @@ def expand_tasks(names) -> list[tuple[str, str]]:
 
 
 # --- rates and estimates -------------------------------------------------------------------------
-
-
-def load_rates(path: str | Path = RATES_FILE) -> dict[str, dict[str, dict]]:
-    path = Path(path)
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
-def _kin(task: str) -> list[str]:
-    """Tasks whose measured rate stands in for `task`'s, nearest first: itself, the same
-    dimension and kind (static / dynamic), then the same dimension."""
-    spec = task_spec(task)
-    same_kind = [t for t in TASKS if t != task and task_spec(t).dim == spec.dim and task_spec(t).dynamic == spec.dynamic]
-    same_dim = [t for t in TASKS if t not in same_kind and t != task and task_spec(t).dim == spec.dim]
-    return [task, *same_kind, *same_dim]
-
-
-def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float, str] | None:
-    """`(value, the task whose entry gave it)` of `field` for `algorithm`: the nearest kin's entry."""
-    entries = rates.get(algorithm, {})
-    for kin in _kin(task):
-        if field in entries.get(kin, {}):
-            return float(entries[kin][field]), kin
-    return None
 
 
 def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
@@ -284,10 +261,17 @@ def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int
 
 
 def _check_same_config(cell: Cell) -> None:
-    stored = checkpoint.read_config(cell.directory).to_json()
-    wanted = cell.config.to_json()
+    """A started run must have the cell's settings, except a wall-capped budget: a cap is an
+    estimate from rates.json, so a run started under another one keeps its own budget (adopted
+    here), and re-measured rates never strand a started cell."""
+    config = checkpoint.read_config(cell.directory)
+    stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
-    if differ:
+    if differ == ["total_steps"] and cell.preset.wall_limit_s is not None and config.total_steps <= cell.budget.requested:
+        cell.config = config
+        cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
+                                          capped=config.total_steps < cell.budget.requested)
+    elif differ:
         changes = ", ".join(f"{k}: {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in differ)
         raise ValueError(f"{cell.directory} holds a run made with other settings ({changes}); "
                          "choose another --runs-dir or remove that directory")
