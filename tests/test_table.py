@@ -235,12 +235,14 @@ def test_ablation_report_by_hand():
 def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only():
     raw = {"drqn": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5]),
                     "2d-static-dense.renamed": _arm("2d-static-dense", "renamed", "+gps", "gps=true", [0.7])},
-           "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])}}
+           "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])},
+           "drqn-aux": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.6])}}
     assert ablation.is_ablation(raw) and not ablation.is_ablation({"ppo": {"1d-dynamic": _files("ppo", "1d-dynamic", [0.5], 10)}})
     table = ablation.build(raw, arms=["base", "gps"], reps=200)
     assert list(table["ablation"]["drqn"]["2d-static-dense"]) == ["base", "renamed"]  # an arm budgets.toml lost
     assert table["ablation"]["drqn"]["2d-static-dense"]["renamed"]["paper"] == 0.079
     assert table["ablation"]["ppo"]["2d-static-dense"]["base"]["paper"] is None  # the paper ablated DRQN
+    assert table["ablation"]["drqn-aux"]["2d-static-dense"]["base"]["paper"] is None  # DRQN's paper row, another learner
 
 
 def test_ablation_presets_are_checked_when_loaded(tmp_path):

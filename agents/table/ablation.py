@@ -32,13 +32,11 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
     """table.json's section of an ablation preset from its copied cells (`raw.load_raw`); `arms`:
     the preset's arm names in the order the table lists them (arms it does not name follow, by
     name). The paper's values stand beside the learner it ablated (DRQN) only."""
-    from agents.registry import ALGORITHMS, config_class
-
     paper = (load_paper_results() if paper is None else paper).get(PAPER_TABLE, {})
     order = lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
     learners: dict[str, dict] = {}
     for algorithm, cells in raw.items():
-        ablated = algorithm in ALGORITHMS and config_class(algorithm).paper_method == PAPER_LEARNER
+        ablated = algorithm == PAPER_LEARNER  # not drqn-aux, which shares DRQN's paper row but is another learner
         by_task: dict[str, dict[str, dict]] = {}
         for files in cells.values():
             by_task.setdefault(files["cell"]["task"], {})[files["cell"]["variant"]] = files
