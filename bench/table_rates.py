@@ -13,11 +13,11 @@ compile included.
 On a shared CPU the wall-clock rate says more about the other processes than about the
 learner, while the CPU-time rate (env steps per CPU-second) barely moves. So when rates.json
 already holds an idle machine's rate for the algorithm on `--reference` (an entry copied from a
-results page, without `load_avg`) measured with as many seeds as `--seeds`, the reference is measured in the same run and every entry's
-`steps_per_s` is its CPU-time rate times the reference's idle wall rate over its CPU-time rate
-(how many cores the learner keeps busy when it has the machine). Without such a reference,
-`--cores N` takes the CPU-time rate times N, and otherwise `steps_per_s` is the wall-clock
-rate, with the load average beside it.
+results page, without `load_avg`) with as many seeds as `--seeds`, the reference is measured in
+the same run and every entry's `steps_per_s` is its CPU-time rate times the reference's idle wall
+rate over its CPU-time rate (how many cores the learner keeps busy when it has the machine).
+Without such a reference, `--cores N` takes the CPU-time rate times N, and otherwise
+`steps_per_s` is the wall-clock rate, with the load average beside it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import math
 import os
 import time
 
-from agents.table.rates import RATES_FILE
+from agents.table.rates import RATES_FILE, load_rates
 
 
 
@@ -120,7 +120,7 @@ def main() -> None:
 
     devices.use_cpu_devices(1)  # as `snac table` trains on a CPU
     for algorithm in args.algorithms:
-        rates = json.loads(RATES_FILE.read_text()) if RATES_FILE.is_file() else {}
+        rates = load_rates()
         idle = idle_reference(rates, algorithm, args.reference, args.seeds)
         reference = None
         if idle is not None:
@@ -132,7 +132,7 @@ def main() -> None:
                                reference, args.reference, args.cores)
             print(json.dumps({"algorithm": algorithm, "task": task, **entry}), flush=True)
             if args.write:
-                rates = json.loads(RATES_FILE.read_text()) if RATES_FILE.is_file() else {}
+                rates = load_rates()
                 old = rates.setdefault(algorithm, {}).get(task, {})
                 if "load_avg" not in old and "steps_per_s" in old:  # keep an idle machine's figure
                     entry = {**old, **{k: v for k, v in entry.items() if k.startswith("eval")}}

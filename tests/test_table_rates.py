@@ -33,10 +33,8 @@ def test_calibration_scales_the_cpu_rate_by_the_reference_cores_in_use():
 
 
 def test_every_committed_rate_is_positive_and_names_where_it_came_from():
-    import json
+    from agents.table.rates import load_rates
 
-    from bench.table_rates import RATES_FILE
-
-    for algorithm, tasks in json.loads(RATES_FILE.read_text()).items():
+    for algorithm, tasks in load_rates().items():
         for task, entry in tasks.items():
             assert entry["steps_per_s"] > 0 and entry.get("seeds", 1) >= 1 and entry["source"], (algorithm, task)

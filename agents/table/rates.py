@@ -16,7 +16,7 @@ def load_rates(path: str | Path = RATES_FILE) -> dict[str, dict[str, dict]]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def kin(task: str) -> list[str]:
+def _kin(task: str) -> list[str]:
     """Tasks whose measured rate stands in for `task`'s, nearest first: itself, the same
     dimension and kind (static / dynamic), then the same dimension."""
     spec = task_spec(task)
@@ -28,7 +28,7 @@ def kin(task: str) -> list[str]:
 def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float, str] | None:
     """`(value, the task whose entry gave it)` of `field` for `algorithm`: the nearest kin's entry."""
     entries = rates.get(algorithm, {})
-    for near in kin(task):
+    for near in _kin(task):
         if field in entries.get(near, {}):
             return float(entries[near][field]), near
     return None
