@@ -98,6 +98,17 @@ def calibrated(entry: dict, reference: dict | None, reference_task: str, cores: 
     return entry
 
 
+def merged(old: dict, entry: dict) -> dict:
+    """What `--write` stores for a task that already has `old`: an idle machine's rate (no
+    `load_avg`) outlives any measurement under load, and a run without `--eval` keeps the
+    protocol time measured before (the rate and the evaluation time are measured separately)."""
+    if "load_avg" not in old and "steps_per_s" in old:
+        return {**old, **{k: v for k, v in entry.items() if k.startswith("eval")}}
+    if "eval_s" in old and "eval_s" not in entry:
+        return {**entry, "eval_s": old["eval_s"]}
+    return entry
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algorithms", nargs="+", required=True)
@@ -133,10 +144,7 @@ def main() -> None:
             print(json.dumps({"algorithm": algorithm, "task": task, **entry}), flush=True)
             if args.write:
                 rates = load_rates()
-                old = rates.setdefault(algorithm, {}).get(task, {})
-                if "load_avg" not in old and "steps_per_s" in old:  # keep an idle machine's figure
-                    entry = {**old, **{k: v for k, v in entry.items() if k.startswith("eval")}}
-                rates[algorithm][task] = entry
+                rates.setdefault(algorithm, {})[task] = merged(rates[algorithm].get(task, {}), entry)
                 atomic_write_text(RATES_FILE, json.dumps(rates, indent=1, sort_keys=True) + "\n")
 
 

@@ -1,6 +1,6 @@
 """`bench/table_rates.py`: which measured rate `snac table --dry-run` estimates from."""
 
-from bench.table_rates import calibrated, idle_reference
+from bench.table_rates import calibrated, idle_reference, merged
 
 IDLE_ONE_SEED = {"steps_per_s": 72_000, "seeds": 1, "source": "a results page"}
 RATES = {
@@ -38,3 +38,13 @@ def test_every_committed_rate_is_positive_and_names_where_it_came_from():
     for algorithm, tasks in load_rates().items():
         for task, entry in tasks.items():
             assert entry["steps_per_s"] > 0 and entry.get("seeds", 1) >= 1 and entry["source"], (algorithm, task)
+
+
+def test_writing_keeps_an_idle_rate_and_an_evaluation_time_measured_before():
+    idle = {"steps_per_s": 72_000, "seeds": 1, "source": "a results page", "eval_s": 5.0}
+    loaded = {"steps_per_s": 9_000, "seeds": 3, "load_avg": [2.0, 2.1], "source": "s", "eval_s": 15.0}
+    fresh = {"steps_per_s": 12_000, "seeds": 3, "load_avg": [1.6, 1.6], "source": "t"}
+    assert merged(idle, {**fresh, "eval_s": 4.0}) == {**idle, "eval_s": 4.0}  # idle rate kept, new protocol time
+    assert merged(loaded, fresh) == {**fresh, "eval_s": 15.0}  # new rate, earlier protocol time
+    assert merged(loaded, {**fresh, "eval_s": 12.0})["eval_s"] == 12.0
+    assert merged({}, fresh) == fresh
