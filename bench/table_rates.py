@@ -100,9 +100,10 @@ def calibrated(entry: dict, reference: dict | None, reference_task: str, cores: 
 
 def merged(old: dict, entry: dict) -> dict:
     """What `--write` stores for a task that already has `old`: an idle machine's rate (no
-    `load_avg`) outlives any measurement under load, and a run without `--eval` keeps the
+    `load_avg`) outlives a measurement under load of as many seeds (another seed count is
+    another quantity: the table's cells vmap three), and a run without `--eval` keeps the
     protocol time measured before (the rate and the evaluation time are measured separately)."""
-    if "load_avg" not in old and "steps_per_s" in old:
+    if "load_avg" not in old and "steps_per_s" in old and old.get("seeds", 1) == entry["seeds"]:
         return {**old, **{k: v for k, v in entry.items() if k.startswith("eval")}}
     if "eval_s" in old and "eval_s" not in entry:
         return {**entry, "eval_s": old["eval_s"]}

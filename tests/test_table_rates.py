@@ -41,10 +41,12 @@ def test_every_committed_rate_is_positive_and_names_where_it_came_from():
 
 
 def test_writing_keeps_an_idle_rate_and_an_evaluation_time_measured_before():
-    idle = {"steps_per_s": 72_000, "seeds": 1, "source": "a results page", "eval_s": 5.0}
+    idle = {"steps_per_s": 72_000, "seeds": 3, "source": "a results page", "eval_s": 5.0}
     loaded = {"steps_per_s": 9_000, "seeds": 3, "load_avg": [2.0, 2.1], "source": "s", "eval_s": 15.0}
     fresh = {"steps_per_s": 12_000, "seeds": 3, "load_avg": [1.6, 1.6], "source": "t"}
     assert merged(idle, {**fresh, "eval_s": 4.0}) == {**idle, "eval_s": 4.0}  # idle rate kept, new protocol time
     assert merged(loaded, fresh) == {**fresh, "eval_s": 15.0}  # new rate, earlier protocol time
     assert merged(loaded, {**fresh, "eval_s": 12.0})["eval_s"] == 12.0
     assert merged({}, fresh) == fresh
+    one_seed = {**idle, "seeds": 1}  # another seed count: the new measurement replaces it
+    assert merged(one_seed, fresh) == {**fresh, "eval_s": 5.0}
