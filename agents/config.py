@@ -152,14 +152,19 @@ class TrainConfig:
 
         return {**parse_switches(self.switches), **({"max_steps": self.max_steps} if self.max_steps else {})}
 
-    def env_config(self):
-        """The static `EnvConfig` (observation, action table, rules) the run's switches give: what a
-        world must match for this run's policy. Built by `make`, which checks every value; a dynamic
-        task is pinned to one test design, so no training bank is drawn (`make_env` draws it)."""
-        from snac_jax.tasks import make, parse_switches, task_spec
+    def scored_world(self):
+        """`(env, params)` of a world this run's policy is scored in: its switches and step limit,
+        built by `make`, which checks every value; a dynamic task is pinned to one test design, so
+        no training bank is drawn (`make_env` draws it)."""
+        from snac_jax.tasks import make, task_spec
 
         pin = {"test_design": 0} if task_spec(self.task).dynamic else {}
-        return make(self.task, **parse_switches(self.switches), **pin)[0].config
+        return make(self.task, **self.env_overrides, **pin)
+
+    def env_config(self):
+        """The static `EnvConfig` (observation, action table, rules) the run's switches give: what a
+        world must match for this run's policy."""
+        return self.scored_world()[0].config
 
     def make_env(self):
         """The training environment `(env, params)` of this config."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from agents.checkpoint import CHECKPOINT_DIR, read_config, restore_latest
 from agents.driver import initial_state
@@ -29,6 +30,13 @@ def load_trained(directory: str | Path):
     return algorithm, state, chunk
 
 
+def _same_stride_noise(params, trained) -> bool:
+    """Whether `params` move the robot as the run's world did: the −uncertainty switch lives in
+    `EnvParams.stride_probs`, not in `EnvConfig`. The designs differ between a training bank and
+    a test design by intent, and `snac render --max-steps` shortens an episode on purpose."""
+    return bool(np.array_equal(np.asarray(params.stride_probs), np.asarray(trained.stride_probs)))
+
+
 def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     """Policy builder for the evaluator: the greedy policy of run `checkpoint`, seed `seed_index`.
 
@@ -37,7 +45,9 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     config = read_config(checkpoint)
     if env.config.task_id != config.task:
         raise ValueError(f"checkpoint {checkpoint} was trained on {config.task!r}, cannot evaluate it on {env.config.task_id!r}")
-    if env.config != config.env_config():  # other inputs fail deep inside JAX (gps), other rules act silently
+    trained_env, trained_params = config.scored_world()
+    # Other inputs fail deep inside JAX (gps); other rules and the stride noise act silently.
+    if env.config != trained_env.config or not _same_stride_noise(env.default_params, trained_params):
         raise ValueError(f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
                          f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)")
     if not 0 <= seed_index < config.seeds:

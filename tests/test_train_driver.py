@@ -431,6 +431,21 @@ def test_a_run_with_switches_is_scored_and_drawn_with_them(tmp_path, capsys):
         trained.checkpoint_policy(env, run)
 
 
+def test_a_run_trained_without_stride_noise_is_refused_in_a_noisy_world(tmp_path):
+    """The −uncertainty switch changes `EnvParams` only, not `EnvConfig`: a policy trained with
+    strides of one cell must not be scored, silently, in the default world of strides 1-3. The
+    check reads the run's config.json alone, before any checkpoint."""
+    from agents.config import save_config
+    from snac_jax import make
+
+    save_config(make_config("ppo", "2d-static-dense", switches="stride_probs=1/0/0", **TINY), tmp_path / "config.json")
+    env, _ = make("2d-static-dense")
+    with pytest.raises(ValueError, match="trained with switches 'stride_probs=1/0/0'; build the env with them"):
+        trained.checkpoint_policy(env, tmp_path)
+    with pytest.raises(ValueError, match="no checkpoint"):  # the matching world passes the check
+        trained.checkpoint_policy(make("2d-static-dense", stride_probs=(1.0, 0.0, 0.0))[0], tmp_path)
+
+
 KILLER = textwrap.dedent(
     """
     import json, os, pathlib, signal, sys
