@@ -152,21 +152,24 @@ def test_difference_intervals_by_hand():
 # --- aggregation ---------------------------------------------------------------------------------
 
 
-def _files(algorithm: str, task: str, means: list[float], steps: int, capped: bool = False) -> dict:
+def _files(algorithm: str, task: str, means: list[float], steps: int, capped: bool = False,
+           walls: tuple[float, ...] = ()) -> dict:
+    """One copied cell; `walls`: its curve's cumulative wall_s per chunk (none: no curve kept)."""
     return {
         "config": {"algorithm": algorithm, "task": task, "seeds": len(means), "total_steps": steps},
         "eval": {f"{task} (seed {i})": {"mean": m, "seed": REPORT_EVAL_SEED} for i, m in enumerate(means)},
         "cell": {"budget": {"env_steps": steps, "requested": 2 * steps if capped else steps, "capped": capped,
                             "source": "test"}},
+        "metrics": [{"chunk": i, "wall_s": w} for i, w in enumerate(walls)],
     }
 
 
 def test_aggregation_by_hand(tmp_path):
     raw = {"ppo": {
-        "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000),
-        "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000),
-        "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True),
-        "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),
+        "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000, walls=(30.0, 60.0)),
+        "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000, walls=(120.0,)),
+        "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True, walls=(100.0, 180.0)),
+        "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),  # its curve was not kept
         "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.5, 0.5], 1000),  # no column misses it
     }, "drqn": {"1d-dynamic": _files("drqn", "1d-dynamic", [0.8], 500)}}
     hand = {"1d-static": {"mean": 0.95, "seed": TUNING_EVAL_SEED}}
@@ -178,6 +181,9 @@ def test_aggregation_by_hand(tmp_path):
     assert ppo["1d-static"]["paper"] == 0.776  # the paper's PPO, 1d-static
     assert ppo["1d-static"]["budget"]["capped"] and ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
     assert ppo["2d-static-dense"]["mean"] == pytest.approx(0.3) and ppo["2d-static-dense"]["ci95"] == [0.2, 0.4]
+    # Training wall: the last cumulative wall_s of each shape, summed (60 + 120 + 180 s = 6 min).
+    assert ppo["1d-static"]["budget"]["training_wall_s"] == 360.0
+    assert ppo["2d-static-dense"]["budget"]["training_wall_s"] is None
     assert set(ppo) == {"1d-static", "2d-static-dense", "2d-static-sparse"}
     # IQM of the (2 seeds x 3 columns) runs .6 .6 .2 .4 .5 .5: sorted .2 .4 .5 .5 .6 .6, one cut each end.
     assert table["iqm"]["ppo"]["iqm"] == pytest.approx(0.5)
@@ -187,6 +193,7 @@ def test_aggregation_by_hand(tmp_path):
     text = markdown({"smoke": table}, {"smoke": "test preset"})
     assert "| **ppo** (ours) | 0.600 [0.600, 0.600] |" in text and "(3 of 10 columns)" in text
     assert "| ppo | 2 | 1k–2k* |" in text
+    assert "| ppo | 6.0 | — | — |" in text  # the wall-time table, minutes
     # The paper's row shows every column it reports (ours has no 1d-dynamic), its IQM only ours' columns.
     assert table["paper_rows"]["ppo"]["1d-dynamic"] == 0.791 and "| ppo (paper) | 0.776 | 0.791 |" in text
     assert table["iqm"]["ppo"]["paper_columns"] == 3 and "(ours' 3 columns)" in text
@@ -303,7 +310,7 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert table["learners"] == {"ppo": {}}  # 1d-static-step is missing: no column is complete
     copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
     assert copied == [f"table/smoke/ppo/{t}/{f}" for t in ("1d-static-gauss", "1d-static-sin")
-                      for f in ("cell.json", "config.json", "eval.json")]
+                      for f in ("cell.json", "config.json", "eval.json", "metrics.jsonl")]
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
 
