@@ -197,7 +197,19 @@ def test_aggregation_by_hand(tmp_path):
     # The paper's row shows every column it reports (ours has no 1d-dynamic), its IQM only ours' columns.
     assert table["paper_rows"]["ppo"]["1d-dynamic"] == 0.791 and "| ppo (paper) | 0.776 | 0.791 |" in text
     assert table["iqm"]["ppo"]["paper_columns"] == 3 and "(ours' 3 columns)" in text
+    assert table["paper_methods"] == {"ppo": "ppo", "drqn": "drqn"}
     assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
+
+
+def test_a_new_learner_shows_its_bases_paper_row_under_the_bases_name():
+    raw = {"ppo-privileged": {"2d-static-sparse": _files("ppo-privileged", "2d-static-sparse", [0.4, 0.5], 1000)},
+           "drqn-her": {"2d-static-sparse": _files("drqn-her", "2d-static-sparse", [0.1, 0.2], 1000)}}
+    table = build(raw, handcrafted={}, preset="smoke", reps=200)
+    text = markdown({"smoke": table}, {"smoke": "test preset"})
+    assert table["paper_methods"] == {"ppo-privileged": "ppo", "drqn-her": "drqn_her"}
+    # The paper's PPO row (every column it reports) beside the privileged learner, named as PPO's.
+    assert "| ppo-privileged: its base, the paper's ppo | 0.776 | 0.791 | 0.682 | 0.308 |" in text
+    assert "ppo-privileged (paper)" not in text and "| drqn-her (paper) |" in text
 
 
 def _arm(task: str, arm: str, paper_arm: str, switches: str, means: list[float]) -> dict:

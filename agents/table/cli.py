@@ -4,6 +4,7 @@ in one resumable command.
     snac table --preset paper --dry-run          # the plan and its estimated wall time
     snac table --preset paper                    # run it (again: finished cells are skipped)
     snac table --preset paper --report           # bench/results/table.md, table.json, table-paper.png
+    snac table --report --readme README.md       # ... and the README's learner table from them
     snac table --preset ablation                 # the paper's DRQN ablation: one switch at a time
 
 Plugged into the `snac` command through the `snac_jax.commands` entry point (pyproject.toml).
@@ -60,6 +61,9 @@ def add_parser(subparsers) -> None:
                              "(no training)")
     parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,
                         help=f"where --report writes (default {DEFAULT_RESULTS_DIR})")
+    parser.add_argument("--readme", type=Path, default=None, metavar="PATH",
+                        help="with --report: also rewrite the generated learner table in the README at PATH "
+                             "(between its marker lines)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_devices_argument(parser, cpu_default="1, as snac train")
     parser.set_defaults(func=run)
@@ -76,10 +80,23 @@ def plan_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.readme is not None:
+        from agents.table.readme import replace_block
+
+        if not args.report:
+            raise ValueError("--readme goes with --report (the README's table is written from the report)")
+        if not args.readme.is_file():
+            raise ValueError(f"--readme {args.readme}: no such file")
+        replace_block(args.readme.read_text(), "")  # its marker lines are there, before any work
     if args.report:
+        import json
+
+        from agents.table.readme import write_readme
         from agents.table.report import write_report
 
         paths = write_report(args.preset, args.runs_dir, args.results_dir)
+        if args.readme is not None:
+            paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
         for path in paths.values():
             print(f"wrote {path}")
         return 0

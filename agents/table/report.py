@@ -45,7 +45,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
           reps: int = statistics.DEFAULT_REPS) -> dict[str, Any]:
     """table.json's content from the copied cells (`load_raw`)."""
     paper = load_paper_results() if paper is None else paper
-    learners, iqms, seed_matrix, paper_rows = {}, {}, {}, {}
+    learners, iqms, seed_matrix, paper_rows, paper_methods = {}, {}, {}, {}, {}
     for algorithm, tasks in raw.items():
         row = paper_row(paper, _paper_method(algorithm))
         learners[algorithm] = {}
@@ -70,6 +70,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
                                "paper_iqm": statistics.iqm(reported) if reported else None,
                                "paper_columns": len(reported)}
         paper_rows[algorithm] = {c: row.get(c, {}).get("avg") for c in PAPER_TASKS}
+        paper_methods[algorithm] = _paper_method(algorithm)
     human = paper_row(paper, "human")
     hand_paper = paper_row(paper, "handcrafted")
     hand = {column: {"mean": handcrafted[column]["mean"], "ci95": None, "seeds": [handcrafted[column]["mean"]],
@@ -83,6 +84,7 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
         "handcrafted": hand, "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
         "learners": learners, "iqm": iqms,
         "paper_rows": paper_rows,  # each learner's paper row on every column (None: not reported)
+        "paper_methods": paper_methods,  # whose row of the paper that is (a new learner: its base's)
     }
 
 
@@ -127,6 +129,15 @@ def _reference_row(name: str, values: list) -> str:
     return f"| {name} | " + " | ".join(_f(v) for v in values) + f" | {iqm} |"
 
 
+def _paper_label(learner: str, method: str | None) -> str:
+    """The paper row beside a learner: its own, or, for a learner the paper does not have (a
+    privileged or auxiliary variant), the row of the paper learner it is built on, named as such
+    so that it never reads as the new learner's paper result."""
+    if method is None or method.replace("_", "-") == learner:
+        return f"{learner} (paper)"
+    return f"{learner}: its base, the paper's {method.replace('_', '-')}"
+
+
 def _section(table: dict, description: str) -> list[str]:
     columns = table["columns"]
     lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
@@ -143,7 +154,7 @@ def _section(table: dict, description: str) -> list[str]:
         paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
                      else "—")
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
-        lines.append(f"| {learner} (paper) | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
+        lines.append(f"| {_paper_label(learner, table.get('paper_methods', {}).get(learner))} | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
                      + f" | {paper_iqm} |")
     if not table["learners"]:
         lines += ["", "No finished cells yet: `snac table --preset "
