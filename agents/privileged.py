@@ -34,7 +34,7 @@ import numpy as np
 from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_losses, move_targets
 from agents.config import option
 from agents.inputs import ObsLayout
-from agents.networks import ActorCritic, DesignEncoder, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
 from agents.ppo import PPO, PPOConfig, Transition
 from snac_jax.state import PrivilegedState
 
@@ -53,7 +53,14 @@ class PrivilegedPPOConfig(AuxiliaryOptions, PPOConfig):
 
 
 class PrivilegedEncoder(nn.Module):
-    """Features of a batch of `PrivilegedState`s `(..., )` for the critic."""
+    """Features of a batch of `PrivilegedState`s `(..., )` for the critic: the position one-hot
+    per row and per column, the built plan and what is left to build, each flattened, and the
+    stuck flag, through one dense layer.
+
+    Why flat maps rather than the design encoder's strided convolutions: the critic runs on every
+    step the learner trains on, and two convolutional encoders made training several times slower
+    on the 2D and 3D plans (`bench/results/beyond.md`); one matrix product over the 400 cells of
+    each map keeps every cell's exact height at a fraction of the cost."""
 
     layout: ObsLayout
     hidden_size: int
@@ -61,13 +68,14 @@ class PrivilegedEncoder(nn.Module):
     @nn.compact
     def __call__(self, privileged: PrivilegedState) -> jax.Array:
         rows, cols = self.layout.plan_shape
+        lead = privileged.position.shape[:-1]
         built = privileged.built.astype(jnp.float32) / self.layout.height_scale
         remaining = privileged.design.astype(jnp.float32) / self.layout.height_scale - built
         x = jnp.concatenate([
             jax.nn.one_hot(privileged.position[..., 0], rows),
             jax.nn.one_hot(privileged.position[..., 1], cols),
-            DesignEncoder(self.hidden_size)(built),
-            DesignEncoder(self.hidden_size)(remaining),
+            built.reshape(lead + (rows * cols,)),
+            remaining.reshape(lead + (rows * cols,)),
             privileged.stuck[..., None].astype(jnp.float32),
         ], axis=-1)
         return nn.relu(nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))

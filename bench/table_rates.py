@@ -145,7 +145,8 @@ def main() -> None:
             print(json.dumps({"algorithm": algorithm, "task": task, **entry}), flush=True)
             if args.write:
                 rates = load_rates()
-                rates.setdefault(algorithm, {})[task] = merged(rates[algorithm].get(task, {}), entry)
+                known = rates.setdefault(algorithm, {})
+                known[task] = merged(known.get(task, {}), entry)
                 atomic_write_text(RATES_FILE, json.dumps(rates, indent=1, sort_keys=True) + "\n")
 
 
