@@ -12,8 +12,8 @@ policy's own memory (`act(params, policy_state, obs, key)`); the privileged stat
 
 The critic reads the actor's memory features (the GRU output, as PPO's critic does) beside an
 encoding of the privileged state: the position one-hot per row and per column, the built plan
-and what is left to build (the design minus the built plan) through the design encoder of
-`agents.networks`, and the stuck flag. With `privileged_critic=False` and every auxiliary weight
+and what is left to build (the design minus the built plan), each flattened, and the stuck flag
+(`PrivilegedEncoder`). With `privileged_critic=False` and every auxiliary weight
 0 this is PPO, update for update.
 
 Everything else is PPO's (`agents.ppo`), through its hooks: `_privileged` records the privileged
