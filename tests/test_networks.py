@@ -37,5 +37,7 @@ def test_strided_conv_inside_a_scan_matches_outside():
     params = conv.init(jax.random.key(0), x)
     grad = jax.grad(lambda p: (conv.apply(p, x) ** 2).sum())
     scanned = jax.lax.scan(lambda c, _: (c, grad(params)), 0, None, length=2)[1]
+    # float32 sums of ~150 terms of order 1, which XLA may associate differently in and out of the
+    # loop (a run measured 2.4e-5); a wrong convolution would be off by order 1.
     for inside, outside in zip(jax.tree.leaves(scanned), jax.tree.leaves(grad(params))):
-        np.testing.assert_allclose(inside[1], outside, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(inside[1], outside, rtol=1e-4, atol=1e-4)
