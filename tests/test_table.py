@@ -14,6 +14,7 @@ import pytest
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED, Variant, expand_tasks, format_plan, load_presets, make_plan
 from agents.table.report import build, markdown
+from tests.table_cells import cell_files as _files
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 
 PRESETS = load_presets()
@@ -150,18 +151,6 @@ def test_difference_intervals_by_hand():
 
 
 # --- aggregation ---------------------------------------------------------------------------------
-
-
-def _files(algorithm: str, task: str, means: list[float], steps: int, capped: bool = False,
-           walls: tuple[float, ...] = ()) -> dict:
-    """One copied cell; `walls`: its curve's cumulative wall_s per chunk (none: no curve kept)."""
-    return {
-        "config": {"algorithm": algorithm, "task": task, "seeds": len(means), "total_steps": steps},
-        "eval": {f"{task} (seed {i})": {"mean": m, "seed": REPORT_EVAL_SEED} for i, m in enumerate(means)},
-        "cell": {"budget": {"env_steps": steps, "requested": 2 * steps if capped else steps, "capped": capped,
-                            "source": "test"}},
-        "metrics": [{"chunk": i, "wall_s": w} for i, w in enumerate(walls)],
-    }
 
 
 def test_aggregation_by_hand(tmp_path):

@@ -10,18 +10,9 @@ import pytest
 
 from agents.table.readme import BEGIN, END, learner_table, replace_block
 from agents.table.report import build
+from tests.table_cells import cell_files as _files
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _files(algorithm: str, task: str, means: list[float], steps: int, capped: bool = False) -> dict:
-    return {
-        "config": {"algorithm": algorithm, "task": task, "seeds": len(means), "total_steps": steps},
-        "eval": {f"{task} (seed {i})": {"mean": m} for i, m in enumerate(means)},
-        "cell": {"budget": {"env_steps": steps, "requested": 2 * steps if capped else steps, "capped": capped,
-                            "source": "test"}},
-        "metrics": [],
-    }
 
 
 def test_rows_by_hand():

@@ -129,13 +129,17 @@ def _reference_row(name: str, values: list) -> str:
     return f"| {name} | " + " | ".join(_f(v) for v in values) + f" | {iqm} |"
 
 
-def _paper_label(learner: str, method: str | None) -> str:
-    """The paper row beside a learner: its own, or, for a learner the paper does not have (a
-    privileged or auxiliary variant), the row of the paper learner it is built on, named as such
-    so that it never reads as the new learner's paper result."""
-    if method is None or method.replace("_", "-") == learner:
-        return f"{learner} (paper)"
-    return f"{learner}: its base, the paper's {method.replace('_', '-')}"
+def paper_base(table: dict, learner: str) -> str | None:
+    """For a learner the paper does not have (a privileged or auxiliary variant), the paper
+    learner whose row stands beside it; None where that row is the learner's own."""
+    method = table.get("paper_methods", {}).get(learner)
+    return None if method is None or method.replace("_", "-") == learner else method.replace("_", "-")
+
+
+def _paper_label(table: dict, learner: str) -> str:
+    """The paper row's name, so that a base's row never reads as the new learner's paper result."""
+    base = paper_base(table, learner)
+    return f"{learner} (paper)" if base is None else f"{learner}: its base, the paper's {base}"
 
 
 def _section(table: dict, description: str) -> list[str]:
@@ -154,7 +158,7 @@ def _section(table: dict, description: str) -> list[str]:
         paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
                      else "—")
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
-        lines.append(f"| {_paper_label(learner, table.get('paper_methods', {}).get(learner))} | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
+        lines.append(f"| {_paper_label(table, learner)} | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
                      + f" | {paper_iqm} |")
     if not table["learners"]:
         lines += ["", "No finished cells yet: `snac table --preset "
