@@ -267,6 +267,37 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
 
 
+
+def test_an_arm_can_switch_a_learner_setting_off():
+    """The privileged-ablation preset's arms change learner settings, not the environment: each
+    arm's config differs from the base arm's in its settings alone, and the report prints them."""
+    preset = PRESETS["privileged-ablation"]
+    cells = {c.variant.name: c for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None,
+                                                  Path("unused"), rates={})}
+    assert list(cells) == ["base", "no-critic", "no-position"]
+    base = cells["base"].config.to_json()
+    changed = {name: {k: v for k, v in cell.config.to_json().items() if base[k] != v} for name, cell in cells.items()}
+    assert changed == {"base": {}, "no-critic": {"privileged_critic": False}, "no-position": {"position_coef": 0.0}}
+    assert cells["base"].config.privileged_critic and cells["base"].config.position_coef > 0
+    assert cells["no-critic"].record()["settings"] == {"privileged_critic": False}
+
+    files = _arm("2d-static-sparse", "no-critic", "", "", [0.4])
+    files["cell"]["settings"] = {"privileged_critic": False}
+    table = ablation.build({"ppo-privileged": {"2d-static-sparse.no-critic": files}}, arms=["base", "no-critic"], reps=200)
+    text = "\n".join(ablation.section(table, "test"))
+    assert "| ppo-privileged | 2d-static-sparse | no-critic | `privileged_critic=false` | 0.400 [0.400, 0.400] | — | — |" in text
+
+
+def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
+    arm = '[a]\nseeds = 1\n[a.variants.base]\ntasks = ["1d-static-sin"]\n'
+    (tmp_path / "typo.toml").write_text(arm.replace("tasks =", 'setting = { x = 1 }\ntasks ='))
+    with pytest.raises(ValueError, match=r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]"):
+        load_presets(tmp_path / "typo.toml")
+    (tmp_path / "option.toml").write_text(arm.replace("tasks =", "settings = { no_such_option = 1 }\ntasks ="))
+    preset = load_presets(tmp_path / "option.toml")["a"]
+    with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['no_such_option'\]"):
+        make_plan(preset, ["ppo"], ["1d-static-sin"], None, tmp_path, rates={})
+
 # --- the smoke preset, end to end ----------------------------------------------------------------
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from agents.table import statistics
-from agents.table.plan import TRAIN_SEED
+from agents.table.plan import TRAIN_SEED, arm_changes
 from agents.table.raw import budget_record, budget_text, seed_means
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
@@ -47,7 +47,8 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
                 files, scores = found[arm], seed_means(found[arm])
                 paper_arm = paper.get(task, {}).get(files["cell"]["paper_variant"], {}) if ablated else {}
                 row = {**statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
-                       "paper_variant": files["cell"]["paper_variant"], "switches": files["cell"]["switches"],
+                       "paper_variant": files["cell"]["paper_variant"],
+                       "changes": arm_changes(files["cell"]["switches"], files["cell"].get("settings", {})),
                        "budget": budget_record([files]), "paper": paper_arm.get("avg")}
                 if arm != BASE:  # the paper's value of an arm is its change from the base
                     row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
@@ -67,7 +68,7 @@ def _interval(value: float, ci: list[float], signed: bool = False) -> str:
 def section(table: dict, description: str) -> list[str]:
     """table.md's section of an ablation preset."""
     lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
-             "Each arm trains and is scored with its switches (SPEC §9). The paper's value of the base arm is its "
+             "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings. The paper's value of the base arm is its "
              "IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
              "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
              "resampled on their own). With three seeds per arm a percentile bootstrap interval is narrow: "
@@ -75,7 +76,7 @@ def section(table: dict, description: str) -> list[str]:
              "five, so read a Δ as an effect only where it is large against the seeds' spread.", ""]
     if not table["ablation"]:
         return lines + [f"No finished cells yet: `snac table --preset {table['preset']} --dry-run` shows the plan.", ""]
-    lines += ["| learner | task | arm (paper's name) | switches | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
+    lines += ["| learner | task | arm (paper's name) | switches, settings | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
               "|---|---|---|---|---:|---:|---:|---:|"]
     for learner, tasks in table["ablation"].items():
         for task, rows in tasks.items():
@@ -83,6 +84,7 @@ def section(table: dict, description: str) -> list[str]:
                 ours = _interval(row["mean"], row["ci95"])
                 delta = "—" if row.get("delta") is None else _interval(row["delta"]["delta"], row["delta"]["ci95"], True)
                 paper = "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
-                lines.append(f"| {learner} | {task} | {arm} ({row['paper_variant']}) | `{row['switches'] or '—'}` | {ours} | "
+                paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
+                lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
                              f"{delta} | {paper} | {budget_text(row['budget'])} |")
     return lines + [""]

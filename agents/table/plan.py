@@ -40,12 +40,21 @@ _PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settin
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
-    """An ablation's arm: the switches its cells train and are scored with, its tasks, its paper name."""
+    """An ablation's arm: the environment switches its cells train and are scored with, the
+    learner settings it changes (an ingredient of a learner switched off), its tasks, and its
+    name in the paper's ablation table ("" where the paper has no such arm)."""
 
     name: str
     paper: str
     switches: str
     tasks: tuple[str, ...]
+    settings: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+
+def arm_changes(switches: str, settings: dict[str, Any]) -> str:
+    """An ablation arm's changes as the table prints them: its switches, then its settings."""
+    return ", ".join(([switches] if switches else []) + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,14 +110,20 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
 
 def _variant(path, preset: str, name: str, table: dict) -> Variant:
     where = f"{path}: [{preset}.variants.{name}]"
-    if set(table) != {"paper", "switches", "tasks"}:
-        raise ValueError(f"{where} must give exactly paper, switches and tasks")
+    unknown = sorted(set(table) - {"paper", "switches", "settings", "tasks"})
+    if unknown or "tasks" not in table:
+        raise ValueError(f"{where} must give tasks, and may give paper, switches and settings"
+                         + (f"; unknown key(s) {unknown}" if unknown else ""))
+    settings = table.get("settings", {})
+    if not isinstance(settings, dict):
+        raise ValueError(f"{where}: settings must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
     try:
-        parse_switches(table["switches"])
+        parse_switches(table.get("switches", ""))
         tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
-    return Variant(name=name, paper=table["paper"], switches=table["switches"], tasks=tasks)
+    return Variant(name=name, paper=table.get("paper", ""), switches=table.get("switches", ""), tasks=tasks,
+                   settings=settings)
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:
@@ -190,9 +205,10 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
 
 
 def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict,
-                switches: str = "") -> tuple[TrainConfig, Budget]:
+                variant: Variant | None = None) -> tuple[TrainConfig, Budget]:
     """The config a cell trains and its budget (capped to the preset's wall limit)."""
-    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, "switches": switches}
+    arm = {} if variant is None else {**variant.settings, "switches": variant.switches}
+    overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, "switches": "", **arm}
     config = make_config(algorithm, task, **overrides)
     requested, source = requested_budget(preset, config)
     steps, capped = requested, False
@@ -236,7 +252,7 @@ class Cell:
     def record(self) -> dict[str, Any]:
         """cell.json: what the table needs beside config.json and eval.json."""
         arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
-                                                "switches": self.variant.switches}
+                                                "switches": self.variant.switches, "settings": self.variant.settings}
         return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
                 "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
                 "protocol": self.preset.protocol, **arm}
@@ -333,7 +349,7 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
             for variant in [v for v in preset.variants if task in v.tasks] if preset.variants else [None]:
-                config, budget = cell_config(preset, algorithm, task, seeds, rates, variant.switches if variant else "")
+                config, budget = cell_config(preset, algorithm, task, seeds, rates, variant)
                 name = task if variant is None else f"{task}.{variant.name}"
                 cells.append(Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget,
                                   preset=preset, directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant))
