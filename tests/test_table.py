@@ -87,6 +87,44 @@ def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, 
         make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path, faster)
 
 
+
+def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, monkeypatch):
+    from agents import checkpoint
+    from agents.config import save_config
+
+    paper = PRESETS["paper"]
+    assert (paper.seeds, paper.cheap_seeds, paper.cheap_minutes) == (3, 5, 5.0)
+    # PPO's 10M steps (9,961,472 trained) x 5 seeds: at 1M steps/s and 1 s of evaluation per seed,
+    # 49.8 s + 5 s < 300 s (cheap); at 100k steps/s, 498 s + 5 s is not.
+    rates = {"ppo": {"1d-static-sin": {"steps_per_s": 1_000_000, "eval_s": 1.0},
+                     "2d-static-dense": {"steps_per_s": 100_000, "eval_s": 1.0}}}
+    seeds = lambda cells: {c.task: c.config.seeds for c in cells}
+    cells = make_plan(paper, ["ppo"], ["1d-static", "2d-static-dense"], None, tmp_path, rates)
+    assert seeds(cells) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5, "2d-static-dense": 3}
+    assert cells[0].estimate_s == pytest.approx(5 * 9_961_472 / 1_000_000 + 5)
+    assert "3 seeds each, 5 where a column's cells are estimated under 5 min at that count (3 cells)" in format_plan(cells, tmp_path)
+    # One shape that is not cheap keeps the whole column at 3: the table averages shapes per seed index.
+    step_slow = {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}}
+    assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)).values()) == {3}
+    # --seeds overrides the rule.
+    assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], 4, tmp_path, rates)).values()) == {4}
+
+    # A started column keeps its five seeds when re-measured rates make it expensive.
+    for cell in cells[:3]:
+        cell.directory.mkdir(parents=True)
+        save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
+    started = {c.directory for c in cells[:3]}
+    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0 if directory in started else None)
+    resumed = make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)
+    assert seeds(resumed) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5}
+    assert {c.status for c in resumed} == {"partial"}
+
+
+def test_cheap_seeds_below_seeds_is_refused(tmp_path):
+    (tmp_path / "fewer.toml").write_text("[a]\nseeds = 3\ncheap_seeds = 2\n")
+    with pytest.raises(ValueError, match=r"cheap_seeds \(2\) must be at least seeds \(3\)"):
+        load_presets(tmp_path / "fewer.toml")
+
 def test_evaluation_estimates_scale_with_the_episodes():
     from agents.table.plan import eval_seconds
 

@@ -34,8 +34,8 @@ TRAIN_SEED = 1
 """Base training seed of the table's runs (seed i trains from fold_in(key(1), i)); the runs that
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
 
-_PRESET_KEYS = {"description", "seeds", "wall_limit_minutes", "budgets", "settings", "static_episodes",
-                "episodes_per_test_design", "algorithms", "tasks", "variants"}
+_PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
+                "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +72,8 @@ class Preset:
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
+    cheap_seeds: int | None = None  # seeds of a cheap column (None: every column has `seeds`)
+    cheap_minutes: float = 5.0  # a column is cheap where each of its new cells, at cheap_seeds, fits this
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -102,7 +104,12 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
             variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
+            cheap_seeds=int(table["cheap_seeds"]) if "cheap_seeds" in table else None,
+            cheap_minutes=float(table.get("cheap_minutes", 5.0)),
         )
+        if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
+            raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
+                             f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
         if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
             raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
     return presets
@@ -344,15 +351,24 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         if algorithm not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
         config_class(algorithm)
-    seeds = preset.seeds if seeds is None else seeds
-    cells = []
+    def cell(algorithm, column, task, variant, count) -> Cell:
+        config, budget = cell_config(preset, algorithm, task, count, rates, variant)
+        name = task if variant is None else f"{task}.{variant.name}"
+        return Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget, preset=preset,
+                    directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant)
+
+    groups: dict[tuple, list[tuple]] = {}  # (algorithm, paper column, arm) -> its (task, variant) runs
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
             for variant in [v for v in preset.variants if task in v.tasks] if preset.variants else [None]:
-                config, budget = cell_config(preset, algorithm, task, seeds, rates, variant)
-                name = task if variant is None else f"{task}.{variant.name}"
-                cells.append(Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget,
-                                  preset=preset, directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant))
+                groups.setdefault((algorithm, column, variant and variant.name), []).append((task, variant))
+    cells = []
+    for (algorithm, column, _), runs in groups.items():
+        count = seeds if seeds is not None else preset.seeds
+        if seeds is None and preset.cheap_seeds is not None:
+            cheap = [cell(algorithm, column, task, variant, preset.cheap_seeds) for task, variant in runs]
+            count = _column_seeds(preset, cheap, rates)
+        cells += [cell(algorithm, column, task, variant, count) for task, variant in runs]
     if preset.variants and not cells:
         arms = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
         raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {arms}")
@@ -362,12 +378,36 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     return cells
 
 
+def _column_seeds(preset: Preset, cheap: list[Cell], rates: dict) -> int:
+    """Seeds of one paper column's cells (the three 1D shapes share theirs, as the table averages
+    them per seed index): `cheap_seeds` where every cell, at that count, is estimated to cost
+    under `cheap_minutes` (training and evaluation), else `seeds`. A started cell keeps the count
+    it started with, as a started cell keeps its capped budget: both come from estimates, and
+    re-measured rates must not strand a run."""
+    started = [checkpoint.read_config(c.directory).seeds for c in cheap if checkpoint.latest_chunk(c.directory) is not None]
+    if started:
+        return started[0] if started[0] in (preset.seeds, preset.cheap_seeds) else preset.seeds
+    for c in cheap:
+        estimate(c, rates)
+    fits = all(c.estimate_s is not None and c.estimate_s < 60.0 * preset.cheap_minutes for c in cheap)
+    return preset.cheap_seeds if fits else preset.seeds
+
+
 def duration(seconds: float | None) -> str:
     if seconds is None:
         return "?"
     seconds = int(round(seconds))
     hours, rest = divmod(seconds, 3600)
     return f"{hours} h {rest // 60:02d} min" if hours else f"{rest // 60} min {rest % 60:02d} s"
+
+
+def _seed_counts(cells: list[Cell]) -> str:
+    counts = sorted({c.config.seeds for c in cells})
+    if len(counts) == 1:
+        return f"{counts[0]} seeds each"
+    cheap = cells[0].preset.cheap_minutes
+    return (f"{counts[0]} seeds each, {counts[-1]} where a column's cells are estimated under {cheap:g} min at that "
+            f"count ({sum(c.config.seeds == counts[-1] for c in cells)} cells)")
 
 
 def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
@@ -379,11 +419,11 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
     width = max(18, *(len(c.directory.name) for c in cells))
     limit = "" if preset.wall_limit_s is None else f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
     lines = [f"snac table, preset {preset.name!r}: {preset.description}{limit}",
-             f"{len(cells)} cells, {cells[0].config.seeds} seeds each (vmapped), under {Path(runs_dir) / preset.name}/", "",
-             f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'status':<9} {'estimate':>13}  estimate from"]
+             f"{len(cells)} cells, {_seed_counts(cells)} (vmapped), under {Path(runs_dir) / preset.name}/", "",
+             f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'seeds':>5} {'status':<9} {'estimate':>13}  estimate from"]
     for c in cells:
         status = c.status if c.status != "partial" else f"{c.done_steps / max(c.total_steps, 1):.0%} done"
-        lines.append(f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {status:<9} "
+        lines.append(f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {c.config.seeds:>5} {status:<9} "
                      f"{duration(c.estimate_s):>13}  {c.estimate_from}")
     lines += ["", "budgets:"]
     for source in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells):
