@@ -102,7 +102,10 @@ def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, mo
     cells = make_plan(paper, ["ppo"], ["1d-static", "2d-static-dense"], None, tmp_path, rates)
     assert seeds(cells) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5, "2d-static-dense": 3}
     assert cells[0].estimate_s == pytest.approx(5 * 9_961_472 / 1_000_000 + 5)
-    assert "3 seeds each, 5 where a column's cells are estimated under 5 min at that count (3 cells)" in format_plan(cells, tmp_path)
+    assert "3 seeds each, 5 on cheap columns (each cell estimated under 5 min" in format_plan(cells, tmp_path)
+    # One shape asked alone is judged with its column: the gauss and step shapes decide too.
+    assert seeds(make_plan(paper, ["ppo"], ["1d-static-sin"], None, tmp_path, {
+        "ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}})) == {"1d-static-sin": 3}
     # One shape that is not cheap keeps the whole column at 3: the table averages shapes per seed index.
     step_slow = {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}}
     assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)).values()) == {3}
@@ -118,6 +121,10 @@ def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, mo
     resumed = make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)
     assert seeds(resumed) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5}
     assert {c.status for c in resumed} == {"partial"}
+    # ... also where only one shape had started and another is asked for on its own.
+    started.clear()
+    started.add(cells[0].directory)
+    assert seeds(make_plan(paper, ["ppo"], ["1d-static-step"], None, tmp_path, step_slow)) == {"1d-static-step": 5}
 
 
 def test_cheap_seeds_below_seeds_is_refused(tmp_path):
@@ -228,6 +235,16 @@ def test_aggregation_by_hand(tmp_path):
     assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
 
 
+
+def test_a_column_with_more_seeds_adds_them_to_its_cell_and_not_to_the_iqm():
+    raw = {"sac": {"2d-static-dense": _files("sac", "2d-static-dense", [0.1, 0.2, 0.3, 0.9, 0.9], 1000),
+                   "2d-static-sparse": _files("sac", "2d-static-sparse", [0.4, 0.5, 0.6], 1000)}}
+    table = build(raw, reps=200)
+    assert table["learners"]["sac"]["2d-static-dense"]["mean"] == pytest.approx(0.48)  # all five seeds
+    # IQM over seeds 0-2 of both columns: .1 .2 .3 .4 .5 .6, one cut each end -> mean(.2 .3 .4 .5).
+    assert table["iqm"]["sac"]["iqm"] == pytest.approx(0.35) and table["iqm"]["sac"]["runs"] == 3
+    assert "| sac | 3, 5 |" in markdown({"x": table}, {"x": "test"})
+
 def test_a_new_learner_shows_its_bases_paper_row_under_the_bases_name():
     raw = {"ppo-privileged": {"2d-static-sparse": _files("ppo-privileged", "2d-static-sparse", [0.4, 0.5], 1000)},
            "drqn-her": {"2d-static-sparse": _files("drqn-her", "2d-static-sparse", [0.1, 0.2], 1000)}}
@@ -331,6 +348,9 @@ def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
     (tmp_path / "typo.toml").write_text(arm.replace("tasks =", 'setting = { x = 1 }\ntasks ='))
     with pytest.raises(ValueError, match=r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]"):
         load_presets(tmp_path / "typo.toml")
+    (tmp_path / "planned.toml").write_text(arm.replace("tasks =", "settings = { seeds = 1 }\ntasks ="))
+    with pytest.raises(ValueError, match=r"settings may not set \['seeds'\]: the plan sets seed, seeds, switches"):
+        load_presets(tmp_path / "planned.toml")
     (tmp_path / "option.toml").write_text(arm.replace("tasks =", "settings = { no_such_option = 1 }\ntasks ="))
     preset = load_presets(tmp_path / "option.toml")["a"]
     with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['no_such_option'\]"):

@@ -71,7 +71,7 @@ def section(table: dict, description: str) -> list[str]:
              "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings. The paper's value of the base arm is its "
              "IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
              "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
-             "resampled on their own). With three seeds per arm a percentile bootstrap interval is narrow: "
+             "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
              "for two arms of three normal draws and no true difference it holds 0 only about four times in "
              "five, so read a Δ as an effect only where it is large against the seeds' spread.", ""]
     if not table["ablation"]:

@@ -34,6 +34,7 @@ TRAIN_SEED = 1
 """Base training seed of the table's runs (seed i trains from fold_in(key(1), i)); the runs that
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
 
+_PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
 _PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
                 "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants"}
 
@@ -124,6 +125,10 @@ def _variant(path, preset: str, name: str, table: dict) -> Variant:
     settings = table.get("settings", {})
     if not isinstance(settings, dict):
         raise ValueError(f"{where}: settings must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
+    reserved = sorted(set(settings) & _PLANNED_OPTIONS)
+    if reserved:
+        raise ValueError(f"{where}: settings may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))} "
+                         "(give an environment change as switches)")
     try:
         parse_switches(table.get("switches", ""))
         tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
@@ -357,18 +362,20 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         return Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget, preset=preset,
                     directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant)
 
-    groups: dict[tuple, list[tuple]] = {}  # (algorithm, paper column, arm) -> its (task, variant) runs
+    cells, column_seeds = [], {}
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
             for variant in [v for v in preset.variants if task in v.tasks] if preset.variants else [None]:
-                groups.setdefault((algorithm, column, variant and variant.name), []).append((task, variant))
-    cells = []
-    for (algorithm, column, _), runs in groups.items():
-        count = seeds if seeds is not None else preset.seeds
-        if seeds is None and preset.cheap_seeds is not None:
-            cheap = [cell(algorithm, column, task, variant, preset.cheap_seeds) for task, variant in runs]
-            count = _column_seeds(preset, cheap, rates)
-        cells += [cell(algorithm, column, task, variant, count) for task, variant in runs]
+                count = seeds if seeds is not None else preset.seeds
+                if seeds is None and preset.cheap_seeds is not None:
+                    # every shape of the column decides, requested or not, so that all get one count
+                    group = (algorithm, column, variant and variant.name)
+                    if group not in column_seeds:
+                        shapes = [t for _, t in expand_tasks([column]) if variant is None or t in variant.tasks]
+                        column_seeds[group] = _column_seeds(
+                            preset, [cell(algorithm, column, t, variant, preset.cheap_seeds) for t in shapes], rates)
+                    count = column_seeds[group]
+                cells.append(cell(algorithm, column, task, variant, count))
     if preset.variants and not cells:
         arms = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
         raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {arms}")
@@ -406,8 +413,8 @@ def _seed_counts(cells: list[Cell]) -> str:
     if len(counts) == 1:
         return f"{counts[0]} seeds each"
     cheap = cells[0].preset.cheap_minutes
-    return (f"{counts[0]} seeds each, {counts[-1]} where a column's cells are estimated under {cheap:g} min at that "
-            f"count ({sum(c.config.seeds == counts[-1] for c in cells)} cells)")
+    return (f"{counts[0]} seeds each, {counts[-1]} on cheap columns (each cell estimated under {cheap:g} min at that "
+            f"count when the column was first planned; {sum(c.config.seeds == counts[-1] for c in cells)} cells)")
 
 
 def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:

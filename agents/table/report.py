@@ -9,7 +9,8 @@ and the table is computed from those copies only, so it can be rebuilt from the 
 
 A column's per-seed value is that seed's protocol mean on the task; for `1d-static`, the mean
 over the three shapes of the same seed index. A cell shows the mean over seeds with its 95%
-bootstrap interval across seeds; a learner's IQM pools its runs of every finished column, with a
+bootstrap interval across seeds; a learner's IQM pools its runs of every finished column (the seed
+indices every column has), with a
 stratified bootstrap interval (`agents.table.statistics`).
 """
 
@@ -61,8 +62,11 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
                                            "budget": budget_record(cells), "paper": row.get(column, {}).get("avg")}
             seed_matrix.setdefault(algorithm, []).append(values)
         columns = learners[algorithm]
-        if columns and len({len(v) for v in seed_matrix[algorithm]}) == 1:
-            scores = np.stack(seed_matrix[algorithm], axis=1)  # (seeds, columns)
+        if columns:
+            # (seeds, columns) over the seed indices every column has: a column with five seeds
+            # (a cheap one) beside columns with three adds its extra seeds to its cell, not to the IQM
+            common = min(len(v) for v in seed_matrix[algorithm])
+            scores = np.stack([v[:common] for v in seed_matrix[algorithm]], axis=1)
             # the paper's IQM over the columns ours has, so that the two compare
             reported = [row[c]["avg"] for c in columns if row.get(c, {}).get("avg") is not None]
             iqms[algorithm] = {**statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
@@ -104,7 +108,8 @@ def _header(table: dict) -> list[str]:
         "training seeds of each seed's protocol mean, with a 95% percentile bootstrap interval across seeds "
         f"({table['bootstrap']['reps']:,} resamples, rng seed {table['bootstrap']['seed']}); `1d-static` is, per "
         "seed index, the mean over its three shapes (three runs). IQM: the interquartile mean over every run of "
-        "every finished column, with a stratified bootstrap interval (seeds resampled within each column), as "
+        "every finished column (where a column has five seeds beside columns with three, its first three), "
+        "with a stratified bootstrap interval (seeds resampled within each column), as "
         "Agarwal et al. (2021) recommend; the estimators are `agents/table/statistics.py`.",
         f"- **Evaluation keys**: the table's scores use `REPORT_EVAL_SEED = {table['eval_seed']}` "
         "(`snac_jax.evaluation`), reserved for reporting. Tuning scored its runs with "
