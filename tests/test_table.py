@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from agents.table import ablation, statistics
-from agents.table.plan import TRAIN_SEED, Variant, expand_tasks, format_plan, load_presets, make_plan
+from agents.table.plan import TRAIN_SEED, format_plan, make_plan
+from agents.table.presets import Variant, expand_tasks, load_presets
 from agents.table.report import build, markdown
 from tests.table_cells import cell_files as _files
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
@@ -341,6 +342,19 @@ def test_an_arm_can_switch_a_learner_setting_off():
     table = ablation.build({"ppo-privileged": {"2d-static-sparse.no-critic": files}}, arms=["base", "no-critic"], reps=200)
     text = "\n".join(ablation.section(table, "test"))
     assert "| ppo-privileged | 2d-static-sparse | no-critic | `privileged_critic=false` | 0.400 [0.400, 0.400] | — | — |" in text
+
+
+def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
+    """`--arms` plans the named arms alone (an arm whose run is the same as another preset's cell
+    need not train again); an unknown arm, or arms of a preset without any, fail naming the arms."""
+    preset = PRESETS["privileged-ablation"]
+    cells = make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={},
+                      arms=["no-position", "no-critic"])
+    assert [c.variant.name for c in cells] == ["no-critic", "no-position"]
+    with pytest.raises(ValueError, match="no arm.*'no-gps'.*its arms: base, no-critic, no-position"):
+        make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=["no-gps"])
+    with pytest.raises(ValueError, match="not an ablation"):
+        make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), rates={}, arms=["base"])
 
 
 def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):

@@ -12,7 +12,8 @@ from __future__ import annotations
 from typing import Any
 
 from agents.table import statistics
-from agents.table.plan import TRAIN_SEED, arm_changes
+from agents.table.plan import TRAIN_SEED
+from agents.table.presets import arm_changes
 from agents.table.raw import budget_record, budget_text, seed_means
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results

@@ -24,7 +24,7 @@ DEFAULT_RESULTS_DIR = Path("bench") / "results"
 
 
 def _task(text: str) -> str:
-    from agents.table.plan import expand_tasks
+    from agents.table.presets import expand_tasks
 
     try:
         expand_tasks([text])
@@ -35,7 +35,7 @@ def _task(text: str) -> str:
 
 def add_parser(subparsers) -> None:
     from agents.registry import ALGORITHMS
-    from agents.table.plan import BUDGETS_FILE, load_presets
+    from agents.table.presets import BUDGETS_FILE, load_presets
     from snac_jax.paper import PAPER_TASKS
 
     presets = load_presets()
@@ -50,6 +50,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK", type=_task,
                         help=f"paper columns (default: the preset's, else all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
                              "or environment task ids")
+    parser.add_argument("--arms", nargs="+", default=None, metavar="ARM",
+                        help="an ablation preset's arms to run (default: all of them; the report reads every arm found)")
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
     parser.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS_DIR,
                         help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
@@ -71,12 +73,14 @@ def add_parser(subparsers) -> None:
 
 def plan_from_args(args: argparse.Namespace):
     from agents.registry import ALGORITHMS
-    from agents.table.plan import load_presets, make_plan
+    from agents.table.plan import make_plan
+    from agents.table.presets import load_presets
     from snac_jax.paper import PAPER_TASKS
 
     preset = load_presets()[args.preset]
     algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
-    return make_plan(preset, algorithms, args.tasks or list(preset.tasks or PAPER_TASKS), args.seeds, args.runs_dir)
+    return make_plan(preset, algorithms, args.tasks or list(preset.tasks or PAPER_TASKS), args.seeds, args.runs_dir,
+                     arms=args.arms)
 
 
 def run(args: argparse.Namespace) -> int:

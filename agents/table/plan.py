@@ -4,7 +4,7 @@ long it should take, before anything starts.
 A cell is one (algorithm, environment task) run in `<runs-dir>/<preset>/<algorithm>/<task>/`: one
 `agents.driver.train` call with the preset's seeds vmapped, then the reporting protocol. The
 paper's `1d-static` column is three cells, one per shape. Budgets come from the presets of
-`budgets.toml`; wall-time estimates from measured rates (`rates.json`, written by
+`budgets.toml` (`agents.table.presets`); wall-time estimates from measured rates (`rates.json`, written by
 `bench/table_rates.py`), or, for a cell that has started, from its own `metrics.jsonl`.
 """
 
@@ -13,144 +13,23 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_table
+from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
-from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
-from snac_jax.tasks import TASKS, parse_switches, task_spec
+from snac_jax.tasks import task_spec
 
-HERE = Path(__file__).parent
-BUDGETS_FILE = HERE / "budgets.toml"
 CELL_FILE = "cell.json"
 EVAL_FILE = "eval.json"
 TRAIN_SEED = 1
 """Base training seed of the table's runs (seed i trains from fold_in(key(1), i)); the runs that
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
-
-_PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
-_PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
-                "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants"}
-
-
-@dataclasses.dataclass(frozen=True)
-class Variant:
-    """An ablation's arm: the environment switches its cells train and are scored with, the
-    learner settings it changes (an ingredient of a learner switched off), its tasks, and its
-    name in the paper's ablation table ("" where the paper has no such arm)."""
-
-    name: str
-    paper: str
-    switches: str
-    tasks: tuple[str, ...]
-    settings: dict[str, Any] = dataclasses.field(default_factory=dict)
-
-
-
-def arm_changes(switches: str, settings: dict[str, Any]) -> str:
-    """An ablation arm's changes as the table prints them: its switches, then its settings."""
-    return ", ".join(([switches] if switches else []) + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())])
-
-
-@dataclasses.dataclass(frozen=True)
-class Preset:
-    """One table of budgets.toml: how much each cell trains and how it is scored."""
-
-    name: str
-    description: str
-    seeds: int
-    wall_limit_s: float | None
-    budgets: dict[str, dict[str, Any]]
-    settings: dict[str, Any]
-    static_episodes: int = STATIC_EPISODES
-    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN
-    algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
-    tasks: tuple[str, ...] | None = None
-    variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
-    cheap_seeds: int | None = None  # seeds of a cheap column (None: every column has `seeds`)
-    cheap_minutes: float = 5.0  # a column is cheap where each of its new cells, at cheap_seeds, fits this
-
-    def overrides(self, algorithm: str) -> dict[str, Any]:
-        """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
-        shared = {k: v for k, v in self.settings.items() if not isinstance(v, dict)}
-        return {**shared, **self.settings.get(algorithm, {})}
-
-    @property
-    def protocol(self) -> dict[str, int]:
-        return {"static_episodes": self.static_episodes, "episodes_per_test_design": self.episodes_per_test_design}
-
-
-def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
-    presets = {}
-    for name, table in tomllib.loads(Path(path).read_text()).items():
-        unknown = sorted(set(table) - _PRESET_KEYS)
-        if unknown:
-            raise ValueError(f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}")
-        limit = table.get("wall_limit_minutes")
-        for algorithm, budget in table.get("budgets", {}).items():
-            if set(budget) - {"env_steps", "episodes", "source"} or ("env_steps" in budget and "episodes" in budget):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source)")
-        presets[name] = Preset(
-            name=name, description=table.get("description", ""), seeds=int(table.get("seeds", 1)),
-            wall_limit_s=None if limit is None else 60.0 * limit, budgets=table.get("budgets", {}),
-            settings=table.get("settings", {}),
-            static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
-            episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
-            algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
-            tasks=tuple(table["tasks"]) if "tasks" in table else None,
-            variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
-            cheap_seeds=int(table["cheap_seeds"]) if "cheap_seeds" in table else None,
-            cheap_minutes=float(table.get("cheap_minutes", 5.0)),
-        )
-        if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
-            raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
-                             f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
-        if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
-            raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
-    return presets
-
-
-def _variant(path, preset: str, name: str, table: dict) -> Variant:
-    where = f"{path}: [{preset}.variants.{name}]"
-    unknown = sorted(set(table) - {"paper", "switches", "settings", "tasks"})
-    if unknown or "tasks" not in table:
-        raise ValueError(f"{where} must give tasks, and may give paper, switches and settings"
-                         + (f"; unknown key(s) {unknown}" if unknown else ""))
-    settings = table.get("settings", {})
-    if not isinstance(settings, dict):
-        raise ValueError(f"{where}: settings must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
-    reserved = sorted(set(settings) & _PLANNED_OPTIONS)
-    if reserved:
-        raise ValueError(f"{where}: settings may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))} "
-                         "(give an environment change as switches)")
-    try:
-        parse_switches(table.get("switches", ""))
-        tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
-    except ValueError as error:
-        raise ValueError(f"{where}: {error}") from None
-    return Variant(name=name, paper=table.get("paper", ""), switches=table.get("switches", ""), tasks=tasks,
-                   settings=settings)
-
-
-def expand_tasks(names) -> list[tuple[str, str]]:
-    """(paper column, environment task) pairs of paper columns (`1d-static`: its three shapes)
-    or environment task ids, in order, without repeats."""
-    pairs = []
-    for name in names:
-        if name in PAPER_GROUPS:
-            pairs += [(name, task) for task in PAPER_GROUPS[name]]
-        elif name in TASKS:
-            pairs.append((paper_column(name), name))
-        else:
-            raise ValueError(f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task "
-                             f"({', '.join(TASKS)})")
-    return list(dict.fromkeys(pairs))
 
 
 # --- rates and estimates -------------------------------------------------------------------------
@@ -348,10 +227,18 @@ def estimate(cell: Cell, rates: dict) -> None:
 
 
 def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: str | Path,
-              rates: dict | None = None) -> list[Cell]:
-    """Every cell of the grid (algorithms x tasks, x an ablation's arms), with its config, budget,
-    status and estimate."""
+              rates: dict | None = None, arms=None) -> list[Cell]:
+    """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
+    its config, budget, status and estimate."""
     rates = load_rates() if rates is None else rates
+    variants = preset.variants
+    if arms is not None:
+        names = [v.name for v in preset.variants]
+        unknown = [a for a in arms if a not in names]
+        if not names or unknown:
+            raise ValueError(f"preset {preset.name!r} has no arm(s) {unknown or list(arms)}; its arms: "
+                             f"{', '.join(names) if names else 'none (it is not an ablation)'}")
+        variants = tuple(v for v in preset.variants if v.name in arms)
     for algorithm in algorithms:
         if algorithm not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
@@ -365,7 +252,7 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     cells, column_seeds = [], {}
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
-            for variant in [v for v in preset.variants if task in v.tasks] if preset.variants else [None]:
+            for variant in [v for v in variants if task in v.tasks] if variants else [None]:
                 count = seeds if seeds is not None else preset.seeds
                 if seeds is None and preset.cheap_seeds is not None:
                     # every shape of the column decides, requested or not, so that all get one count
@@ -377,8 +264,8 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
                     count = column_seeds[group]
                 cells.append(cell(algorithm, column, task, variant, count))
     if preset.variants and not cells:
-        arms = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
-        raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {arms}")
+        listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
+        raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {listing}")
     for cell in cells:
         cell_state(cell)
         estimate(cell, rates)

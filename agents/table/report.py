@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from agents.table import ablation, statistics
-from agents.table.plan import TRAIN_SEED, load_presets
+from agents.table.plan import TRAIN_SEED
+from agents.table.presets import load_presets
 from agents.table.raw import budget_record, budget_text, collect, load_raw, seed_means
 from snac_jax.atomic import atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
