@@ -1,5 +1,5 @@
 """Auxiliary localisation and map losses on a learner's recurrent state, the stride curriculum, and
-DRQN trained with them (`drqn-aux`).
+DRQN and PQN-RNN trained with them (`drqn-aux`, `pqn-aux`).
 
 The robot must localise from what its window shows (SPEC §11): the handcrafted policy keeps an
 explicit estimate of its position, a recurrent learner only what its memory happens to hold.
@@ -14,7 +14,8 @@ environment's privileged state (SPEC §12, training only):
 Each is on when its coefficient is above 0 (`AuxiliaryOptions`); its head then exists and its loss
 is added to the learner's. The heads read the memory, never feed the policy: the greedy policy's
 action is the same function of its observations whatever the heads hold, and it never sees the
-privileged state. `agents.privileged` adds them to PPO; `DRQNAux` here adds them to DRQN.
+privileged state. `agents.privileged` adds them to PPO; `DRQNAux` and `PQNAux` here add them to
+DRQN and to PQN-RNN.
 
 `stride_curriculum` anneals the stride noise from none (every move one cell, the paper's
 "-uncertainty") to the task's distribution over a share of the run, through `EnvParams`, which the
@@ -38,6 +39,7 @@ from agents.drqn import DRQN, DRQNConfig
 from agents.inputs import ObsLayout
 from agents.networks import mlp_head
 from agents.offpolicy import Step
+from agents.pqn import PQN, PQNConfig, Transition
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams
 
@@ -45,7 +47,7 @@ from snac_jax.state import EnvParams
 @dataclasses.dataclass(frozen=True)
 class AuxiliaryOptions:
     """The auxiliary losses' weights (0: off) and the stride curriculum, shared by the learners
-    that train with them (`agents.privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`)."""
+    that train with them (`agents.privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`, `PQNAuxConfig`)."""
 
     position_coef: float = option(0.05, "weight of the loss predicting the true plan position from the recurrent "
                                   "state (0: off)", low=0)
@@ -184,6 +186,19 @@ def add_losses(total: jax.Array, info: dict, losses: dict[str, tuple[float, jax.
     return total, {**info, **{name: loss for name, (_, loss) in losses.items()}}
 
 
+def add_rollout_losses(auxiliary: Auxiliary, total: jax.Array, info: dict, sown: dict, position: jax.Array,
+                       built: jax.Array | None, action: jax.Array, reset: jax.Array) -> tuple[jax.Array, dict]:
+    """The auxiliary losses of an on-policy learner (PPO, PQN), whose minibatch is whole rollout
+    sequences `(T, B)`: every step of them is learned from, with the heads' outputs sown along
+    them, the true `position (T, B, 2)` and `built` plan where each observation was made."""
+    if not auxiliary.coefs:
+        return total, info
+    outputs = sown["intermediates"]["auxiliary"][0]
+    cells, valid = move_targets(position, action, reset, jnp.asarray(auxiliary.is_move))
+    weights = jnp.ones(action.shape, jnp.float32)
+    return add_losses(total, info, auxiliary.losses(outputs, position, built, cells, valid, weights))
+
+
 # --- DRQN with the auxiliary losses ---------------------------------------------------------------
 
 
@@ -235,3 +250,49 @@ class DRQNAux(StrideCurriculum, DRQN):
         losses = self.auxiliary.losses(outputs, batch.position[steps].astype(jnp.int32), built, cells[steps],
                                        valid[steps], weights)
         return add_losses(loss, info, losses)
+
+
+# --- PQN-RNN with the auxiliary losses ------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
+    """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
+    state. PQN's tuned settings per task apply unchanged (`agents/tuned/pqn-aux.toml` repeats
+    them), so a comparison with PQN is of the losses alone."""
+
+    algorithm: ClassVar[str] = "pqn-aux"
+    paper_method: ClassVar[str] = "pqn"
+
+    recurrent: bool = option(True, "GRU Q-network (PQN-RNN); the heads read its state, so it must stay on")
+
+    def check(self) -> None:
+        super().check()
+        if not self.recurrent:
+            raise ValueError("pqn-aux needs recurrent=True: its auxiliary heads read the GRU's state "
+                             "(use pqn for a feed-forward PQN)")
+
+
+class PQNAux(StrideCurriculum, PQN):
+    """PQN-RNN whose rollout also records the true position (and the built plan, with the map
+    loss) where each observation was made, and whose loss adds the auxiliary losses on the GRU
+    outputs of every rollout step, as `agents.privileged.PrivilegedPPO` does for PPO."""
+
+    def __init__(self, config: PQNAuxConfig):
+        super().__init__(config)
+        self.auxiliary = Auxiliary.from_config(config)
+        self.network = self.network.clone(auxiliary_heads=self.auxiliary.heads(config.hidden_size))
+
+    def _auxiliary_targets(self, env_state, env_params) -> dict | None:
+        if not self.auxiliary.coefs:
+            return None
+        privileged = jax.vmap(self.env.privileged, in_axes=(0, None))(env_state, env_params)
+        return {"position": privileged.position,
+                "built": privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None}
+
+    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
+        if not self.auxiliary.coefs:
+            return loss, info
+        targets = batch.auxiliary
+        return add_rollout_losses(self.auxiliary, loss, info, sown, targets["position"], targets["built"],
+                                  batch.action, batch.reset)

@@ -196,11 +196,17 @@ class LayerNormQNetwork(RecurrentCoreNetwork):
     stability).
     """
 
+    # Heads on the core's features for auxiliary losses (`agents.auxiliary`), sown into
+    # "intermediates" as `QNetwork`'s are: only a training loss asks for them.
+    auxiliary_heads: nn.Module | None = None
+
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = ObservationEncoder(self.layout, self.hidden_size, layer_norm=True)(obs)
         if self.rnn_size:
             carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
+        if self.auxiliary_heads is not None:
+            self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(x)
 
 

@@ -80,6 +80,7 @@ class Transition(NamedTuple):
     truncated: jax.Array
     final_obs: jax.Array  # the episode's last observation where it ended
     carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
+    auxiliary: Any = None  # the auxiliary losses' targets where `obs` was observed (`_auxiliary_targets`)
 
 
 class PQN:
@@ -104,6 +105,17 @@ class PQN:
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.num_updates))
         )
+
+    # --- hooks of the learners built on PQN (`agents.auxiliary.PQNAux`) --------------------------
+
+    def _auxiliary_targets(self, env_state, env_params) -> Any:
+        """What the auxiliary losses learn from, per world, recorded with each step: nothing in PQN."""
+        return None
+
+    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
+        """Losses on what the network sowed into "intermediates" (auxiliary heads), added to
+        `loss` and reported in `info`: none in PQN."""
+        return loss, info
 
     # --- pure functions -------------------------------------------------------------------------
 
@@ -171,6 +183,7 @@ class PQN:
             transition = Transition(
                 obs=net_obs, reset=worlds.reset, action=action, value=q[0].max(-1), reward=reward,
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
+                auxiliary=self._auxiliary_targets(worlds.env_state, env_params),
             )
             stats = {
                 "episodes": done.sum(),
@@ -204,10 +217,10 @@ class PQN:
                         cfg.gamma, cfg.q_lambda)
 
     def _loss(self, params, carry0, batch: Transition, targets):
-        _, q = self.network.apply(params, carry0, batch.obs, batch.reset)
+        (_, q), sown = self.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         q_taken = jnp.take_along_axis(q, batch.action[..., None].astype(jnp.int32), axis=-1)[..., 0]
         loss = 0.5 * jnp.mean((q_taken - targets) ** 2)
-        return loss, {"loss": loss, "q_mean": q_taken.mean()}
+        return self._auxiliary_losses(loss, {"loss": loss, "q_mean": q_taken.mean()}, sown, batch)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg, m = self.config, self.config.num_minibatches

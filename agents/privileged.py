@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_losses, move_targets
+from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
 from agents.config import option
 from agents.inputs import ObsLayout
 from agents.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
@@ -129,11 +129,6 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         return obs, new_state, reward, terminated, truncated, info
 
     def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
-        if not self.auxiliary.coefs:
-            return loss, info
-        outputs = sown["intermediates"]["auxiliary"][0]
         privileged = batch.privileged
-        cells, valid = move_targets(privileged.position, batch.action, batch.reset, jnp.asarray(self.auxiliary.is_move))
-        weights = jnp.ones(batch.reward.shape, jnp.float32)
-        losses = self.auxiliary.losses(outputs, privileged.position, privileged.built, cells, valid, weights)
-        return add_losses(loss, info, losses)
+        return add_rollout_losses(self.auxiliary, loss, info, sown, privileged.position, privileged.built,
+                                  batch.action, batch.reset)

@@ -42,6 +42,7 @@ ALGORITHMS: dict[str, Entry] = {
     "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
     "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
+    "pqn-aux": Entry("agents.auxiliary", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
 }
 
 

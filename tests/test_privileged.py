@@ -24,6 +24,9 @@ PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_miniba
                 hidden_size=16, rnn_size=16, recurrent=True)
 DRQN_TINY = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16,
                  burn_in=2, sequence_length=4, learning_starts=0, buffer_size=8 * 40)
+PQN_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
+                hidden_size=16, rnn_size=16, recurrent=True)
+TINY = {"ppo-privileged": PPO_TINY, "drqn-aux": DRQN_TINY, "pqn-aux": PQN_TINY}
 ALL_SIGNALS = dict(position_coef=0.1, map_coef=0.1, move_coef=0.1, stride_curriculum=0.5)
 
 
@@ -155,13 +158,32 @@ def test_the_greedy_policy_reads_observations_only():
     assert np.all(np.isnan(after_poisoned_memory["carry"]))  # poison where acting does read shows
 
 
-def test_with_every_signal_off_the_learners_are_ppo_and_drqn():
-    """The hooks leave PPO and DRQN as they were: the new learners with the privileged critic off
+def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_path():
+    agent = build_algorithm(make_config("pqn-aux", "2d-static-dense", **PQN_TINY, max_steps=5))
+    state = jax.jit(agent.init)(jax.random.key(0))
+    _, batch, _ = jax.jit(agent.rollout)(state, agent.env_params)
+    # The targets are where each observation was made: the first step's, the worlds' positions before it.
+    assert batch.auxiliary["position"].shape == (8, 16, 2) and batch.auxiliary["built"] is None
+    assert _same(batch.auxiliary["position"][0], state.worlds.env_state.position)
+    policy = agent.policy(state.params)
+    policy_state = policy.init(jax.random.key(2), agent.env_params.designs[0])
+    obs, _ = agent.env.reset(jax.random.key(3), agent.env_params)
+    poisoned = {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k == "auxiliary_heads" else v
+                           for k, v in state.params["params"].items()}}
+    assert "auxiliary_heads" in state.params["params"]
+    action, after = policy.act(state.params, policy_state, obs, jax.random.key(4))
+    action_poisoned, after_poisoned = policy.act(poisoned, policy_state, obs, jax.random.key(4))
+    assert int(action) == int(action_poisoned) and _same(after, after_poisoned)
+
+
+def test_with_every_signal_off_the_learners_are_ppo_drqn_and_pqn():
+    """The hooks leave PPO, DRQN and PQN as they were: the new learners with the privileged critic off
     and every auxiliary weight 0 reproduce them exactly (truncations included: max_steps 5), and
     the evaluator scores their greedy policies alike."""
     task, off = "1d-static-sin", dict(position_coef=0.0, map_coef=0.0, move_coef=0.0)
     pairs = [("ppo", "ppo-privileged", dict(PPO_TINY, max_steps=5), dict(privileged_critic=False, **off)),
-             ("drqn", "drqn-aux", dict(DRQN_TINY, max_steps=5), off)]
+             ("drqn", "drqn-aux", dict(DRQN_TINY, max_steps=5), off),
+             ("pqn", "pqn-aux", dict(PQN_TINY, max_steps=5), off)]
     for base, new, options, switches in pairs:
         agents = [build_algorithm(make_config(name, task, **options, **extra)) for name, extra in ((base, {}), (new, switches))]
         (state_a, metrics_a), (state_b, metrics_b) = (_run(agent, 2) for agent in agents)
@@ -176,9 +198,9 @@ def test_with_every_signal_off_the_learners_are_ppo_and_drqn():
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 @pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense"),
-                                            ("drqn-aux", "1d-static-sin")])
+                                            ("drqn-aux", "1d-static-sin"), ("pqn-aux", "2d-static-sparse")])
 def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task):
-    options = PPO_TINY if algorithm == "ppo-privileged" else DRQN_TINY
+    options = TINY[algorithm]
     agent = build_algorithm(make_config(algorithm, task, **options, **ALL_SIGNALS, max_steps=6))
     traces = []
     update = agent.update
@@ -216,12 +238,12 @@ def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
 
 
 @pytest.mark.slow  # three driver runs of each learner: over 20 s on a 2-core CPU
-@pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux"])
+@pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux", "pqn-aux"])
 def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
     from agents.checkpoint import to_storable
     from agents.driver import train
 
-    options = PPO_TINY if algorithm == "ppo-privileged" else DRQN_TINY
+    options = TINY[algorithm]
     config = make_config(algorithm, "1d-static-sin", **options, **ALL_SIGNALS, chunks=2, max_steps=6)
     _, straight = train(config, tmp_path / "straight", progress=False)
     train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
@@ -232,7 +254,7 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 # --- configuration --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("algorithm,base", [("ppo-privileged", "ppo"), ("drqn-aux", "drqn")])
+@pytest.mark.parametrize("algorithm,base", [("ppo-privileged", "ppo"), ("drqn-aux", "drqn"), ("pqn-aux", "pqn")])
 def test_tuned_settings_are_the_base_learners(algorithm, base):
     def tables(name):
         return tomllib.loads((TUNED_DIR / f"{name}.toml").read_text())
@@ -248,3 +270,8 @@ def test_tuned_settings_are_the_base_learners(algorithm, base):
 def test_config_errors_are_clear(options, message):
     with pytest.raises(ValueError, match=message):
         make_config("ppo-privileged", "1d-static-sin", **options)
+
+
+def test_pqn_aux_needs_its_recurrent_core():
+    with pytest.raises(ValueError, match="pqn-aux needs recurrent=True: its auxiliary heads read the GRU's state"):
+        make_config("pqn-aux", "2d-static-dense", recurrent=False)
