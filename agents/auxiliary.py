@@ -259,7 +259,9 @@ class DRQNAux(StrideCurriculum, DRQN):
 class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
     state. PQN's tuned settings per task apply unchanged (`agents/tuned/pqn-aux.toml` repeats
-    them), so a comparison with PQN is of the losses alone."""
+    them), so a comparison with PQN-RNN (`pqn --recurrent`; plain `pqn` is feed-forward on the
+    tasks its tuned file leaves out) is of the losses alone. The default weights are the other
+    learners'; PQN's TD loss is smaller (rewards scaled by 0.01), so their balance here is untuned."""
 
     algorithm: ClassVar[str] = "pqn-aux"
     paper_method: ClassVar[str] = "pqn"

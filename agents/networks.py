@@ -197,7 +197,8 @@ class LayerNormQNetwork(RecurrentCoreNetwork):
     """
 
     # Heads on the core's features for auxiliary losses (`agents.auxiliary`), sown into
-    # "intermediates" as `QNetwork`'s are: only a training loss asks for them.
+    # "intermediates" as `QNetwork`'s are: computed on every call, but only an apply with
+    # mutable="intermediates" (the training loss) keeps them.
     auxiliary_heads: nn.Module | None = None
 
     @nn.compact

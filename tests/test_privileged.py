@@ -18,7 +18,7 @@ from agents.auxiliary import map_loss, move_loss, move_targets, position_loss, s
 from agents.registry import TUNED_DIR, build_algorithm, make_config
 from snac_jax.env import draw_stride
 from snac_jax.evaluation import run_episodes
-from snac_jax.tasks import make
+from snac_jax.tasks import TASKS, make
 
 PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
                 hidden_size=16, rnn_size=16, recurrent=True)
@@ -165,6 +165,14 @@ def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_pa
     # The targets are where each observation was made: the first step's, the worlds' positions before it.
     assert batch.auxiliary["position"].shape == (8, 16, 2) and batch.auxiliary["built"] is None
     assert _same(batch.auxiliary["position"][0], state.worlds.env_state.position)
+    # ... and after an episode ends inside the rollout (max_steps 5), the new episode's first
+    # observation is scored against the reset position (the plan origin), not the last one's.
+    position, reset = np.asarray(batch.auxiliary["position"]), np.asarray(batch.reset)
+    later = reset[1:].any(axis=1).nonzero()[0] + 1
+    assert later.size, "no episode ended inside the rollout"
+    for t in later:
+        assert (position[t][reset[t]] == 0).all()
+        assert (position[t - 1][reset[t]] != 0).any()  # where the ended episodes were: the check bites
     policy = agent.policy(state.params)
     policy_state = policy.init(jax.random.key(2), agent.env_params.designs[0])
     obs, _ = agent.env.reset(jax.random.key(3), agent.env_params)
@@ -260,6 +268,15 @@ def test_tuned_settings_are_the_base_learners(algorithm, base):
         return tomllib.loads((TUNED_DIR / f"{name}.toml").read_text())
 
     assert tables(algorithm) == tables(base)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_pqn_aux_resolves_to_recurrent_pqn_plus_its_losses(task):
+    """On every task pqn-aux is PQN-RNN (`pqn --recurrent`, which plain pqn is not on the tasks its
+    tuned file leaves out) with the auxiliary options added: a comparison is of the losses alone."""
+    aux, base = make_config("pqn-aux", task).to_json(), make_config("pqn", task, recurrent=True).to_json()
+    extra = {"algorithm", "position_coef", "map_coef", "move_coef", "stride_curriculum"}
+    assert {k: v for k, v in aux.items() if k not in extra} == {k: v for k, v in base.items() if k not in extra}
 
 
 @pytest.mark.parametrize("options,message", [
