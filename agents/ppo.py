@@ -329,7 +329,7 @@ class PPO:
             return action, {"carry": carry[0], **layout.remember(obs, action)}
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
-        return Policy(init, act, params, f"ppo-{kind}")
+        return Policy(init, act, params, f"{self.config.algorithm}-{kind}")
 
 
 def _one_step(tree: Any) -> Any:

@@ -277,4 +277,4 @@ class PQN:
             return action, {"carry": carry[0], **layout.remember(obs, action)}
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
-        return Policy(init=init, act=act, params=params, name=f"pqn-{kind}")
+        return Policy(init=init, act=act, params=params, name=f"{self.config.algorithm}-{kind}")

@@ -174,6 +174,7 @@ def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_pa
         assert (position[t][reset[t]] == 0).all()
         assert (position[t - 1][reset[t]] != 0).any()  # where the ended episodes were: the check bites
     policy = agent.policy(state.params)
+    assert policy.name == "pqn-aux-recurrent"  # what a rendered episode's title says
     policy_state = policy.init(jax.random.key(2), agent.env_params.designs[0])
     obs, _ = agent.env.reset(jax.random.key(3), agent.env_params)
     poisoned = {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k == "auxiliary_heads" else v
