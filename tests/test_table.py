@@ -441,3 +441,6 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
     rows = table["ablation"]["ppo"]["1d-static-sin"]
     assert list(rows) == ["base", "gps", "no-uncertainty"] and rows["gps"]["delta"] is not None
     assert "png:ablation" not in paths and "| ppo | 1d-static-sin | gps (+gps) | `gps=true` |" in paths["md"].read_text()
+    # no per-column figure for an ablation, but each arm's learning curve, from the copied metrics
+    assert paths["png:ablation-curves"] == results / "table-ablation-curves.png" and paths["png:ablation-curves"].stat().st_size
+    assert "Learning curves of the arms: `table-ablation-curves.png`" in paths["md"].read_text()

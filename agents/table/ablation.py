@@ -9,12 +9,16 @@ base with the interval of that difference (`statistics.difference_summary`).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from agents.table import statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import arm_changes
 from agents.table.raw import budget_record, budget_text, seed_means
+from snac_jax.atomic import atomic_write
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
 
@@ -58,7 +62,8 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
             learners.setdefault(algorithm, {})[task] = rows
     return {"preset": preset, "kind": "ablation", "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
             "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
-            "ablation": learners}
+            "ablation": learners,
+            "curves": any(files.get("metrics") for cells in raw.values() for files in cells.values())}
 
 
 def _interval(value: float, ci: list[float], signed: bool = False) -> str:
@@ -88,4 +93,46 @@ def section(table: dict, description: str) -> list[str]:
                 paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
                 lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
                              f"{delta} | {paper} | {budget_text(row['budget'])} |")
+    if table.get("curves"):
+        lines += ["", f"Learning curves of the arms: `table-{table['preset']}-curves.png` (sampled training IoU, "
+                  "the mean over seeds and a band from the lowest to the highest seed)."]
     return lines + [""]
+
+
+def curves(raw: dict, *, arms: list[str], path: str | Path, preset: str = "") -> bool:
+    """The arms' learning curves, one panel per (learner, task): each arm's sampled training IoU
+    (metrics.jsonl) against env steps, the mean over seeds with a band from the lowest to the
+    highest seed. The table scores the greedy policy once at the end; the curves show whether
+    an arm's gap was there all along or opened late. Returns False (and writes nothing) where no
+    copied cell kept its curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
+    panels: dict[tuple[str, str], dict[str, list[dict]]] = {}
+    for algorithm, cells in raw.items():
+        for files in cells.values():
+            if files.get("metrics"):
+                panels.setdefault((algorithm, files["cell"]["task"]), {})[files["cell"]["variant"]] = files["metrics"]
+    if not panels:
+        return False
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
+    for ax, ((algorithm, task), found) in zip(axes[0], sorted(panels.items())):
+        for colour, arm in enumerate(sorted(found, key=order)):
+            steps = np.array([r["env_steps"] for r in found[arm]], dtype=float)
+            iou = np.array([r["iou"] for r in found[arm]], dtype=float).reshape(len(steps), -1)  # (chunks, seeds)
+            ax.plot(steps, iou.mean(axis=1), color=f"C{colour}", label=f"{arm} ({iou.shape[1]} seeds)")
+            ax.fill_between(steps, iou.min(axis=1), iou.max(axis=1), color=f"C{colour}", alpha=0.2, linewidth=0)
+        ax.set_title(f"{algorithm}, {task}", fontsize=10)
+        ax.set_xlabel("env steps per seed")
+        ax.set_ylabel("sampled training IoU")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize="small")
+    fig.suptitle(f"snac table, preset {preset!r}: learning curves of the arms", fontsize=11)
+    fig.tight_layout()
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+    return True

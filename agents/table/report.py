@@ -253,12 +253,15 @@ def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
                    key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
     hand_path = results_dir / "handcrafted.json"
     handcrafted = json.loads(hand_path.read_text()) if hand_path.is_file() else None
-    tables = {}
+    tables, paths = {}, {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     for name in found or [preset]:
         raw, arms = load_raw(results_dir, name), [v.name for v in presets[name].variants] if name in presets else []
-        tables[name] = (ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED)
-                        if arms or ablation.is_ablation(raw) else build(raw, handcrafted=handcrafted, preset=name, reps=reps))
-    paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
+        if arms or ablation.is_ablation(raw):
+            tables[name] = ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED)
+            if ablation.curves(raw, arms=arms, path=results_dir / f"table-{name}-curves.png", preset=name):
+                paths[f"png:{name}-curves"] = results_dir / f"table-{name}-curves.png"
+        else:
+            tables[name] = build(raw, handcrafted=handcrafted, preset=name, reps=reps)
     atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
     atomic_write_json(paths["json"], tables)
     for name, table in tables.items():
