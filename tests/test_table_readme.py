@@ -61,6 +61,7 @@ def test_cli_writes_the_readme_only_with_report(tmp_path, capsys):
     args = ["table", "--preset", "paper", "--runs-dir", str(tmp_path / "runs"), "--results-dir", str(results),
             "--readme", str(readme)]
     assert main(args) == 2 and "--readme goes with --report" in capsys.readouterr().err
+    assert main(args + ["--report", "--arms", "base"]) == 2 and "leave --arms out" in capsys.readouterr().err
     (tmp_path / "plain.md").write_text("no markers\n")
     assert main(args[:-1] + [str(tmp_path / "plain.md"), "--report"]) == 2
     assert "no generated learner table" in capsys.readouterr().err and not (results / "table.md").exists()

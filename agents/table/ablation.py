@@ -27,18 +27,29 @@ PAPER_TABLE = "ablation_drqn"
 PAPER_LEARNER = "drqn"  # the paper's ablation table is DRQN's
 
 
+def curves_name(preset: str) -> str:
+    """The file name of an ablation preset's learning-curve figure, beside table.md."""
+    return f"table-{preset}-curves.png"
+
+
+def _arm_order(arms: list[str]):
+    """Sort key of arm names: the preset's order, then arms it does not name, by name."""
+    return lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
+
+
 def is_ablation(raw: dict) -> bool:
     """Whether copied cells (`raw.load_raw`) are an ablation's: their cell.json names an arm."""
     return any("variant" in files["cell"] for cells in raw.values() for files in cells.values())
 
 
 def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str = "", reps: int = statistics.DEFAULT_REPS,
-          bootstrap_seed: int = 0) -> dict[str, Any]:
+          bootstrap_seed: int = 0, curves: bool = False) -> dict[str, Any]:
     """table.json's section of an ablation preset from its copied cells (`raw.load_raw`); `arms`:
     the preset's arm names in the order the table lists them (arms it does not name follow, by
-    name). The paper's values stand beside the learner it ablated (DRQN) only."""
+    name); `curves`: whether the arms' learning-curve figure was drawn (`curves`). The paper's
+    values stand beside the learner it ablated (DRQN) only."""
     paper = (load_paper_results() if paper is None else paper).get(PAPER_TABLE, {})
-    order = lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
+    order = _arm_order(arms)
     learners: dict[str, dict] = {}
     for algorithm, cells in raw.items():
         ablated = algorithm == PAPER_LEARNER  # not drqn-aux, which shares DRQN's paper row but is another learner
@@ -63,7 +74,7 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
     return {"preset": preset, "kind": "ablation", "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
             "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
             "ablation": learners,
-            "curves": any(files.get("metrics") for cells in raw.values() for files in cells.values())}
+            "curves": curves}
 
 
 def _interval(value: float, ci: list[float], signed: bool = False) -> str:
@@ -94,7 +105,7 @@ def section(table: dict, description: str) -> list[str]:
                 lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
                              f"{delta} | {paper} | {budget_text(row['budget'])} |")
     if table.get("curves"):
-        lines += ["", f"Learning curves of the arms: `table-{table['preset']}-curves.png` (sampled training IoU, "
+        lines += ["", f"Learning curves of the arms: `{curves_name(table['preset'])}` (sampled training IoU, "
                   "the mean over seeds and a band from the lowest to the highest seed)."]
     return lines + [""]
 
@@ -110,7 +121,7 @@ def curves(raw: dict, *, arms: list[str], path: str | Path, preset: str = "") ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    order = lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
+    order = _arm_order(arms)
     panels: dict[tuple[str, str], dict[str, list[dict]]] = {}
     for algorithm, cells in raw.items():
         for files in cells.values():

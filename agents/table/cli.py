@@ -92,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.readme.is_file():
             raise ValueError(f"--readme {args.readme}: no such file")
         replace_block(args.readme.read_text(), "")  # its marker lines are there, before any work
+    if args.report and args.arms is not None:
+        raise ValueError("--arms chooses the arms to train; --report reports every arm found (leave --arms out)")
     if args.report:
         import json
 

@@ -235,7 +235,7 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     if arms is not None:
         names = [v.name for v in preset.variants]
         unknown = [a for a in arms if a not in names]
-        if not names or unknown:
+        if not names or unknown or not arms:
             raise ValueError(f"preset {preset.name!r} has no arm(s) {unknown or list(arms)}; its arms: "
                              f"{', '.join(names) if names else 'none (it is not an ablation)'}")
         variants = tuple(v for v in preset.variants if v.name in arms)
@@ -263,9 +263,10 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
                             preset, [cell(algorithm, column, t, variant, preset.cheap_seeds) for t in shapes], rates)
                     count = column_seeds[group]
                 cells.append(cell(algorithm, column, task, variant, count))
-    if preset.variants and not cells:
-        listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in preset.variants)
-        raise ValueError(f"no arm of preset {preset.name!r} runs on {', '.join(tasks)}; its arms' tasks: {listing}")
+    if variants and not cells:
+        chosen = "arm" if arms is None else "arm named in --arms"
+        listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in variants)
+        raise ValueError(f"no {chosen} of preset {preset.name!r} runs on {', '.join(tasks)}; their tasks: {listing}")
     for cell in cells:
         cell_state(cell)
         estimate(cell, rates)

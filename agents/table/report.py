@@ -245,7 +245,8 @@ def figure(table: dict, path: str | Path) -> None:
 def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
                  reps: int = statistics.DEFAULT_REPS) -> dict[str, Path]:
     """Copy `preset`'s finished cells from `runs_dir`, then rebuild table.md and table.json from
-    every preset's raw results under `results_dir/table/`, and `table-<preset>.png` per preset."""
+    every preset's raw results under `results_dir/table/`, and per preset `table-<preset>.png` (an
+ablation's: its arms' learning curves, `ablation.curves_name`)."""
     results_dir = Path(results_dir)
     collect(runs_dir, results_dir, preset)
     presets = load_presets()
@@ -257,9 +258,12 @@ def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
     for name in found or [preset]:
         raw, arms = load_raw(results_dir, name), [v.name for v in presets[name].variants] if name in presets else []
         if arms or ablation.is_ablation(raw):
-            tables[name] = ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED)
-            if ablation.curves(raw, arms=arms, path=results_dir / f"table-{name}-curves.png", preset=name):
-                paths[f"png:{name}-curves"] = results_dir / f"table-{name}-curves.png"
+            figure_path = results_dir / ablation.curves_name(name)
+            drawn = ablation.curves(raw, arms=arms, path=figure_path, preset=name)
+            tables[name] = ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED,
+                                          curves=drawn)
+            if drawn:
+                paths[f"png:{name}-curves"] = figure_path
         else:
             tables[name] = build(raw, handcrafted=handcrafted, preset=name, reps=reps)
     atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
