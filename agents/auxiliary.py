@@ -293,8 +293,6 @@ class PQNAux(StrideCurriculum, PQN):
                 "built": privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None}
 
     def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
-        if not self.auxiliary.coefs:
-            return loss, info
-        targets = batch.auxiliary
-        return add_rollout_losses(self.auxiliary, loss, info, sown, targets["position"], targets["built"],
+        targets = batch.auxiliary or {}  # None where every weight is 0 (nothing recorded, nothing added)
+        return add_rollout_losses(self.auxiliary, loss, info, sown, targets.get("position"), targets.get("built"),
                                   batch.action, batch.reset)

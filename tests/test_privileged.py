@@ -24,8 +24,7 @@ PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_miniba
                 hidden_size=16, rnn_size=16, recurrent=True)
 DRQN_TINY = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16,
                  burn_in=2, sequence_length=4, learning_starts=0, buffer_size=8 * 40)
-PQN_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
-                hidden_size=16, rnn_size=16, recurrent=True)
+PQN_TINY = PPO_TINY  # PQN's rollout and minibatch options have PPO's names
 TINY = {"ppo-privileged": PPO_TINY, "drqn-aux": DRQN_TINY, "pqn-aux": PQN_TINY}
 ALL_SIGNALS = dict(position_coef=0.1, map_coef=0.1, move_coef=0.1, stride_curriculum=0.5)
 
@@ -127,6 +126,12 @@ def test_stride_curriculum_goes_from_no_noise_to_the_tasks():
 # --- learners -------------------------------------------------------------------------------------------
 
 
+def _poison(params, names):
+    """`params` with every weight of the named top-level modules set to NaN, to show which ones acting reads."""
+    return {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in names else v
+                       for k, v in params["params"].items()}}
+
+
 def test_the_greedy_policy_reads_observations_only():
     agent = build_algorithm(make_config("ppo-privileged", "2d-dynamic-sparse", **PPO_TINY, map_coef=0.1, move_coef=0.1))
     params = jax.jit(agent.init)(jax.random.key(0)).params
@@ -146,15 +151,11 @@ def test_the_greedy_policy_reads_observations_only():
     names = set(params["params"])
     assert {"PrivilegedEncoder_0", "auxiliary_heads"} <= names
 
-    def poison(names):
-        return {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in names else v
-                           for k, v in params["params"].items()}}
-
     critic = {"PrivilegedEncoder_0", "auxiliary_heads", "Dense_2", "Dense_3"}  # Dense_0/1: the actor's head
     action, after = policy.act(params, policy_state, obs, key)
-    action_poisoned, after_poisoned = policy.act(poison(critic), policy_state, obs, key)
+    action_poisoned, after_poisoned = policy.act(_poison(params, critic), policy_state, obs, key)
     assert int(action) == int(action_poisoned) and _same(after, after_poisoned)
-    _, after_poisoned_memory = policy.act(poison({"ScannedRNN_0"}), policy_state, obs, key)
+    _, after_poisoned_memory = policy.act(_poison(params, {"ScannedRNN_0"}), policy_state, obs, key)
     assert np.all(np.isnan(after_poisoned_memory["carry"]))  # poison where acting does read shows
 
 
@@ -177,8 +178,7 @@ def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_pa
     assert policy.name == "pqn-aux-recurrent"  # what a rendered episode's title says
     policy_state = policy.init(jax.random.key(2), agent.env_params.designs[0])
     obs, _ = agent.env.reset(jax.random.key(3), agent.env_params)
-    poisoned = {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k == "auxiliary_heads" else v
-                           for k, v in state.params["params"].items()}}
+    poisoned = _poison(state.params, {"auxiliary_heads"})
     assert "auxiliary_heads" in state.params["params"]
     action, after = policy.act(state.params, policy_state, obs, jax.random.key(4))
     action_poisoned, after_poisoned = policy.act(poisoned, policy_state, obs, jax.random.key(4))

@@ -355,7 +355,7 @@ def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=["no-gps"])
     with pytest.raises(ValueError, match="not an ablation"):
         make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), rates={}, arms=["base"])
-    with pytest.raises(ValueError, match="its arms: base, no-critic, no-position"):
+    with pytest.raises(ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position"):
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=[])
     with pytest.raises(ValueError, match=r"no arm named in --arms of preset 'ablation' runs on 3d-static-dense; "
                                          r"their tasks: gps: 2d-static-dense, 2d-static-sparse$"):

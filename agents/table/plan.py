@@ -236,7 +236,8 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         names = [v.name for v in preset.variants]
         unknown = [a for a in arms if a not in names]
         if not names or unknown or not arms:
-            raise ValueError(f"preset {preset.name!r} has no arm(s) {unknown or list(arms)}; its arms: "
+            wrong = f"has no arm(s) {unknown or list(arms)}" if arms else "needs at least one arm named"
+            raise ValueError(f"preset {preset.name!r} {wrong}; its arms: "
                              f"{', '.join(names) if names else 'none (it is not an ablation)'}")
         variants = tuple(v for v in preset.variants if v.name in arms)
     for algorithm in algorithms:

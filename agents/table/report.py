@@ -26,7 +26,7 @@ from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
 from agents.table.raw import budget_record, budget_text, collect, load_raw, seed_means
-from snac_jax.atomic import atomic_write_json, atomic_write_text
+from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
 
@@ -235,18 +235,15 @@ def figure(table: dict, path: str | Path) -> None:
         fig.legend(list(handles.values()), list(handles), loc="upper center", bbox_to_anchor=(0.5, 0.955),
                    ncol=len(handles), frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 0.9))
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, dpi=110)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)
-    tmp.replace(path)
 
 
 def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
                  reps: int = statistics.DEFAULT_REPS) -> dict[str, Path]:
     """Copy `preset`'s finished cells from `runs_dir`, then rebuild table.md and table.json from
     every preset's raw results under `results_dir/table/`, and per preset `table-<preset>.png` (an
-ablation's: its arms' learning curves, `ablation.curves_name`)."""
+    ablation's: its arms' learning curves, `ablation.curves_name`)."""
     results_dir = Path(results_dir)
     collect(runs_dir, results_dir, preset)
     presets = load_presets()
