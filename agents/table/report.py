@@ -128,10 +128,14 @@ def _header(table: dict) -> list[str]:
     ]
 
 
+def _columns(count: int) -> str:
+    return f"{count} column" if count == 1 else f"{count} columns"
+
+
 def _reference_row(name: str, values: list) -> str:
     """A row without seeds: its numbers, and their IQM over the columns that have one."""
     reported = [v for v in values if v is not None]
-    iqm = f"{statistics.iqm(reported):.3f} ({len(reported)} columns)" if reported else "—"
+    iqm = f"{statistics.iqm(reported):.3f} ({_columns(len(reported))})" if reported else "—"
     return f"| {name} | " + " | ".join(_f(v) for v in values) + f" | {iqm} |"
 
 
@@ -161,7 +165,7 @@ def _section(table: dict, description: str) -> list[str]:
                 for c in columns]
         iqm_text = "—" if not iqm else (f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
                                         + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)"))
-        paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {iqm['paper_columns']} columns)" if iqm and iqm["paper_iqm"] is not None
+        paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {_columns(iqm['paper_columns'])})" if iqm and iqm["paper_iqm"] is not None
                      else "—")
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
         lines.append(f"| {_paper_label(table, learner)} | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
