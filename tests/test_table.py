@@ -330,10 +330,11 @@ def test_an_arm_can_switch_a_learner_setting_off():
     preset = PRESETS["privileged-ablation"]
     cells = {c.variant.name: c for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None,
                                                   Path("unused"), rates={})}
-    assert list(cells) == ["base", "no-critic", "no-position"]
+    assert list(cells) == ["base", "no-critic", "no-position", "curriculum"]
     base = cells["base"].config.to_json()
     changed = {name: {k: v for k, v in cell.config.to_json().items() if base[k] != v} for name, cell in cells.items()}
-    assert changed == {"base": {}, "no-critic": {"privileged_critic": False}, "no-position": {"position_coef": 0.0}}
+    assert changed == {"base": {}, "no-critic": {"privileged_critic": False}, "no-position": {"position_coef": 0.0},
+                       "curriculum": {"stride_curriculum": 0.5}}
     assert cells["base"].config.privileged_critic and cells["base"].config.position_coef > 0
     assert cells["no-critic"].record()["settings"] == {"privileged_critic": False}
 
@@ -351,11 +352,11 @@ def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
     cells = make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={},
                       arms=["no-position", "no-critic"])
     assert [c.variant.name for c in cells] == ["no-critic", "no-position"]
-    with pytest.raises(ValueError, match="no arm.*'no-gps'.*its arms: base, no-critic, no-position"):
+    with pytest.raises(ValueError, match="no arm.*'no-gps'.*its arms: base, no-critic, no-position, curriculum"):
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=["no-gps"])
     with pytest.raises(ValueError, match="not an ablation"):
         make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), rates={}, arms=["base"])
-    with pytest.raises(ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position"):
+    with pytest.raises(ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position, curriculum"):
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=[])
     with pytest.raises(ValueError, match=r"no arm named in --arms of preset 'ablation' runs on 3d-static-dense; "
                                          r"their tasks: gps: 2d-static-dense, 2d-static-sparse$"):
