@@ -124,18 +124,13 @@ class DRQNHER(DRQN):
                                final_grids=final_grids)
 
     def _world_step(self, worlds: HindsightWorlds, keys: jax.Array, action: jax.Array, env_params):
-        """The environment's step and reset, kept apart: the final grid of an ending episode,
-        which the auto-reset would discard, is what its relabelled copy is scored against."""
+        """The environment's step, keeping the final grid of an ending episode, which the
+        auto-reset would discard: its relabelled copy is scored against it."""
         env, n = self.env, self.config.num_envs
-        obs_stepped, stepped, reward, terminated, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(
-            keys, worlds.env_state, action, env_params
-        )
-        done = terminated | jax.vmap(env.is_truncated, in_axes=(0, None))(stepped, env_params)
-        obs_reset, state_reset = jax.vmap(env.reset_env, in_axes=(0, None))(keys, env_params)
-        env_state = jax.tree.map(
-            lambda r, s: jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), r, s), state_reset, stepped
-        )
-        obs = jnp.where(done[:, None], obs_reset, obs_stepped)
+        obs, env_state, reward, terminated, truncated, info, stepped = jax.vmap(
+            env.step_keeping_final_state, in_axes=(0, 0, 0, None)
+        )(keys, worlds.env_state, action, env_params)
+        done = terminated | truncated
 
         drop_cell, drop_height = jax.vmap(lambda b, a, t: drop_record(env.config, b, a, t))(
             worlds.env_state.grid, stepped.grid, terminated

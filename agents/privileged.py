@@ -121,12 +121,11 @@ class PrivilegedPPO(StrideCurriculum, PPO):
 
     def _step(self, keys: jax.Array, env_state, action: jax.Array, env_params):
         """PPO's step, and in `info["final_privileged"]` the privileged state each world reached
-        before any auto-reset: `env.step` does not return that state, so `step_env` recomputes it
-        from the same key (the same stride)."""
-        obs, new_state, reward, terminated, truncated, info = super()._step(keys, env_state, action, env_params)
-        _, stepped, _, _, _ = jax.vmap(self.env.step_env, in_axes=(0, 0, 0, None))(keys, env_state, action, env_params)
-        info = {**info, "final_privileged": self._privileged(stepped, env_params)}
-        return obs, new_state, reward, terminated, truncated, info
+        before any auto-reset."""
+        *outputs, info, stepped = jax.vmap(self.env.step_keeping_final_state, in_axes=(0, 0, 0, None))(
+            keys, env_state, action, env_params
+        )
+        return (*outputs, {**info, "final_privileged": self._privileged(stepped, env_params)})
 
     def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
         privileged = batch.privileged

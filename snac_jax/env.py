@@ -199,6 +199,18 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         - A static task's reset state does not depend on the key, so under `vmap` it stays
           unbatched and the auto-reset is a broadcast select.
         """
+        return self.step_keeping_final_state(key, state, action, params)[:6]
+
+    @partial(jax.jit, static_argnames=("self",))
+    def step_keeping_final_state(
+        self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams | None = None
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any], EnvState]:
+        """`step`'s six outputs, then the state the step reached before the auto-reset replaced it.
+
+        Why: training signals that read the world's truth (`privileged`, hindsight relabelling)
+        need an ending episode's last state, which `step` discards. Inside a larger `jit` an
+        unused seventh output costs nothing.
+        """
         if params is None:
             params = self.default_params
         _, state_stepped, reward, terminated, info = self.step_env(key, state, action, params)
@@ -212,7 +224,7 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
             "truncated": truncated,
             "final_observation": self.get_obs(state_stepped, params),
         }
-        return self.get_obs(state, params), state, reward, terminated, truncated, info
+        return self.get_obs(state, params), state, reward, terminated, truncated, info, state_stepped
 
     @partial(jax.jit, static_argnames=("self",))
     def step_batch(

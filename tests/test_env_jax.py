@@ -75,6 +75,21 @@ def test_auto_reset_returns_reset_state_and_final_observation():
     assert float(info["final_iou"][t]) == pytest.approx(float((final_state.overlap / final_state.union)))
 
 
+def test_step_keeping_final_state_is_step_plus_the_state_before_the_auto_reset():
+    env, params = make("3d-static-sparse")
+    key = jax.random.key(5)
+    _, (_, action, _, terminated, truncated, _, prev_state) = random_episode(key, env, params, 300)
+    t = int(np.flatnonzero(np.asarray(terminated | truncated))[0])
+    ended = jax.tree.map(lambda x: x[t], prev_state)
+    step_key = jax.random.key(11)
+    *outputs, final_state = env.step_keeping_final_state(step_key, ended, action[t], params)
+    jax.tree.map(np.testing.assert_array_equal, tuple(outputs), env.step(step_key, ended, action[t], params))
+    assert int(outputs[1].time) == 0  # the returned state is the reset one...
+    _, stepped, *_ = env.step_env(step_key, ended, action[t], params)
+    jax.tree.map(np.testing.assert_array_equal, final_state, stepped)  # ...the seventh output the ended one
+    assert int(final_state.time) > 0
+
+
 def test_truncation_at_step_limit_and_termination_flags():
     env, params = make("2d-static-dense", max_steps=25)
     _, (obs, action, reward, terminated, truncated, info, prev) = random_episode(jax.random.key(0), env, params, 100)
