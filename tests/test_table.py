@@ -5,6 +5,7 @@ skipped and reported."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -321,6 +322,9 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
         load_presets(tmp_path / "bad.toml")
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
+    (tmp_path / "adopts.toml").write_text(base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'))
+    with pytest.raises(ValueError, match=r"\[a\] adopts 'nope', which is not another preset"):
+        load_presets(tmp_path / "adopts.toml")
 
 
 
@@ -423,11 +427,24 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
                       for f in ("cell.json", "config.json", "eval.json", "metrics.jsonl")]
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
+    # An ablation whose base arm has the settings of the finished sin cell adopts that run: no training.
+    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
+            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
+    ablation = dataclasses.replace(smoke, name="abl", variants=arms, adopts="smoke")
+    base, gps = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs)
+    assert (base.status, base.adopts_from, gps.adopts_from) == ("new", cells[0].directory, None)
+    printed = format_plan([base, gps], runs)
+    assert "adopt " in printed and "(1 new, 1 adopted, " in printed and base.estimate_s == 0.0
+    calls.clear()
+    assert table_run.run_cell(base, progress=False) and calls == []
+    adopted = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0]
+    assert adopted.status == "done" and not (adopted.directory.parent / ".adopting").exists()
+    assert json.loads((adopted.directory / "cell.json").read_text())["variant"] == "base"
+    assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
+
 
 @pytest.mark.slow  # three tiny trainings and six evaluations
 def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_path):
-    import dataclasses
-
     from agents.table import run as table_run
     from agents.table.report import write_report
 

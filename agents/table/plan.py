@@ -134,6 +134,7 @@ class Cell:
     estimate_from: str = ""
     metrics: list[dict] = dataclasses.field(default_factory=list)  # a started run's metrics.jsonl
     variant: Variant | None = None  # an ablation preset's arm; its cell's directory is <task>.<arm>
+    adopts_from: Path | None = None  # a new cell's twin: another preset's finished run with its settings
 
     @property
     def total_steps(self) -> int:
@@ -200,11 +201,27 @@ def cell_state(cell: Cell) -> None:
     cell.status, cell.done_steps = "partial", (cell.metrics[-1]["env_steps"] if cell.metrics else 0)
 
 
+def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
+    """The finished run of the preset `cell.preset.adopts` with the cell's settings and protocol
+    (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), which the cell takes over instead of
+    training the same thing again; None where there is none."""
+    if cell.preset.adopts is None:
+        return None
+    source = Path(runs_dir) / cell.preset.adopts / cell.algorithm / cell.task
+    if checkpoint.latest_chunk(source) is None or checkpoint.read_config(source).to_json() != cell.config.to_json():
+        return None
+    episodes = expected_episodes(cell.task, cell.preset.protocol)
+    return source if eval_is_valid(source / EVAL_FILE, cell.config.seeds, episodes) else None
+
+
 def estimate(cell: Cell, rates: dict) -> None:
     """Seconds left for the cell (training the remaining steps of every seed, then evaluating
     every seed) and where the figure comes from."""
     if cell.status == "done":
         cell.estimate_s, cell.estimate_from = 0.0, "finished"
+        return
+    if cell.adopts_from is not None:
+        cell.estimate_s, cell.estimate_from = 0.0, f"adopts {cell.adopts_from}, finished with the same settings"
         return
     seeds = cell.config.seeds
     remaining = (cell.total_steps - cell.done_steps) * seeds
@@ -270,6 +287,8 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         raise ValueError(f"no {chosen} of preset {preset.name!r} runs on {', '.join(tasks)}; their tasks: {listing}")
     for cell in cells:
         cell_state(cell)
+        if cell.status == "new":
+            cell.adopts_from = find_twin(cell, runs_dir)
         estimate(cell, rates)
     return cells
 
@@ -318,7 +337,8 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
              f"{len(cells)} cells, {_seed_counts(cells)} (vmapped), under {Path(runs_dir) / preset.name}/", "",
              f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'seeds':>5} {'status':<9} {'estimate':>13}  estimate from"]
     for c in cells:
-        status = c.status if c.status != "partial" else f"{c.done_steps / max(c.total_steps, 1):.0%} done"
+        status = (f"{c.done_steps / max(c.total_steps, 1):.0%} done" if c.status == "partial"
+                  else "adopt" if c.adopts_from is not None else c.status)
         lines.append(f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {c.config.seeds:>5} {status:<9} "
                      f"{duration(c.estimate_s):>13}  {c.estimate_from}")
     lines += ["", "budgets:"]
@@ -329,7 +349,9 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
                      f"{preset.wall_limit_s / 60:g} min with every seed's evaluation")
     known = [c.estimate_s for c in cells if c.estimate_s is not None]
     unknown = len(cells) - len(known)
+    adopted = sum(c.status == "new" and c.adopts_from is not None for c in cells)
     counts = {s: sum(c.status == s for c in cells) for s in ("new", "partial", "done")}
-    lines += ["", f"total estimate: {duration(sum(known))} ({counts['new']} new, {counts['partial']} partial, "
+    lines += ["", f"total estimate: {duration(sum(known))} ({counts['new'] - adopted} new, "
+                  + (f"{adopted} adopted, " if adopted else "") + f"{counts['partial']} partial, "
                   f"{counts['done']} done" + (f"; {unknown} cells without a measured rate not counted)" if unknown else ")")]
     return "\n".join(lines)

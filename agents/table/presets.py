@@ -17,7 +17,7 @@ from snac_jax.tasks import TASKS, parse_switches
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
 _PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
 _PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
-                "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants"}
+                "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants", "adopts"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +56,7 @@ class Preset:
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
     cheap_seeds: int | None = None  # seeds of a cheap column (None: every column has `seeds`)
     cheap_minutes: float = 5.0  # a column is cheap where each of its new cells, at cheap_seeds, fits this
+    adopts: str | None = None  # a preset whose finished run with a cell's very settings the cell takes over
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -88,12 +89,17 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
             cheap_seeds=int(table["cheap_seeds"]) if "cheap_seeds" in table else None,
             cheap_minutes=float(table.get("cheap_minutes", 5.0)),
+            adopts=table.get("adopts"),
         )
         if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
             raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
                              f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
         if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
             raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
+    for name, preset in presets.items():
+        if preset.adopts is not None and (preset.adopts not in presets or preset.adopts == name):
+            raise ValueError(f"{path}: [{name}] adopts {preset.adopts!r}, which is not another preset; presets: "
+                             f"{', '.join(sorted(set(presets) - {name}))}")
     return presets
 
 

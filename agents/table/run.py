@@ -1,9 +1,11 @@
 """Running the plan of `snac table`: each unfinished cell is one `agents.driver.train` call (a
 started one resumes from its last checkpoint), then its learning curve and the reporting
-protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped."""
+protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped, and a
+cell whose preset adopts another's finished run with the same settings copies that run instead."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 
 from agents import checkpoint
@@ -24,6 +26,9 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
 
     if cell.status == "done":
         return True
+    if cell.status == "new" and cell.adopts_from is not None:
+        adopt(cell)
+        return True
     if cell.status == "new":  # a run killed before its first checkpoint left nothing to keep
         shutil.rmtree(cell.directory, ignore_errors=True)  # a new run needs an empty directory
     algorithm, state = train(cell.config, cell.directory, resume=cell.status == "partial", progress=progress,
@@ -38,6 +43,21 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
     cell.status = "done"
     return True
+
+
+def adopt(cell: Cell) -> None:
+    """Take over the cell's twin (`Cell.adopts_from`): its whole run (checkpoints, curve, eval.json)
+    copied, with this cell's own cell.json. The copy is assembled in `<algorithm>/.adopting/` and
+    renamed into place, so a kill leaves no half-copied cell for the plan or the report to read."""
+    staging = cell.directory.parent / ".adopting" / cell.directory.name
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(cell.adopts_from, staging)
+    atomic_write_json(staging / CELL_FILE, cell.record())
+    shutil.rmtree(cell.directory, ignore_errors=True)
+    staging.rename(cell.directory)
+    with contextlib.suppress(OSError):  # another cell's copy may be under way there
+        staging.parent.rmdir()
+    cell.status = "done"
 
 
 def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None,
