@@ -323,8 +323,11 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
     (tmp_path / "adopts.toml").write_text(base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'))
-    with pytest.raises(ValueError, match=r"\[a\] adopts 'nope', which is not another preset"):
+    with pytest.raises(ValueError, match=r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms"):
         load_presets(tmp_path / "adopts.toml")
+    (tmp_path / "self.toml").write_text(base.replace("seeds = 1", 'seeds = 1\nadopts = "a"'))
+    with pytest.raises(ValueError, match=r"\[a\] adopts 'a'"):
+        load_presets(tmp_path / "self.toml")
 
 
 
@@ -396,6 +399,10 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
 
     cells = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
     assert [c.status for c in cells] == ["done", "partial"] and cells[1].done_steps == 2048 // 4
+    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
+            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
+    ablation = dataclasses.replace(smoke, name="abl", variants=arms, adopts="smoke")
+    assert make_plan(ablation, ["ppo"], ["1d-static-gauss"], None, runs)[0].adopts_from is None  # unfinished twin
     assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
     before = (cells[0].directory / "eval.json").stat().st_mtime_ns
     calls = []
@@ -428,9 +435,6 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
     # An ablation whose base arm has the settings of the finished sin cell adopts that run: no training.
-    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
-            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
-    ablation = dataclasses.replace(smoke, name="abl", variants=arms, adopts="smoke")
     base, gps = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs)
     assert (base.status, base.adopts_from, gps.adopts_from) == ("new", cells[0].directory, None)
     printed = format_plan([base, gps], runs)
@@ -441,6 +445,13 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert adopted.status == "done" and not (adopted.directory.parent / ".adopting").exists()
     assert json.loads((adopted.directory / "cell.json").read_text())["variant"] == "base"
     assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
+    # A twin whose budget alone differs is adopted only as a wall-capped one (it takes the twin's budget).
+    longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})
+    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].adopts_from is None
+    capped = make_plan(dataclasses.replace(longer, wall_limit_s=1e9), ["ppo"], ["1d-static-sin"], None, runs,
+                       arms=["base"])[0]
+    assert capped.adopts_from == cells[0].directory
+    assert (capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (2048, 2048, True)
 
 
 @pytest.mark.slow  # three tiny trainings and six evaluations

@@ -204,14 +204,28 @@ def cell_state(cell: Cell) -> None:
 def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
     """The finished run of the preset `cell.preset.adopts` with the cell's settings and protocol
     (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), which the cell takes over instead of
-    training the same thing again; None where there is none."""
+    training the same thing again; None where there is none. As for a started run
+    (`_check_same_config`), a wall-capped budget may differ: the cell then takes the twin's."""
     if cell.preset.adopts is None:
         return None
     source = Path(runs_dir) / cell.preset.adopts / cell.algorithm / cell.task
-    if checkpoint.latest_chunk(source) is None or checkpoint.read_config(source).to_json() != cell.config.to_json():
+    if checkpoint.latest_chunk(source) is None:
         return None
+    try:
+        config = checkpoint.read_config(source)
+    except (OSError, ValueError):  # another preset's run this code no longer reads: train instead
+        return None
+    stored, wanted = config.to_json(), cell.config.to_json()
+    differ = {k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k)}
+    capped_only = differ == {"total_steps"} and cell.preset.wall_limit_s is not None \
+        and config.total_steps <= cell.budget.requested
     episodes = expected_episodes(cell.task, cell.preset.protocol)
-    return source if eval_is_valid(source / EVAL_FILE, cell.config.seeds, episodes) else None
+    if (differ and not capped_only) or not eval_is_valid(source / EVAL_FILE, config.seeds, episodes):
+        return None
+    cell.config = config
+    cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
+                                      capped=config.total_steps < cell.budget.requested)
+    return source
 
 
 def estimate(cell: Cell, rates: dict) -> None:

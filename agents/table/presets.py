@@ -97,9 +97,10 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
         if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
             raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
     for name, preset in presets.items():
-        if preset.adopts is not None and (preset.adopts not in presets or preset.adopts == name):
-            raise ValueError(f"{path}: [{name}] adopts {preset.adopts!r}, which is not another preset; presets: "
-                             f"{', '.join(sorted(set(presets) - {name}))}")
+        plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
+        if preset.adopts is not None and preset.adopts not in plain:
+            raise ValueError(f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
+                             f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}")
     return presets
 
 
