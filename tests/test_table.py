@@ -295,6 +295,10 @@ def test_ablation_report_by_hand():
     assert "| drqn | 2d-static-dense | gps (+gps) | `gps=true` | 0.800 [0.800, 0.800] | +0.200 [+0.100, +0.300] | +0.079 | 1k |" in text
     assert "| drqn | 2d-static-dense | base (base) | `—` | 0.600 [0.500, 0.700] | — | 0.772 | 1k |" in text
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
+    assert "adopted" not in text
+    raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
+    text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
+    assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
 
 def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only():
@@ -443,7 +447,8 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert table_run.run_cell(base, progress=False) and calls == []
     adopted = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0]
     assert adopted.status == "done" and not (adopted.directory.parent / ".adopting").exists()
-    assert json.loads((adopted.directory / "cell.json").read_text())["variant"] == "base"
+    record = json.loads((adopted.directory / "cell.json").read_text())
+    assert (record["variant"], record["adopted_from"]) == ("base", "smoke/ppo/1d-static-sin")
     assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
     # A twin whose budget alone differs is adopted only as a wall-capped one (it takes the twin's budget).
     longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})

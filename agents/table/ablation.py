@@ -65,7 +65,8 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
                 row = {**statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
                        "paper_variant": files["cell"]["paper_variant"],
                        "changes": arm_changes(files["cell"]["switches"], files["cell"].get("settings", {})),
-                       "budget": budget_record([files]), "paper": paper_arm.get("avg")}
+                       "budget": budget_record([files]), "paper": paper_arm.get("avg"),
+                       "adopted_from": files["cell"].get("adopted_from")}
                 if arm != BASE:  # the paper's value of an arm is its change from the base
                     row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
                                     if base is not None else None)
@@ -104,6 +105,11 @@ def section(table: dict, description: str) -> list[str]:
                 paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
                 lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
                              f"{delta} | {paper} | {budget_text(row['budget'])} |")
+    adopted = [f"{learner} on {task} ({arm}): `{row['adopted_from']}`" for learner, tasks in table["ablation"].items()
+               for task, rows in tasks.items() for arm, row in rows.items() if row.get("adopted_from")]
+    if adopted:
+        lines += ["", "Arms that adopted another preset's finished run with the same config.json (`adopts` in "
+                  "budgets.toml) instead of training it again: " + "; ".join(adopted) + "."]
     if table.get("curves"):
         lines += ["", f"Learning curves of the arms: `{curves_name(table['preset'])}` (sampled training IoU, "
                   "the mean over seeds and a band from the lowest to the highest seed)."]

@@ -52,7 +52,8 @@ def adopt(cell: Cell) -> None:
     staging = cell.directory.parent / ".adopting" / cell.directory.name
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(cell.adopts_from, staging)
-    atomic_write_json(staging / CELL_FILE, cell.record())
+    record = {**cell.record(), "adopted_from": f"{cell.preset.adopts}/{cell.algorithm}/{cell.task}"}
+    atomic_write_json(staging / CELL_FILE, record)
     shutil.rmtree(cell.directory, ignore_errors=True)
     staging.rename(cell.directory)
     with contextlib.suppress(OSError):  # another cell's copy may be under way there
