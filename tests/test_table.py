@@ -130,9 +130,8 @@ def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, mo
 
 
 def test_cheap_seeds_below_seeds_is_refused(tmp_path):
-    (tmp_path / "fewer.toml").write_text("[a]\nseeds = 3\ncheap_seeds = 2\n")
-    with pytest.raises(ValueError, match=r"cheap_seeds \(2\) must be at least seeds \(3\)"):
-        load_presets(tmp_path / "fewer.toml")
+    _refused(tmp_path / "fewer.toml", "[a]\nseeds = 3\ncheap_seeds = 2\n",
+             r"cheap_seeds \(2\) must be at least seeds \(3\)")
 
 def test_evaluation_estimates_scale_with_the_episodes():
     from agents.table.plan import eval_seconds
@@ -314,24 +313,25 @@ def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only(
     assert table["ablation"]["drqn-aux"]["2d-static-dense"]["base"]["paper"] is None  # DRQN's paper row, another learner
 
 
+def _refused(path: Path, text: str, match: str) -> None:
+    """budgets.toml text that load_presets refuses, with a message matching `match`."""
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        load_presets(path)
+
+
 def test_ablation_presets_are_checked_when_loaded(tmp_path):
     base = '[a]\nseeds = 1\n[a.variants.base]\npaper = "base"\nswitches = ""\ntasks = ["1d-static"]\n'
     (tmp_path / "ok.toml").write_text(base)
     assert load_presets(tmp_path / "ok.toml")["a"].variants[0].tasks == ("1d-static-sin", "1d-static-gauss", "1d-static-step")
-    (tmp_path / "nobase.toml").write_text(base.replace("variants.base", "variants.gps"))
-    with pytest.raises(ValueError, match="needs an arm named base"):
-        load_presets(tmp_path / "nobase.toml")
-    (tmp_path / "bad.toml").write_text(base.replace('switches = ""', 'switches = "gpss=true"'))
-    with pytest.raises(ValueError, match=r"\[a.variants.base\]: unknown switch 'gpss'"):
-        load_presets(tmp_path / "bad.toml")
+    _refused(tmp_path / "nobase.toml", base.replace("variants.base", "variants.gps"), "needs an arm named base")
+    _refused(tmp_path / "bad.toml", base.replace('switches = ""', 'switches = "gpss=true"'),
+             r"\[a.variants.base\]: unknown switch 'gpss'")
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
-    (tmp_path / "adopts.toml").write_text(base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'))
-    with pytest.raises(ValueError, match=r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms"):
-        load_presets(tmp_path / "adopts.toml")
-    (tmp_path / "self.toml").write_text(base.replace("seeds = 1", 'seeds = 1\nadopts = "a"'))
-    with pytest.raises(ValueError, match=r"\[a\] adopts 'a'"):
-        load_presets(tmp_path / "self.toml")
+    _refused(tmp_path / "adopts.toml", base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'),
+             r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms")
+    _refused(tmp_path / "self.toml", base.replace("seeds = 1", 'seeds = 1\nadopts = "a"'), r"\[a\] adopts 'a'")
 
 
 
@@ -376,12 +376,10 @@ def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
 
 def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
     arm = '[a]\nseeds = 1\n[a.variants.base]\ntasks = ["1d-static-sin"]\n'
-    (tmp_path / "typo.toml").write_text(arm.replace("tasks =", 'setting = { x = 1 }\ntasks ='))
-    with pytest.raises(ValueError, match=r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]"):
-        load_presets(tmp_path / "typo.toml")
-    (tmp_path / "planned.toml").write_text(arm.replace("tasks =", "settings = { seeds = 1 }\ntasks ="))
-    with pytest.raises(ValueError, match=r"settings may not set \['seeds'\]: the plan sets seed, seeds, switches"):
-        load_presets(tmp_path / "planned.toml")
+    _refused(tmp_path / "typo.toml", arm.replace("tasks =", 'setting = { x = 1 }\ntasks ='),
+             r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]")
+    _refused(tmp_path / "planned.toml", arm.replace("tasks =", "settings = { seeds = 1 }\ntasks ="),
+             r"settings may not set \['seeds'\]: the plan sets seed, seeds, switches")
     (tmp_path / "option.toml").write_text(arm.replace("tasks =", "settings = { no_such_option = 1 }\ntasks ="))
     preset = load_presets(tmp_path / "option.toml")["a"]
     with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['no_such_option'\]"):
