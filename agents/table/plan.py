@@ -145,9 +145,11 @@ class Cell:
         """cell.json: what the table needs beside config.json and eval.json."""
         arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
                                                 "switches": self.variant.switches, "settings": self.variant.settings}
+        adopted = {} if self.adopts_from is None else {
+            "adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.adopts_from.name}"}
         return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
                 "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
-                "protocol": self.preset.protocol, **arm}
+                "protocol": self.preset.protocol, **arm, **adopted}
 
 
 def expected_episodes(task: str, protocol: dict[str, int]) -> int:
@@ -168,18 +170,26 @@ def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int
         and math.isfinite(r["mean"]) and (episodes is None or r.get("episodes") == episodes) for r in results)
 
 
-def _check_same_config(cell: Cell) -> None:
-    """A started run must have the cell's settings, except a wall-capped budget: a cap is an
-    estimate from rates.json, so a run started under another one keeps its own budget (adopted
-    here), and re-measured rates never strand a started cell."""
-    config = checkpoint.read_config(cell.directory)
+def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
+    """The settings in which a run already made with `config` differs from the cell's. A
+    wall-capped budget alone is no difference: a cap is an estimate from rates.json, so the cell
+    adopts the run's budget, and re-measured rates never strand a started or finished run."""
     stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
     if differ == ["total_steps"] and cell.preset.wall_limit_s is not None and config.total_steps <= cell.budget.requested:
         cell.config = config
         cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
                                           capped=config.total_steps < cell.budget.requested)
-    elif differ:
+        return []
+    return differ
+
+
+def _check_same_config(cell: Cell) -> None:
+    """A started run must have the cell's settings, except a wall-capped budget (`_settings_differ`)."""
+    config = checkpoint.read_config(cell.directory)
+    differ = _settings_differ(cell, config)
+    if differ:
+        stored, wanted = config.to_json(), cell.config.to_json()
         changes = ", ".join(f"{k}: {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in differ)
         raise ValueError(f"{cell.directory} holds a run made with other settings ({changes}); "
                          "choose another --runs-dir or remove that directory")
@@ -204,8 +214,7 @@ def cell_state(cell: Cell) -> None:
 def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
     """The finished run of the preset `cell.preset.adopts` with the cell's settings and protocol
     (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), which the cell takes over instead of
-    training the same thing again; None where there is none. As for a started run
-    (`_check_same_config`), a wall-capped budget may differ: the cell then takes the twin's."""
+    training the same thing again; None where there is none."""
     if cell.preset.adopts is None:
         return None
     source = Path(runs_dir) / cell.preset.adopts / cell.algorithm / cell.task
@@ -215,16 +224,9 @@ def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
         config = checkpoint.read_config(source)
     except (OSError, ValueError):  # another preset's run this code no longer reads: train instead
         return None
-    stored, wanted = config.to_json(), cell.config.to_json()
-    differ = {k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k)}
-    capped_only = differ == {"total_steps"} and cell.preset.wall_limit_s is not None \
-        and config.total_steps <= cell.budget.requested
     episodes = expected_episodes(cell.task, cell.preset.protocol)
-    if (differ and not capped_only) or not eval_is_valid(source / EVAL_FILE, config.seeds, episodes):
+    if not eval_is_valid(source / EVAL_FILE, config.seeds, episodes) or _settings_differ(cell, config):
         return None
-    cell.config = config
-    cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
-                                      capped=config.total_steps < cell.budget.requested)
     return source
 
 

@@ -52,8 +52,7 @@ def adopt(cell: Cell) -> None:
     staging = cell.directory.parent / ".adopting" / cell.directory.name
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(cell.adopts_from, staging)
-    record = {**cell.record(), "adopted_from": f"{cell.preset.adopts}/{cell.algorithm}/{cell.task}"}
-    atomic_write_json(staging / CELL_FILE, record)
+    atomic_write_json(staging / CELL_FILE, cell.record())
     shutil.rmtree(cell.directory, ignore_errors=True)
     staging.rename(cell.directory)
     with contextlib.suppress(OSError):  # another cell's copy may be under way there
