@@ -448,6 +448,8 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     record = json.loads((adopted.directory / "cell.json").read_text())
     assert (record["variant"], record["adopted_from"]) == ("base", "smoke/ppo/1d-static-sin")
     assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
+    # Its curve is drawn again under its own title (the ablation preset's name, not the twin's).
+    assert (adopted.directory / "curve.png").read_bytes() != (cells[0].directory / "curve.png").read_bytes()
     # A twin whose budget alone differs is adopted only as a wall-capped one (it takes the twin's budget).
     longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})
     assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].adopts_from is None

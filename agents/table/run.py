@@ -20,8 +20,7 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     tests' stand-in for a killed run, can leave it unfinished). `num_devices`: how many devices
     the worlds are split over (default: as `snac train`)."""
     from agents.cli import evaluate_run
-    from agents.driver import chunk_sizes, read_metrics, train
-    from agents.plotting import plot_curve
+    from agents.driver import chunk_sizes, train
     from snac_jax import devices
 
     if cell.status == "done":
@@ -38,26 +37,36 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
         cell.status = "partial"
         return False
-    plot_curve(read_metrics(cell.directory), cell.task, f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
-               cell.directory / "curve.png")
+    _plot_curve(cell, cell.directory)
     evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
     cell.status = "done"
     return True
 
 
 def adopt(cell: Cell) -> None:
-    """Take over the cell's twin (`Cell.adopts_from`): its whole run (checkpoints, curve, eval.json)
-    copied, with this cell's own cell.json. The copy is assembled in `<algorithm>/.adopting/` and
-    renamed into place, so a kill leaves no half-copied cell for the plan or the report to read."""
+    """Take over the cell's twin (`Cell.adopts_from`): its whole run (checkpoints, metrics,
+    eval.json) copied, with this cell's own cell.json and a curve titled for this cell. The copy
+    is assembled in `<algorithm>/.adopting/` and renamed into place, so a kill leaves no
+    half-copied cell for the plan or the report to read."""
     staging = cell.directory.parent / ".adopting" / cell.directory.name
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(cell.adopts_from, staging)
     atomic_write_json(staging / CELL_FILE, cell.record())
+    _plot_curve(cell, staging)
     shutil.rmtree(cell.directory, ignore_errors=True)
     staging.rename(cell.directory)
     with contextlib.suppress(OSError):  # another cell's copy may be under way there
         staging.parent.rmdir()
     cell.status = "done"
+
+
+def _plot_curve(cell: Cell, directory) -> None:
+    """The cell's learning curve from the run's metrics in `directory`, titled with its preset."""
+    from agents.driver import read_metrics
+    from agents.plotting import plot_curve
+
+    plot_curve(read_metrics(directory), cell.task, f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
+               directory / "curve.png")
 
 
 def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None,
