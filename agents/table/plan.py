@@ -173,19 +173,27 @@ def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int
 def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
     """The settings in which a run already made with `config` differs from the cell's. A
     wall-capped budget alone is no difference: a cap is an estimate from rates.json, so the cell
-    adopts the run's budget, and re-measured rates never strand a started or finished run."""
+    takes the run's budget (`_take_run_budget`), and re-measured rates never strand a started or
+    finished run."""
     stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
     if differ == ["total_steps"] and cell.preset.wall_limit_s is not None and config.total_steps <= cell.budget.requested:
-        cell.config = config
-        cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
-                                          capped=config.total_steps < cell.budget.requested)
         return []
     return differ
 
 
+def _take_run_budget(cell: Cell, config: TrainConfig) -> None:
+    """Give the cell the budget of the run it continues or adopts (one `_settings_differ` found
+    equal to the cell's but for a wall cap)."""
+    if config.total_steps != cell.config.total_steps:
+        cell.config = config
+        cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
+                                          capped=config.total_steps < cell.budget.requested)
+
+
 def _check_same_config(cell: Cell) -> None:
-    """A started run must have the cell's settings, except a wall-capped budget (`_settings_differ`)."""
+    """A started run must have the cell's settings, except a wall-capped budget (`_settings_differ`),
+    which the cell then takes over."""
     config = checkpoint.read_config(cell.directory)
     differ = _settings_differ(cell, config)
     if differ:
@@ -193,6 +201,7 @@ def _check_same_config(cell: Cell) -> None:
         changes = ", ".join(f"{k}: {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in differ)
         raise ValueError(f"{cell.directory} holds a run made with other settings ({changes}); "
                          "choose another --runs-dir or remove that directory")
+    _take_run_budget(cell, config)
 
 
 def cell_state(cell: Cell) -> None:
@@ -227,6 +236,7 @@ def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
     episodes = expected_episodes(cell.task, cell.preset.protocol)
     if not eval_is_valid(source / EVAL_FILE, config.seeds, episodes) or _settings_differ(cell, config):
         return None
+    _take_run_budget(cell, config)
     return source
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+from pathlib import Path
 
 from agents import checkpoint
 from agents.table.plan import CELL_FILE, Cell
@@ -60,7 +61,7 @@ def adopt(cell: Cell) -> None:
     cell.status = "done"
 
 
-def _plot_curve(cell: Cell, directory) -> None:
+def _plot_curve(cell: Cell, directory: Path) -> None:
     """The cell's learning curve from the run's metrics in `directory`, titled with its preset."""
     from agents.driver import read_metrics
     from agents.plotting import plot_curve
