@@ -15,7 +15,10 @@ target copy are the replay loop's `apply_gradients`).
 
 The loss of a sampled window is the KL divergence from the projected n-step target distribution
 (`agents.targets.categorical_projection`) to the predicted one, weighted by the window's
-importance-sampling weight; that KL is the window's new priority, as in Rainbow.
+importance-sampling weight; that KL is the window's new priority, as in Rainbow. With
+`cross_entropy_priority` the priority is the cross-entropy instead (the KL plus the target's
+entropy, which has no gradient), as Dopamine and the paper's own code prioritise: a window whose
+target is spread out then keeps a higher priority after it is learnt.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ class RainbowConfig(DQNConfig):
                                       low=0, high=1)
     importance_exponent: float = option(0.4, "importance-sampling exponent at the start, annealed linearly to 1 over total_steps",
                                         low=0, high=1)
+    cross_entropy_priority: bool = option(False, "a window's new priority is its cross-entropy to the target "
+                                          "(Dopamine, the paper's code) rather than its KL")
     buffer_size: int = option(10_000, "replay capacity in env steps, over all worlds of a seed", low=1)
     num_envs: int = option(64, "parallel worlds per seed (split over devices)", low=1)
     gradient_steps: int = option(2, "gradient steps per learning phase", low=1)
@@ -80,6 +85,13 @@ def importance_weights(probabilities: jax.Array, beta: jax.Array) -> jax.Array:
     valid = probabilities > 0
     smallest = jnp.min(jnp.where(valid, probabilities, jnp.inf))
     return jnp.where(valid, (smallest / jnp.where(valid, probabilities, 1.0)) ** beta, 0.0)
+
+
+def cross_entropy_and_kl(target: jax.Array, logits: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The cross-entropy and the KL divergence from distributions `target` (..., atoms) to the
+    softmax of `logits`; they differ by the target's entropy (taken as 0 log 0 = 0)."""
+    cross_entropy = -(target * jax.nn.log_softmax(logits)).sum(axis=-1)
+    return cross_entropy, cross_entropy + xlogy(target, target).sum(axis=-1)
 
 
 class Rainbow(DQN):
@@ -138,8 +150,9 @@ class Rainbow(DQN):
     # --- learning ----------------------------------------------------------------------------------
 
     def loss(self, params, target_params, batch: Step, weights: jax.Array, key_online: jax.Array, key_target: jax.Array):
-        """`(loss, (metrics, per-window KL))` of a time-major batch `(L, S)` with importance
-        weights `(S,)`. The online and the target network draw independent noise."""
+        """`(loss, (metrics, per-window priority))` of a time-major batch `(L, S)` with importance
+        weights `(S,)`. The online and the target network draw independent noise. The priority is
+        the window's mean KL, or its mean cross-entropy with `cross_entropy_priority`."""
         cfg = self.config
         length, c, n = cfg.sequence_length, cfg.context, cfg.n_step
         frames, resets = self.replayed_frames(batch, batch.obs.astype(jnp.float32))
@@ -155,21 +168,21 @@ class Rainbow(DQN):
 
         actions = batch.action[c : c + length].astype(jnp.int32)
         taken = jnp.take_along_axis(logits[:length], actions[..., None, None], axis=-2)[..., 0, :]  # (length, S, atoms)
-        kl = (xlogy(target, target) - target * jax.nn.log_softmax(taken)).sum(axis=-1)
-        per_window = kl.mean(axis=0)  # (S,)
-        loss = (weights * per_window).mean()
-        return loss, ({"loss": loss, "q_mean": self.expected(taken).mean()}, per_window)
+        cross_entropy, kl = cross_entropy_and_kl(target, taken)  # (length, S)
+        loss = (weights * kl.mean(axis=0)).mean()
+        priority = (cross_entropy if cfg.cross_entropy_priority else kl).mean(axis=0)  # (S,)
+        return loss, ({"loss": loss, "q_mean": self.expected(taken).mean()}, jax.lax.stop_gradient(priority))
 
     def gradient_step(self, state: RunnerState) -> tuple[RunnerState, dict]:
         """Sample windows by priority, take a step on the importance-weighted loss, and give each
-        sampled window its KL as its new priority."""
+        sampled window its new priority (`loss`)."""
         key, key_sample, key_online, key_target = jax.random.split(state.key, 4)
         sample = self.buffer.sample(state.buffer, key_sample)
         batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), sample.experience)
         weights = importance_weights(sample.probabilities, self.beta(state.env_steps))
-        (_, (info, kl)), grads = jax.value_and_grad(self.loss, has_aux=True)(
+        (_, (info, priority)), grads = jax.value_and_grad(self.loss, has_aux=True)(
             state.params, state.target_params, batch, weights, key_online, key_target
         )
         state = self.apply_gradients(state.replace(key=key), grads)
-        priorities = jnp.where(sample.probabilities > 0, jnp.maximum(kl, 0.0) + PRIORITY_FLOOR, 0.0)
+        priorities = jnp.where(sample.probabilities > 0, jnp.maximum(priority, 0.0) + PRIORITY_FLOOR, 0.0)
         return state.replace(buffer=self.buffer.set_priorities(state.buffer, sample.indices, priorities)), info

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from agents.noisy import NoisyDense
-from agents.rainbow import Rainbow, RainbowConfig, importance_weights
+from agents.rainbow import Rainbow, RainbowConfig, cross_entropy_and_kl, importance_weights
 from agents.registry import build_algorithm, make_config
 from agents.targets import categorical_projection, n_step_returns
 
@@ -148,6 +148,37 @@ def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
 # --- runs ----------------------------------------------------------------------------------------------
 
 
+def test_cross_entropy_and_kl_by_hand():
+    # Target (1/2, 1/2, 0) against a prediction (1/4, 1/2, 1/4):
+    # cross-entropy = -(1/2 ln 1/4 + 1/2 ln 1/2) = 1.5 ln 2 = 1.03972;
+    # the target's entropy is ln 2 (its 0 ln 0 is 0), so KL = 0.5 ln 2 = 0.34657.
+    target = jnp.array([[0.5, 0.5, 0.0], [0.25, 0.5, 0.25]])
+    logits = jnp.log(jnp.array([[0.25, 0.5, 0.25], [0.25, 0.5, 0.25]])) + 3.0  # a shift changes no softmax
+    cross_entropy, kl = cross_entropy_and_kl(target, logits)
+    np.testing.assert_allclose(cross_entropy, [1.5 * np.log(2), 1.5 * np.log(2)], rtol=1e-6)
+    # The second row predicts its target exactly: KL 0, cross-entropy its entropy 1.5 ln 2.
+    np.testing.assert_allclose(kl, [0.5 * np.log(2), 0.0], atol=1e-6)
+
+
+def test_cross_entropy_priority_changes_the_priority_not_the_loss():
+    batch_agent = _agent()
+    state = jax.jit(batch_agent.init)(jax.random.key(0))
+    state, _ = jax.jit(lambda s: batch_agent.train_chunk(s, batch_agent.env_params, 1))(state)
+    sample = batch_agent.buffer.sample(state.buffer, jax.random.key(1))
+    batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), sample.experience)
+    weights = jnp.ones(sample.probabilities.shape)
+    keys = jax.random.split(jax.random.key(2))
+    results = [
+        agent.loss(state.params, state.target_params, batch, weights, *keys)
+        for agent in (batch_agent, _agent(cross_entropy_priority=True))
+    ]
+    (kl_loss, (_, kl)), (ce_loss, (_, ce)) = results
+    np.testing.assert_allclose(kl_loss, ce_loss, rtol=1e-6)
+    np.testing.assert_allclose(kl_loss, kl.mean(), rtol=1e-5)
+    # The cross-entropy is the KL plus the target's entropy, which a projected target always has here.
+    assert np.all(np.asarray(ce) > np.asarray(kl) + 1e-3)
+
+
 @pytest.fixture(scope="module")
 def trained_1d():
     agent = _agent()
@@ -230,7 +261,7 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("options", [
     pytest.param(dict(noisy=False, eps_start=1.0, eps_end=0.1, double_q=False, dueling=False, n_step=1,
-                      priority_exponent=0.0), id="ablations"),
+                      priority_exponent=0.0, cross_entropy_priority=True), id="ablations"),
     pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
 ])
 def test_ablated_and_other_configurations_train(options):
