@@ -171,11 +171,11 @@ class Rainbow(DQN):
         cross_entropy, kl = cross_entropy_and_kl(target, taken)  # (length, S)
         loss = (weights * kl.mean(axis=0)).mean()
         priority = (cross_entropy if cfg.cross_entropy_priority else kl).mean(axis=0)  # (S,)
-        return loss, ({"loss": loss, "q_mean": self.expected(taken).mean()}, jax.lax.stop_gradient(priority))
+        return loss, ({"loss": loss, "q_mean": self.expected(taken).mean()}, priority)
 
     def gradient_step(self, state: RunnerState) -> tuple[RunnerState, dict]:
         """Sample windows by priority, take a step on the importance-weighted loss, and give each
-        sampled window its new priority (`loss`)."""
+        sampled window the priority `loss` computed for it (its KL, or its cross-entropy)."""
         key, key_sample, key_online, key_target = jax.random.split(state.key, 4)
         sample = self.buffer.sample(state.buffer, key_sample)
         batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), sample.experience)

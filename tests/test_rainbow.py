@@ -161,16 +161,16 @@ def test_cross_entropy_and_kl_by_hand():
 
 
 def test_cross_entropy_priority_changes_the_priority_not_the_loss():
-    batch_agent = _agent()
-    state = jax.jit(batch_agent.init)(jax.random.key(0))
-    state, _ = jax.jit(lambda s: batch_agent.train_chunk(s, batch_agent.env_params, 1))(state)
-    sample = batch_agent.buffer.sample(state.buffer, jax.random.key(1))
+    kl_agent = _agent()
+    state = jax.jit(kl_agent.init)(jax.random.key(0))
+    state, _ = jax.jit(lambda s: kl_agent.train_chunk(s, kl_agent.env_params, 1))(state)
+    sample = kl_agent.buffer.sample(state.buffer, jax.random.key(1))
     batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), sample.experience)
     weights = jnp.ones(sample.probabilities.shape)
     keys = jax.random.split(jax.random.key(2))
     results = [
         agent.loss(state.params, state.target_params, batch, weights, *keys)
-        for agent in (batch_agent, _agent(cross_entropy_priority=True))
+        for agent in (kl_agent, _agent(cross_entropy_priority=True))
     ]
     (kl_loss, (_, kl)), (ce_loss, (_, ce)) = results
     np.testing.assert_allclose(kl_loss, ce_loss, rtol=1e-6)
