@@ -260,13 +260,17 @@ class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
     state. PQN's tuned settings per task apply unchanged (`agents/tuned/pqn-aux.toml` repeats
     them), so a comparison with PQN-RNN (`pqn --recurrent`; plain `pqn` is feed-forward on the
-    tasks its tuned file leaves out) is of the losses alone. The default weights are the other
-    learners'; PQN's TD loss is smaller (rewards scaled by 0.01), so their balance here is untuned."""
+    tasks its tuned file leaves out) is of the losses alone. The position loss's default weight
+    is a hundredth of the other learners': PQN's TD loss is about that much smaller (rewards
+    scaled by 0.01), and at their 0.05 the position loss outweighed it 100-1,000 times and PQN-RNN
+    hardly learned (bench/results/pqn.md, Session 22)."""
 
     algorithm: ClassVar[str] = "pqn-aux"
     paper_method: ClassVar[str] = "pqn"
 
     recurrent: bool = option(True, "GRU Q-network (PQN-RNN); the heads read its state, so it must stay on")
+    position_coef: float = option(5e-4, "weight of the loss predicting the true plan position from the GRU state "
+                                  "(0: off)", low=0)
 
     def check(self) -> None:
         super().check()
