@@ -261,9 +261,9 @@ class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     state. PQN's tuned settings per task apply unchanged (`agents/tuned/pqn-aux.toml` repeats
     them), so a comparison with PQN-RNN (`pqn --recurrent`; plain `pqn` is feed-forward on the
     tasks its tuned file leaves out) is of the losses alone. The position loss's default weight
-    is a hundredth of the other learners': PQN's TD loss is about that much smaller (rewards
-    scaled by 0.01), and at their 0.05 the position loss outweighed it 100-1,000 times and PQN-RNN
-    hardly learned (bench/results/pqn.md, Session 22)."""
+    is a hundredth of the other learners', as PQN's TD loss is about that much smaller (rewards
+    scaled by 0.01): at their weight the position loss takes over the shared GRU (the pilots
+    behind this are on bench/results/pqn.md)."""
 
     algorithm: ClassVar[str] = "pqn-aux"
     paper_method: ClassVar[str] = "pqn"
