@@ -204,10 +204,12 @@ def add_rollout_losses(auxiliary: Auxiliary, total: jax.Array, info: dict, sown:
 
 @dataclasses.dataclass(frozen=True)
 class DRQNAuxConfig(AuxiliaryOptions, DRQNConfig):
-    """DRQN (`agents.drqn`) with auxiliary localisation and map losses on its LSTM state."""
+    """DRQN (`agents.drqn`) with auxiliary localisation and map losses on its LSTM state, trained
+    with DRQN's tuned settings per task (`tuned_as`)."""
 
     algorithm: ClassVar[str] = "drqn-aux"
     paper_method: ClassVar[str] = "drqn"
+    tuned_as: ClassVar[str] = "drqn"
 
 
 @struct.dataclass
@@ -258,15 +260,15 @@ class DRQNAux(StrideCurriculum, DRQN):
 @dataclasses.dataclass(frozen=True)
 class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
-    state. PQN's tuned settings per task apply unchanged (`agents/tuned/pqn-aux.toml` repeats
-    them), so a comparison with PQN-RNN (`pqn --recurrent`; plain `pqn` is feed-forward on the
-    tasks its tuned file leaves out) is of the losses alone. The position loss's default weight
-    is a hundredth of the other learners', as PQN's TD loss is about that much smaller (rewards
-    scaled by 0.01): at their weight the position loss takes over the shared GRU (the pilots
-    behind this are on bench/results/pqn.md)."""
+    state. It trains with PQN's tuned settings per task (`tuned_as`), so a comparison with PQN-RNN
+    (`pqn --recurrent`; plain `pqn` is feed-forward on the tasks its tuned file leaves out) is of
+    the losses alone. The position loss's default weight is a hundredth of the other learners',
+    as PQN's TD loss is about that much smaller (rewards scaled by 0.01): at their weight the
+    position loss takes over the shared GRU (the pilots behind this are on bench/results/pqn.md)."""
 
     algorithm: ClassVar[str] = "pqn-aux"
     paper_method: ClassVar[str] = "pqn"
+    tuned_as: ClassVar[str] = "pqn"
 
     recurrent: bool = option(True, "GRU Q-network (PQN-RNN); the heads read its state, so it must stay on")
     position_coef: float = option(5e-4, "weight of the loss predicting the true plan position from the GRU state "

@@ -106,6 +106,9 @@ class TrainConfig:
 
     algorithm: ClassVar[str] = "base"
     paper_method: ClassVar[str] = "base"  # the algorithm's row in the paper's results
+    # the algorithm whose tuned file (agents/tuned/<name>.toml) this one trains with; a variant that
+    # adds training signals to a base learner reads the base's, so a comparison isolates the signals
+    tuned_as: ClassVar[str | None] = None
 
     task: str = option("1d-static-sin", "the task to train on", cli=False)
     total_steps: int = option(2_000_000, "env steps per seed", low=1)

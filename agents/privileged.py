@@ -41,12 +41,13 @@ from snac_jax.state import PrivilegedState
 
 @dataclasses.dataclass(frozen=True)
 class PrivilegedPPOConfig(AuxiliaryOptions, PPOConfig):
-    """PPO whose critic reads the privileged state, with optional auxiliary losses. PPO's tuned
-    settings per task apply unchanged (`agents/tuned/ppo-privileged.toml` repeats them), so the
-    comparison with PPO is of the training signals alone."""
+    """PPO whose critic reads the privileged state, with optional auxiliary losses. It trains with
+    PPO's tuned settings per task (`tuned_as`), so the comparison with PPO is of the training
+    signals alone."""
 
     algorithm: ClassVar[str] = "ppo-privileged"
     paper_method: ClassVar[str] = "ppo"
+    tuned_as: ClassVar[str] = "ppo"
 
     privileged_critic: bool = option(True, "the critic also reads the privileged state (position, built plan, "
                                      "design, stuck); the actor never does")

@@ -2,7 +2,8 @@
 the resolution of a config: class defaults, then the task's tuned entry, then the caller's values.
 
 Tuned values are data, `agents/tuned/<algorithm>.toml`: one table per task, each naming in
-`result` the page under `bench/results/` that records the runs it was chosen from.
+`result` the page under `bench/results/` that records the runs it was chosen from. A variant
+that adds training signals to a base learner (its config's `tuned_as`) reads the base's file.
 """
 
 from __future__ import annotations
@@ -63,11 +64,16 @@ def build_algorithm(config: TrainConfig):
     return getattr(importlib.import_module(entry.module), entry.algorithm)(config)
 
 
+def tuned_file(algorithm: str) -> Path:
+    """The tuned file `algorithm` trains with: its own, or its base learner's (`tuned_as`)."""
+    return TUNED_DIR / f"{config_class(algorithm).tuned_as or algorithm}.toml"
+
+
 @functools.cache
 def tuned_table(algorithm: str) -> dict[str, dict[str, Any]]:
     """Task -> tuned values of `algorithm` (without `result`), checked against its config's fields."""
     cls = config_class(algorithm)
-    path = TUNED_DIR / f"{algorithm}.toml"
+    path = tuned_file(algorithm)
     if not path.is_file():
         return {}
     fields = {f.name for f in dataclasses.fields(cls)} - {"task"}

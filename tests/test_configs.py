@@ -37,10 +37,10 @@ def test_config_json_round_trips(algorithm):
 def test_every_tuned_entry_names_the_result_page_it_was_tuned_for(algorithm):
     import tomllib
 
-    from agents.registry import TUNED_DIR
+    from agents.registry import tuned_file
 
     root = Path(__file__).parents[1]
-    path = TUNED_DIR / f"{algorithm}.toml"
+    path = tuned_file(algorithm)
     if not path.is_file():
         pytest.skip(f"{algorithm} has no tuned settings: every task uses the config class's defaults")
     for task, entry in tomllib.loads(path.read_text()).items():

@@ -5,9 +5,9 @@ seeds, and resume."""
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import math
-import tomllib
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from agents.auxiliary import map_loss, move_loss, move_targets, position_loss, stride_curriculum
-from agents.registry import TUNED_DIR, build_algorithm, make_config
+from agents.registry import build_algorithm, config_class, make_config
 from snac_jax.env import draw_stride
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import TASKS, make
@@ -263,21 +263,20 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 # --- configuration --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("algorithm,base", [("ppo-privileged", "ppo"), ("drqn-aux", "drqn"), ("pqn-aux", "pqn")])
-def test_tuned_settings_are_the_base_learners(algorithm, base):
-    def tables(name):
-        return tomllib.loads((TUNED_DIR / f"{name}.toml").read_text())
-
-    assert tables(algorithm) == tables(base)
+# pqn-aux is PQN-RNN (`pqn --recurrent`), which plain pqn is not on the tasks its tuned file leaves out
+VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux", "pqn", {"recurrent": True})]
 
 
+@pytest.mark.parametrize("algorithm,base,base_options", VARIANTS)
 @pytest.mark.parametrize("task", TASKS)
-def test_pqn_aux_resolves_to_recurrent_pqn_plus_its_losses(task):
-    """On every task pqn-aux is PQN-RNN (`pqn --recurrent`, which plain pqn is not on the tasks its
-    tuned file leaves out) with the auxiliary options added: a comparison is of the losses alone."""
-    aux, base = make_config("pqn-aux", task).to_json(), make_config("pqn", task, recurrent=True).to_json()
-    extra = {"algorithm", "position_coef", "map_coef", "move_coef", "stride_curriculum"}
-    assert {k: v for k, v in aux.items() if k not in extra} == {k: v for k, v in base.items() if k not in extra}
+def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base, base_options, task):
+    """On every task a variant's config is its base learner's tuned config with the training
+    signals added, so a comparison with the base is of the signals alone."""
+    extra = {"algorithm"} | {f.name for f in dataclasses.fields(config_class(algorithm))} - {
+        f.name for f in dataclasses.fields(config_class(base))}
+    variant, plain = make_config(algorithm, task).to_json(), make_config(base, task, **base_options).to_json()
+    assert extra - {"algorithm"} and set(variant) - set(plain) == extra - {"algorithm"}
+    assert {k: v for k, v in variant.items() if k not in extra} == {k: v for k, v in plain.items() if k not in extra}
 
 
 @pytest.mark.parametrize("options,message", [
