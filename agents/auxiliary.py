@@ -277,7 +277,7 @@ class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     def check(self) -> None:
         super().check()
         if not self.recurrent:
-            raise ValueError("pqn-aux needs recurrent=True: its auxiliary heads read the GRU's state "
+            raise ValueError(f"{self.algorithm} needs recurrent=True: its auxiliary heads read the GRU's state "
                              "(use pqn for a feed-forward PQN)")
 
 

@@ -44,6 +44,8 @@ ALGORITHMS: dict[str, Entry] = {
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
     "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
     "pqn-aux": Entry("agents.auxiliary", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
+    "pqn-belief": Entry("agents.belief", "PQNBeliefConfig", "PQNBelief",
+                        "PQN-RNN whose Q head reads the design expected at its learned position belief"),
 }
 
 

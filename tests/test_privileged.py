@@ -263,8 +263,9 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 # --- configuration --------------------------------------------------------------------------------------
 
 
-# pqn-aux is PQN-RNN (`pqn --recurrent`), which plain pqn is not on the tasks its tuned file leaves out
-VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux", "pqn", {"recurrent": True})]
+# pqn-aux and pqn-belief are PQN-RNN (`pqn --recurrent`), which plain pqn is not on the tasks its tuned file leaves out
+VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux", "pqn", {"recurrent": True}),
+            ("pqn-belief", "pqn", {"recurrent": True})]
 
 
 @pytest.mark.parametrize("algorithm,base,base_options", VARIANTS)

@@ -335,6 +335,21 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
 
 
 
+def test_a_budget_per_environment_task(tmp_path):
+    text = ('[b]\nseeds = 1\n[b.budgets]\n'
+            'pqn = { env_steps = { "1d-dynamic" = 3_000_000, "2d-static-sparse" = 9_000_000 }, source = "why" }\n')
+    (tmp_path / "ok.toml").write_text(text)
+    preset = load_presets(tmp_path / "ok.toml")["b"]
+    cells = make_plan(preset, ["pqn"], ["1d-dynamic", "2d-static-sparse"], None, tmp_path, rates={})
+    assert [c.budget.requested for c in cells] == [3_000_000, 9_000_000] and cells[0].budget.source == "b: why"
+    assert [c.config.total_steps for c in cells] == [3_000_000, 9_000_000]
+    with pytest.raises(ValueError, match="the b preset gives pqn a budget on 1d-dynamic, 2d-static-sparse only, "
+                                         "not on 2d-static-dense"):
+        make_plan(preset, ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
+    _refused(tmp_path / "typo.toml", text.replace('"1d-dynamic"', '"1d-dynamo"'),
+             r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]; allowed: 1d-static-sin")
+
+
 def test_an_arm_can_switch_a_learner_setting_off():
     """The privileged-ablation preset's arms change learner settings, not the environment: each
     arm's config differs from the base arm's in its settings alone, and the report prints them."""

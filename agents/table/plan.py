@@ -78,6 +78,11 @@ def _round_down(x: float) -> int:
 def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     """Env steps per seed the preset asks for `config`'s algorithm and task, and why."""
     budget = preset.budgets.get(config.algorithm, {})
+    if isinstance(budget.get("env_steps"), dict):  # one budget per environment task
+        if config.task not in budget["env_steps"]:
+            raise ValueError(f"the {preset.name} preset gives {config.algorithm} a budget on "
+                             f"{', '.join(budget['env_steps'])} only, not on {config.task}")
+        return int(budget["env_steps"][config.task]), f"{preset.name}: {budget['source']}"
     if "env_steps" in budget:
         return int(budget["env_steps"]), f"{preset.name}: {budget['source']}"
     if "episodes" in budget:

@@ -78,6 +78,10 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
         for algorithm, budget in table.get("budgets", {}).items():
             if set(budget) - {"env_steps", "episodes", "source"} or ("env_steps" in budget and "episodes" in budget):
                 raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source)")
+            per_task = budget.get("env_steps")
+            if isinstance(per_task, dict) and sorted(set(per_task) - set(TASKS)):
+                raise ValueError(f"{path}: [{name}.budgets] {algorithm}'s env_steps names unknown task(s) "
+                                 f"{sorted(set(per_task) - set(TASKS))}; allowed: {', '.join(TASKS)}")
         presets[name] = Preset(
             name=name, description=table.get("description", ""), seeds=int(table.get("seeds", 1)),
             wall_limit_s=None if limit is None else 60.0 * limit, budgets=table.get("budgets", {}),

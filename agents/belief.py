@@ -1,0 +1,281 @@
+"""PQN-RNN that acts on where it believes it is (`pqn-belief`): a belief over its position,
+turned into the design it expects around itself, which the Q head reads beside its memory.
+
+Why: the robot sees its window of built cells and, on a dynamic task, the whole design, but not
+where it stands (SPEC §6). What it should do next depends on the design *at its position*: drop
+while the cell under it is below the design, move on once it is full. A recurrent Q-network
+must learn both to localise and to look the design up at a position it holds only implicitly,
+and the second is a multiplicative read-out that a small MLP learns slowly. The handcrafted
+policy (SPEC §11) does the look-up explicitly from its SLAM estimate, and the authors' follow-up
+feeds a DRQN the output of a localisation network trained on the true position. Here the look-up
+is explicit: the expected design under the belief, cut to the window's shape and aligned with
+it (`expected_design_window`), and that minus the window (what is still missing there, as far
+as the belief goes) are inputs of the Q head.
+
+Two beliefs, one per run (`belief_filter`):
+
+- **learned** (the default): the position head of `agents.auxiliary`, on the GRU state, trained
+  by the position loss on the true position; a distribution over rows and one over columns.
+- **filter**: a histogram filter over rows and over columns, carried beside the GRU state. Each
+  step moves the belief along the last action's axis by the cells the move covered, whose
+  distribution a small head predicts from the last two windows and the action (trained by the
+  move loss on the true count), then keeps the positions whose plan edges agree with where the
+  window shows padding (`filter_step`). An episode starts at the plan's corner (SPEC §2). It is the
+  handcrafted policy's dead reckoning with the window's shift read by a learned head; it ignores
+  what the built cells could add.
+
+Honest acting: either belief is computed from the observations alone (the filter's only learned
+part reads the windows and the action), and the design it reads is the observation's (a dynamic
+task) or the task's one fixed design (a static task, where every episode builds the same design,
+part of the task's definition like the step limit). The true position and moves enter only the
+losses; the greedy policy's `act` gets the observation, its memory and a key, as every
+learner's. The belief reaches the Q head under `stop_gradient`: it is trained by its own loss
+alone, so it stays a position estimate rather than whatever the TD error would bend it into.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agents.auxiliary import AuxiliaryHeads, PQNAux, PQNAuxConfig
+from agents.config import option
+from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from snac_jax.config import MAX_STRIDE
+
+PADDING = -1.0  # a window cell off the plan (SPEC §2)
+UNLIKELY = 1e-6  # the filter's weight on a position the window's padding contradicts
+
+
+# --- pure pieces, each checked by hand in tests/test_belief.py ---------------------------------------
+
+
+def expected_design_window(p_row: jax.Array, p_col: jax.Array, design: jax.Array, window_shape: tuple[int, int],
+                           outside: float) -> jax.Array:
+    """The design the robot expects in its window, `(..., wr, wc)`, under independent beliefs
+    `p_row (..., rows)` and `p_col (..., cols)` over the plan `design (..., rows, cols)`; window
+    cells off the plan read `outside` (the window shows padding there).
+
+    Window cell (i, j) of a robot at plan (r, c) is plan cell (r + i - hr, c + j - hc), hr and hc
+    the window's half sizes, so with the design padded by them it is padded cell (r + i, c + j):
+    the expectation is `sum_r,c p_row[r] p_col[c] padded[r + i, c + j]`, i.e. `A @ padded @ B^T`
+    with row i of A the row belief shifted right by i (and B likewise).
+    """
+    wr, wc = window_shape
+    pad = [(0, 0)] * (design.ndim - 2) + [(wr // 2, wr // 2), (wc // 2, wc // 2)]
+    padded = jnp.pad(design, pad, constant_values=outside)
+
+    def shifted(p: jax.Array, size: int) -> jax.Array:  # (..., size, n + size - 1)
+        lead = [(0, 0)] * (p.ndim - 1)
+        return jnp.stack([jnp.pad(p, lead + [(i, size - 1 - i)]) for i in range(size)], axis=-2)
+
+    return jnp.einsum("...ir,...rc,...jc->...ij", shifted(p_row, wr), padded, shifted(p_col, wc))
+
+
+def shift_matrices(n: int) -> np.ndarray:
+    """`(2 * MAX_STRIDE + 1, n, n)`: matrix k moves a one-hot belief by `k - MAX_STRIDE` cells,
+    stopping at the ends (the plan's clipping, SPEC §3)."""
+    offsets = np.arange(-MAX_STRIDE, MAX_STRIDE + 1)
+    to = np.clip(np.arange(n)[None, :] + offsets[:, None], 0, n - 1)  # (offsets, from)
+    return (to[:, :, None] == np.arange(n)[None, None, :]).astype(np.float32)
+
+
+def move_belief(belief: jax.Array, p_cells: jax.Array, sign: jax.Array) -> jax.Array:
+    """The belief `(..., n)` after a move of `sign` (-1, 0 or +1) along its axis by m cells with
+    probability `p_cells[..., m]`, m = 0..MAX_STRIDE; sign 0 leaves it as it is."""
+    moved = jnp.einsum("...i,kij->...kj", belief, jnp.asarray(shift_matrices(belief.shape[-1])))
+    index = (sign[..., None] * jnp.arange(MAX_STRIDE + 1) + MAX_STRIDE).astype(jnp.int32)  # (..., m)
+    return jnp.einsum("...m,...mj->...j", p_cells, jnp.take_along_axis(moved, index[..., None], axis=-2))
+
+
+def padding_agrees(padding: jax.Array, n: int) -> jax.Array:
+    """`(..., n)`: for each position 0..n-1 along an axis, whether the window line across it,
+    `padding (..., w)` (True where the window shows padding), has padding exactly where the
+    window reaches off the plan from that position."""
+    w = padding.shape[-1]
+    off = (np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2 < 0) | (
+        np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2 >= n)  # (n, w)
+    return jnp.all(padding[..., None, :] == jnp.asarray(off), axis=-1)
+
+
+def correct_belief(belief: jax.Array, agrees: jax.Array) -> jax.Array:
+    """Bayes' rule with a near-certain likelihood, after a floor of `UNLIKELY` under every
+    position: a belief that has gone wrong (a move misread) moves to the positions the padding
+    allows instead of staying where it contradicts the window."""
+    belief = (belief + UNLIKELY) * jnp.where(agrees, 1.0, UNLIKELY)
+    return belief / belief.sum(axis=-1, keepdims=True)
+
+
+def start_belief(n: int) -> jax.Array:
+    """An episode starts at the plan's corner, row 0 and column 0 (SPEC §2)."""
+    return jax.nn.one_hot(0, n)
+
+
+def filter_step(belief: tuple[jax.Array, jax.Array], reset: jax.Array, p_cells: jax.Array, sign: jax.Array,
+                window_padding: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """One step of the row and column filters, `belief = (b_row (B, rows), b_col (B, cols))`: back
+    to the start where `reset`, else moved by the last action (`sign (B, 2)`: its row and column
+    direction, 0 for a drop or no action) by `p_cells (B, MAX_STRIDE + 1)` cells, then corrected
+    by the window's padding (`window_padding (B, wr, wc)`) along its centre column (rows) and
+    centre row (columns)."""
+    b_row, b_col = belief
+    wr, wc = window_padding.shape[-2:]
+    b_row = jnp.where(reset[:, None], start_belief(b_row.shape[-1]), move_belief(b_row, p_cells, sign[:, 0]))
+    b_col = jnp.where(reset[:, None], start_belief(b_col.shape[-1]), move_belief(b_col, p_cells, sign[:, 1]))
+    b_row = correct_belief(b_row, padding_agrees(window_padding[:, :, wc // 2], b_row.shape[-1]))
+    b_col = correct_belief(b_col, padding_agrees(window_padding[:, wr // 2, :], b_col.shape[-1]))
+    return b_row, b_col
+
+
+# --- the network ----------------------------------------------------------------------------------------
+
+
+class MoveHead(nn.Module):
+    """Logits of the cells the last move covered, 0..MAX_STRIDE, from the window before and after
+    it and the action: what the window's shift shows. The filter's one learned part."""
+
+    hidden_size: int
+
+    @nn.compact
+    def __call__(self, parts: dict) -> jax.Array:
+        lead = parts["window_classes"].shape[:-2]
+        seen = jnp.concatenate([parts["window_classes"].reshape(lead + (-1,)),
+                                parts["previous_window_classes"].reshape(lead + (-1,)), parts["last_action"]], axis=-1)
+        return mlp_head(seen, self.hidden_size, MAX_STRIDE + 1, 1.0)
+
+
+class BeliefQNetwork(LayerNormQNetwork):
+    """PQN-RNN's network whose Q head also reads the design expected around the believed
+    position and that minus the window, through one hidden LayerNorm layer.
+
+    `auxiliary_heads` (on the GRU state) hold the position head where the belief is learned; their
+    outputs, and the filter's move head, are sown for the losses as in `LayerNormQNetwork`.
+    `moves` (per action its row and column direction, drops 0) turns the filter on; its belief
+    rides in the carry after the GRU's state. `fixed_design` is a static task's design (nested
+    tuples, plan-shaped), None on a dynamic task, whose observation carries the design."""
+
+    fixed_design: tuple | None = None
+    moves: tuple | None = None
+
+    @property
+    def carry_size(self) -> int:
+        rows, cols = self.layout.plan_shape
+        return self.rnn_size + (rows + cols if self.moves is not None else 0)
+
+    @nn.compact
+    def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
+        layout = self.layout
+        rows, _ = layout.plan_shape
+        x = ObservationEncoder(layout, self.hidden_size, layer_norm=True)(obs)
+        gru_carry, x = ScannedRNN(self.rnn_size, "gru")(carry[:, : self.rnn_size], (x, resets))
+        heads = {} if self.auxiliary_heads is None else dict(self.auxiliary_heads(x))
+        parts = layout.split(obs)
+        if self.moves is None:
+            position = jax.lax.stop_gradient(heads["position"])
+            p_row, p_col = jax.nn.softmax(position[..., :rows]), jax.nn.softmax(position[..., rows:])
+            carry = gru_carry
+        else:
+            heads["move"] = MoveHead(self.hidden_size, name="move_head")(parts)
+            belief, (p_row, p_col) = self._filter(carry[:, self.rnn_size :], heads["move"], obs, resets)
+            carry = jnp.concatenate([gru_carry, belief], axis=-1)
+        self.sow("intermediates", "auxiliary", heads)
+        self.sow("intermediates", "belief", (p_row, p_col))
+        if self.fixed_design is None:
+            design = parts["design"]
+        else:
+            design = jnp.broadcast_to(jnp.asarray(self.fixed_design, jnp.float32) / layout.height_scale,
+                                      obs.shape[:-1] + layout.plan_shape)
+        expected = expected_design_window(p_row, p_col, design, layout.window_shape, PADDING / layout.height_scale)
+        lead = obs.shape[:-1]
+        local = jnp.concatenate([expected.reshape(lead + (-1,)), (expected - parts["window"]).reshape(lead + (-1,))],
+                                axis=-1)
+        h = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(jnp.concatenate([x, local], axis=-1))
+        h = nn.relu(nn.LayerNorm()(h))
+        return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(h)
+
+    def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
+        """Run `filter_step` along time from the carried belief `(B, rows + cols)`; returns the last
+        belief (for the carry) and the belief after each step, `(T, B, rows)` and `(T, B, cols)`."""
+        rows, _ = self.layout.plan_shape
+        p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
+        # the last action's direction: its one-hot (the last entry is "none", at an episode's start) x the table
+        directions = jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
+        sign = self.layout.split(obs)["last_action"] @ directions
+        padding = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size]) == PADDING
+
+        def step(belief, inputs):
+            belief = filter_step(belief, *inputs)
+            return belief, belief
+
+        (b_row, b_col), beliefs = jax.lax.scan(step, (belief[:, :rows], belief[:, rows:]),
+                                               (resets, p_cells, sign, padding))
+        return jnp.concatenate([b_row, b_col], axis=-1), beliefs
+
+
+# --- the learner ----------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class PQNBeliefConfig(PQNAuxConfig):
+    """PQN-RNN acting on a position belief (see the module docstring), trained with PQN's tuned
+    settings per task (`tuned_as`) and the loss its belief learns from."""
+
+    algorithm: ClassVar[str] = "pqn-belief"
+    paper_method: ClassVar[str] = "pqn"
+    tuned_as: ClassVar[str] = "pqn"
+
+    position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
+                                  "(the learned belief; 0: off, allowed with the filter)", low=0)
+    belief_filter: bool = option(False, "the belief is a histogram filter driven by a learned move head (trained by "
+                                 "the move loss: move_coef > 0) instead of the position head")
+
+    def check(self) -> None:
+        super().check()
+        if self.belief_filter and not self.move_coef:
+            raise ValueError("pqn-belief with belief_filter needs move_coef > 0: the move loss trains the filter's "
+                             "move head")
+        if self.belief_filter and not self.previous_step:
+            raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
+                             "before the last action and the action")
+        if not self.belief_filter and not self.position_coef:
+            raise ValueError("pqn-belief needs position_coef > 0 (or belief_filter): the position loss trains its "
+                             "belief")
+
+
+class PQNBelief(PQNAux):
+    """`PQNAux` (the auxiliary losses on the GRU state and their recorded targets) with
+    `BeliefQNetwork` in place of PQN-RNN's network."""
+
+    def __init__(self, config: PQNBeliefConfig):
+        super().__init__(config)
+        base, heads = self.network, self.auxiliary.heads(config.hidden_size)
+        moves = None
+        if config.belief_filter:  # the move loss trains the filter's own head, not one on the GRU state
+            moves = tuple((0, 0) if is_drop else (d_row, d_col) for is_drop, d_row, d_col in self.env.config.actions)
+            others = tuple(name for name in heads.heads if name != "move")
+            heads = AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others) if others else None
+        self.network = BeliefQNetwork(
+            layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
+            auxiliary_heads=heads, fixed_design=None if self.layout.dynamic else self._fixed_design(), moves=moves,
+        )
+
+    def _auxiliary_losses(self, loss, info, sown, batch) -> tuple[jax.Array, dict]:
+        """The auxiliary losses, and as a metric (no gradient) how well the belief the Q head read
+        knew the true position: its cross-entropy, in the position loss's units."""
+        loss, info = super()._auxiliary_losses(loss, info, sown, batch)
+        p_row, p_col = sown["intermediates"]["belief"][0]
+        row, col = batch.auxiliary["position"][..., 0], batch.auxiliary["position"][..., 1]
+        picked = jnp.take_along_axis(p_row, row[..., None], -1) * jnp.take_along_axis(p_col, col[..., None], -1)
+        return loss, {**info, "belief_nll": -jnp.log(jnp.maximum(picked, 1e-12)).mean()}
+
+    def _fixed_design(self) -> tuple:
+        """A static task's design as nested tuples (a hashable module field)."""
+        designs = np.asarray(self.env_params.designs)
+        if designs.shape[0] != 1:
+            raise ValueError(f"a static task has one design; {self.config.task} has {designs.shape[0]}")
+        return tuple(map(tuple, designs[0].reshape(self.layout.plan_shape).tolist()))

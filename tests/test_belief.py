@@ -1,0 +1,249 @@
+"""`pqn-belief` (agents/belief.py): the expected design window by hand and against a loop over
+positions, the filter's pieces by hand and the whole filter tracking real episodes, each belief
+trained by its own loss alone, the design it reads (the observation's or the static task's),
+honest acting, tiny runs, resume and the CLI."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agents.belief import (correct_belief, expected_design_window, filter_step, move_belief, padding_agrees,
+                           start_belief)
+from agents.registry import build_algorithm, make_config
+from snac_jax.tasks import make
+
+TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
+            hidden_size=16, rnn_size=16)
+
+
+def test_expected_window_by_hand_in_1d():
+    design = jnp.array([[1.0, 2.0, 3.0, 4.0]])  # one row of four columns; a window of three
+    one_row = jnp.ones(1)
+    window = expected_design_window(one_row, jnp.array([1.0, 0.0, 0.0, 0.0]), design, (1, 3), outside=-1.0)
+    np.testing.assert_allclose(window, [[-1.0, 1.0, 2.0]])  # off the plan on the left: the padding value
+    # Equally unsure of all four columns: padded design -1 1 2 3 4 -1, each window cell the mean
+    # of four consecutive entries: (-1+1+2+3)/4, (1+2+3+4)/4, (2+3+4-1)/4.
+    window = expected_design_window(one_row, jnp.full(4, 0.25), design, (1, 3), outside=-1.0)
+    np.testing.assert_allclose(window, [[1.25, 2.5, 2.0]])
+    # Half on column 1, half on column 3: the mean of the two windows [1 2 3] and [3 4 -1].
+    window = expected_design_window(one_row, jnp.array([0.0, 0.5, 0.0, 0.5]), design, (1, 3), -1.0)
+    np.testing.assert_allclose(window, [[2.0, 3.0, 1.0]])
+
+
+def test_expected_window_is_the_belief_weighted_crop_in_2d():
+    key_design, key_rows, key_cols = jax.random.split(jax.random.key(0), 3)
+    design = jax.random.randint(key_design, (2, 5, 6), 0, 4).astype(jnp.float32)  # a batch of two designs
+    row_logits, col_logits = jax.random.normal(key_rows, (2, 5)), jax.random.normal(key_cols, (2, 6))
+    p_row, p_col = jax.nn.softmax(row_logits), jax.nn.softmax(col_logits)
+    got = expected_design_window(p_row, p_col, design, (3, 3), outside=-0.5)
+    want = np.zeros((2, 3, 3))
+    for b in range(2):
+        padded = np.pad(np.asarray(design[b]), 1, constant_values=-0.5)
+        for r in range(5):
+            for c in range(6):
+                want[b] += float(p_row[b, r] * p_col[b, c]) * padded[r : r + 3, c : c + 3]  # the window at (r, c)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_move_shifts_the_belief_by_the_cells_and_stops_at_the_ends():
+    at_1 = jnp.array([0.0, 1.0, 0.0, 0.0, 0.0])
+    one_or_two = jnp.array([0.0, 0.5, 0.5, 0.0])  # P(cells moved = m), m = 0..3
+    np.testing.assert_allclose(move_belief(at_1, one_or_two, jnp.array(1.0)), [0, 0, 0.5, 0.5, 0])
+    np.testing.assert_allclose(move_belief(at_1, one_or_two, jnp.array(-1.0)), [1, 0, 0, 0, 0])  # 1 - 1 and 1 - 2 -> 0
+    np.testing.assert_allclose(move_belief(at_1, jnp.array([0.0, 0, 0, 1]), jnp.array(1.0)), [0, 0, 0, 0, 1])
+    np.testing.assert_allclose(move_belief(at_1, one_or_two, jnp.array(0.0)), at_1)  # a drop: no move
+    spread = jnp.array([0.5, 0.0, 0.0, 0.5, 0.0])
+    np.testing.assert_allclose(move_belief(spread, jnp.array([0.5, 0.5, 0, 0]), jnp.array(1.0)), [0.25, 0.25, 0, 0.25, 0.25])
+
+
+def test_padding_keeps_the_positions_whose_window_reaches_off_the_plan_there():
+    # five positions, a window of three: from 0 it reaches one cell off the left edge, from 4 off the right
+    np.testing.assert_array_equal(padding_agrees(jnp.array([True, False, False]), 5), [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(padding_agrees(jnp.array([False, False, True]), 5), [0, 0, 0, 0, 1])
+    np.testing.assert_array_equal(padding_agrees(jnp.array([False, False, False]), 5), [0, 1, 1, 1, 0])
+    # A floor of u = 1e-6 under every position, then weight u where the padding disagrees.
+    u = 1e-6
+    corrected = correct_belief(jnp.array([0.5, 0.5, 0.0, 0.0, 0.0]), jnp.array([False, True, True, True, False]))
+    weights = np.array([(0.5 + u) * u, 0.5 + u, u, u, u * u])
+    np.testing.assert_allclose(corrected, weights / weights.sum(), rtol=1e-5)
+    # All its mass where the padding says it cannot be: it moves to where it can.
+    recovered = correct_belief(jnp.array([1.0, 0.0, 0.0, 0.0, 0.0]), jnp.array([False, True, True, True, False]))
+    assert float(recovered[1:4].sum()) > 0.7
+
+
+def test_filter_step_by_hand():
+    rows, cols, window = 4, 6, (3, 3)
+    at_start = np.zeros((1,) + window, bool)
+    at_start[0, 0, :] = at_start[0, :, 0] = True  # at plan (0, 0) the window's top row and left column are off the plan
+    start = (start_belief(rows)[None], start_belief(cols)[None])
+    reset = jnp.array([True])
+    right = jnp.array([[0.0, 1.0]])
+    b_row, b_col = filter_step(start, reset, jnp.array([[0.0, 0.0, 1.0, 0.0]]), right, jnp.asarray(at_start))
+    np.testing.assert_allclose(b_col[0], start_belief(cols), atol=1e-5)  # a reset ignores the move: the episode's first step
+    top_row = np.zeros((1,) + window, bool)
+    top_row[0, 0, :] = True  # two or three cells right of the corner: only the top row is off the plan
+    b_row, b_col = filter_step((b_row, b_col), ~reset, jnp.array([[0.0, 0.0, 0.5, 0.5]]), right, jnp.asarray(top_row))
+    np.testing.assert_allclose(b_row[0], [1, 0, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(b_col[0], [0, 0, 0.5, 0.5, 0, 0], atol=1e-5)
+    # No padding anywhere: rows 0 and 3 would show it above or below, so the row belief leaves them.
+    b_row, _ = filter_step((jnp.full((1, rows), 0.25), b_col), ~reset, jnp.array([[1.0, 0, 0, 0]]), right,
+                           jnp.zeros((1,) + window, bool))
+    np.testing.assert_allclose(b_row[0], [0, 0.5, 0.5, 0], atol=1e-5)
+
+
+@pytest.mark.parametrize("task", ["1d-static-sin", "2d-dynamic-sparse", "3d-static-dense"])
+def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
+    """With the true cells moved as its move distribution, the filter's belief is the robot's
+    position, step after step, through random episodes: moves clipped at the plan's edge, blocked
+    by bricks (3D), drops, and the resets of auto-reset."""
+    env, params = make(task, max_steps=40)
+    config = env.config
+    moves = np.array([(0, 0) if drop else (dr, dc) for drop, dr, dc in config.actions] + [(0, 0)], np.float32)
+    worlds, steps = 16, 120
+    keys = jax.random.split(jax.random.key(0), worlds)
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    rows, cols = config.plan_shape
+    belief = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols)))
+    reset, last_action, cells = jnp.ones(worlds, bool), jnp.full(worlds, len(config.actions)), jnp.zeros(worlds, int)
+    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    for t in range(steps):
+        padding = env.observation_layout.window_cells(obs) == -1
+        sign = jnp.asarray(moves)[last_action]
+        belief = filter_step(belief, reset, jax.nn.one_hot(cells, 4), sign, padding)
+        np.testing.assert_array_equal(jnp.argmax(belief[0], -1), state.position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(jnp.argmax(belief[1], -1), state.position[:, 1], err_msg=f"column, step {t}")
+        assert float(jnp.min(jnp.max(belief[1], -1))) > 0.99
+        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, len(config.actions))
+        before = state.position
+        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
+        reset, last_action = terminated | truncated, action
+        cells = jnp.abs(state.position - before).sum(-1)
+
+
+@pytest.mark.parametrize("task,dynamic", [("1d-dynamic", True), ("2d-static-sparse", False)])
+def test_the_design_read_is_the_observations_or_the_static_tasks_own(task, dynamic):
+    agent = build_algorithm(make_config("pqn-belief", task, **TINY))
+    if dynamic:
+        assert agent.network.fixed_design is None
+    else:
+        np.testing.assert_array_equal(np.asarray(agent.network.fixed_design), agent.env_params.designs[0])
+
+
+def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observations_only():
+    agent = build_algorithm(make_config("pqn-belief", "2d-dynamic-sparse", **TINY, max_steps=5))
+    state = jax.jit(agent.init)(jax.random.key(0))
+    _, batch, _ = jax.jit(agent.rollout)(state, agent.env_params)
+    targets = jnp.zeros(batch.reward.shape)
+    carry0 = state.worlds.carry
+
+    def td_loss(params):  # the Q regression alone: no position loss
+        (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
+        taken = jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0]
+        return jnp.mean((taken - targets) ** 2)
+
+    grads = jax.grad(td_loss)(state.params)["params"]
+    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["auxiliary_heads"]))
+    assert float(jnp.abs(grads["ScannedRNN_0"]["GRUCell_0"]["hn"]["kernel"]).max()) > 0  # the check bites
+    (_, info), full = jax.value_and_grad(agent._loss, has_aux=True)(state.params, carry0, batch, targets)
+    assert float(jnp.abs(full["params"]["auxiliary_heads"]["Dense_0"]["kernel"]).max()) > 0
+    assert np.isfinite(float(info["position_loss"])) and float(info["belief_nll"]) >= 0.0
+
+    policy = agent.policy(state.params)
+    assert list(inspect.signature(policy.act).parameters) == ["params", "policy_state", "obs", "key"]
+    policy_state = policy.init(jax.random.key(1), agent.env_params.designs[0])
+    obs, _ = agent.env.reset(jax.random.key(2), agent.env_params)
+    action, _ = policy.act(state.params, policy_state, obs, jax.random.key(3))
+    assert 0 <= int(action) < agent.env.num_actions
+
+
+def test_each_belief_needs_the_loss_that_trains_it():
+    with pytest.raises(ValueError, match=r"pqn-belief needs position_coef > 0 \(or belief_filter\)"):
+        make_config("pqn-belief", "1d-dynamic", position_coef=0.0)
+    with pytest.raises(ValueError, match="pqn-belief with belief_filter needs move_coef > 0"):
+        make_config("pqn-belief", "1d-dynamic", belief_filter=True)
+    with pytest.raises(ValueError, match="pqn-belief with belief_filter needs previous_step=True"):
+        make_config("pqn-belief", "1d-dynamic", belief_filter=True, move_coef=0.01, previous_step=False)
+    with pytest.raises(ValueError, match="pqn-belief needs recurrent=True"):
+        make_config("pqn-belief", "1d-dynamic", recurrent=False)
+    assert make_config("pqn-belief", "1d-dynamic", belief_filter=True, move_coef=0.01, position_coef=0.0).belief_filter
+
+
+def test_the_filters_move_head_learns_from_the_move_loss_only():
+    agent = build_algorithm(make_config("pqn-belief", "3d-dynamic-dense", **TINY, belief_filter=True, move_coef=0.01,
+                                        position_coef=0.0, max_steps=5))
+    assert agent.network.carry_size == 16 + 20 + 20  # the GRU's state, then the row and column beliefs
+    state = jax.jit(agent.init)(jax.random.key(0))
+    assert "auxiliary_heads" not in state.params["params"]  # no head on the GRU state: the move head is the filter's
+    _, batch, _ = jax.jit(agent.rollout)(state, agent.env_params)
+    targets, carry0 = jnp.zeros(batch.reward.shape), state.worlds.carry
+
+    def td_loss(params):
+        (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
+        return jnp.mean((jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0] - targets) ** 2)
+
+    grads = jax.grad(td_loss)(state.params)["params"]
+    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["move_head"]))
+    (_, info), full = jax.value_and_grad(agent._loss, has_aux=True)(state.params, carry0, batch, targets)
+    assert all(float(jnp.abs(g).max()) > 0.0 for g in jax.tree.leaves(full["params"]["move_head"])[:1])
+    assert np.isfinite(float(info["move_loss"])) and float(info["belief_nll"]) >= 0.0
+    # The belief after the rollout rides in the carry: each world's rows and columns sum to 1.
+    after = jax.jit(agent.rollout)(state, agent.env_params)[0].worlds.carry
+    np.testing.assert_allclose(after[:, 16:36].sum(-1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(after[:, 36:].sum(-1), 1.0, rtol=1e-5)
+
+
+@pytest.mark.slow  # two compiled training chunks per task
+@pytest.mark.parametrize("task,options", [("1d-static-sin", {}), ("2d-dynamic-dense", dict(belief_filter=True)),
+                                          ("3d-static-dense", dict(belief_filter=True, position_coef=0.0))])
+def test_tiny_runs_are_finite_and_compile_once(task, options):
+    agent = build_algorithm(make_config("pqn-belief", task, **TINY, map_coef=0.1, move_coef=0.1, max_steps=6, **options))
+    traces = []
+    update = agent.update
+    agent.update = lambda state, env_params: (traces.append(1), update(state, env_params))[1]
+    chunk = jax.jit(lambda s, p: agent.train_chunk(s, p, 2))
+    state = jax.jit(agent.init)(jax.random.key(0))
+    state, first = chunk(state, agent.env_params)
+    state, second = chunk(state, agent.env_params)
+    assert len(traces) == 1 and chunk._cache_size() == 1
+    for name in ("loss", "map_loss", "move_loss") + (("position_loss",) if agent.config.position_coef else ()):
+        assert np.all(np.isfinite(first[name])) and np.all(np.isfinite(second[name])), name
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
+
+
+@pytest.mark.slow  # three driver runs
+def test_resume_equals_the_uninterrupted_run(tmp_path):
+    from agents.checkpoint import to_storable
+    from agents.driver import train
+
+    config = make_config("pqn-belief", "1d-dynamic", **TINY, chunks=2, max_steps=6, belief_filter=True, move_coef=0.1)
+    _, straight = train(config, tmp_path / "straight", progress=False)
+    train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
+    _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
+    leaves = zip(jax.tree.leaves(to_storable(straight)), jax.tree.leaves(to_storable(resumed)))
+    assert all(np.array_equal(a, b) for a, b in leaves)
+
+
+@pytest.mark.slow  # a training and an evaluation subprocess
+def test_cli_trains_two_seeds_and_evaluates(tmp_path):
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn-belief", "--task", "1d-dynamic", "--seeds", "2",
+           "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8", "--num-minibatches", "2",
+           "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2", "--out", str(out),
+           "--eval-episodes", "1", "--no-progress"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for name in ("config.json", "metrics.jsonl", "eval.json"):
+        assert (out / name).is_file(), name
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["algorithm"] == "pqn-belief" and saved["position_coef"] > 0
+    assert len(json.loads((out / "eval.json").read_text())) == 2  # one result per training seed
