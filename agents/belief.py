@@ -14,15 +14,15 @@ as the belief goes) are inputs of the Q head.
 
 Two beliefs, one per run (`belief_filter`):
 
-- **learned** (the default): the position head of `agents.auxiliary`, on the GRU state, trained
-  by the position loss on the true position; a distribution over rows and one over columns.
-- **filter**: a histogram filter over rows and over columns, carried beside the GRU state. Each
-  step moves the belief along the last action's axis by the cells the move covered, whose
-  distribution a small head predicts from the last two windows and the action (trained by the
-  move loss on the true count), then keeps the positions whose plan edges agree with where the
-  window shows padding (`filter_step`). An episode starts at the plan's corner (SPEC §2). It is the
-  handcrafted policy's dead reckoning with the window's shift read by a learned head; it ignores
-  what the built cells could add.
+- **filter** (the default): a histogram filter over rows and over columns, carried beside the
+  GRU state. Each step moves the belief along the last action's axis by the cells the move
+  covered, whose distribution a small head predicts from the last two windows and the action
+  (trained by the move loss on the true count), then keeps the positions whose plan edges agree
+  with where the window shows padding (`filter_step`). An episode starts at the plan's corner
+  (SPEC §2). It is the handcrafted policy's dead reckoning with the window's shift read by a
+  learned head; it ignores what the built cells could add.
+- **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
+  position loss on the true position; a distribution over rows and one over columns.
 
 Honest acting: either belief is computed from the observations alone (the filter's only learned
 part reads the windows and the action), and the design it reads is the observation's (a dynamic
@@ -230,9 +230,11 @@ class PQNBeliefConfig(PQNAuxConfig):
     tuned_as: ClassVar[str] = "pqn"
 
     position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
-                                  "(the learned belief; 0: off, allowed with the filter)", low=0)
-    belief_filter: bool = option(False, "the belief is a histogram filter driven by a learned move head (trained by "
-                                 "the move loss: move_coef > 0) instead of the position head")
+                                  "(trains the learned belief; 0: off, allowed with the filter)", low=0)
+    move_coef: float = option(5e-3, "weight of the loss predicting how many cells the last move carried the robot "
+                              "(trains the filter's move head; 0: off, allowed without the filter)", low=0)
+    belief_filter: bool = option(True, "the belief is a histogram filter driven by a learned move head (trained by "
+                                 "the move loss: move_coef > 0); off: the position head (position_coef > 0)")
 
     def check(self) -> None:
         super().check()
@@ -249,7 +251,11 @@ class PQNBeliefConfig(PQNAuxConfig):
 
 class PQNBelief(PQNAux):
     """`PQNAux` (the auxiliary losses on the GRU state and their recorded targets) with
-    `BeliefQNetwork` in place of PQN-RNN's network."""
+    `BeliefQNetwork` in place of PQN-RNN's network.
+
+    With `stagger_starts` (PQN's tuned settings) each world's first episode is entered midway but
+    marked as a start, so the filter starts it at the corner; the padding and the floor under
+    every position pull it to where the window allows, and every later episode starts right."""
 
     def __init__(self, config: PQNBeliefConfig):
         super().__init__(config)
