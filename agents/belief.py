@@ -10,7 +10,10 @@ policy (SPEC §11) does the look-up explicitly from its SLAM estimate, and the a
 feeds a DRQN the output of a localisation network trained on the true position. Here the look-up
 is explicit: the expected design under the belief, cut to the window's shape and aligned with
 it (`expected_design_window`), and that minus the window (what is still missing there, as far
-as the belief goes) are inputs of the Q head.
+as the belief goes) are inputs of the Q head. With `view_radius` the expected design reaches past
+the window, an egocentric map of the design around the robot, which can stand in for the design
+encoder's allocentric reading of a dynamic task's design (`design_encoder=False`), at a fraction
+of its cost.
 
 Two beliefs, one per run (`belief_filter`):
 
@@ -161,6 +164,15 @@ class BeliefQNetwork(LayerNormQNetwork):
 
     fixed_design: tuple | None = None
     moves: tuple | None = None
+    view_radius: int = 0  # half size of the expected design the Q head reads; 0: the window's
+    design_encoder: bool = True  # also read a dynamic task's whole design through `DesignEncoder`
+
+    @property
+    def view_shape(self) -> tuple[int, int]:
+        (wr, wc), (rows, _) = self.layout.window_shape, self.layout.plan_shape
+        if not self.view_radius:
+            return wr, wc
+        return (1 if rows == 1 else 2 * self.view_radius + 1), 2 * self.view_radius + 1
 
     @property
     def carry_size(self) -> int:
@@ -171,7 +183,7 @@ class BeliefQNetwork(LayerNormQNetwork):
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
         layout = self.layout
         rows, _ = layout.plan_shape
-        x = ObservationEncoder(layout, self.hidden_size, layer_norm=True)(obs)
+        x = ObservationEncoder(layout, self.hidden_size, layer_norm=True, read_design=self.design_encoder)(obs)
         gru_carry, x = ScannedRNN(self.rnn_size, "gru")(carry[:, : self.rnn_size], (x, resets))
         heads = {} if self.auxiliary_heads is None else dict(self.auxiliary_heads(x))
         parts = layout.split(obs)
@@ -190,9 +202,11 @@ class BeliefQNetwork(LayerNormQNetwork):
         else:
             design = jnp.broadcast_to(jnp.asarray(self.fixed_design, jnp.float32) / layout.height_scale,
                                       obs.shape[:-1] + layout.plan_shape)
-        expected = expected_design_window(p_row, p_col, design, layout.window_shape, PADDING / layout.height_scale)
+        expected = expected_design_window(p_row, p_col, design, self.view_shape, PADDING / layout.height_scale)
+        (vr, vc), (wr, wc) = self.view_shape, layout.window_shape
+        in_window = expected[..., (vr - wr) // 2 : (vr + wr) // 2, (vc - wc) // 2 : (vc + wc) // 2]
         lead = obs.shape[:-1]
-        local = jnp.concatenate([expected.reshape(lead + (-1,)), (expected - parts["window"]).reshape(lead + (-1,))],
+        local = jnp.concatenate([expected.reshape(lead + (-1,)), (in_window - parts["window"]).reshape(lead + (-1,))],
                                 axis=-1)
         h = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(jnp.concatenate([x, local], axis=-1))
         h = nn.relu(nn.LayerNorm()(h))
@@ -233,6 +247,10 @@ class PQNBeliefConfig(PQNAuxConfig):
                                   "(trains the learned belief; 0: off, allowed with the filter)", low=0)
     move_coef: float = option(5e-3, "weight of the loss predicting how many cells the last move carried the robot "
                               "(trains the filter's move head; 0: off, allowed without the filter)", low=0)
+    view_radius: int = option(0, "half size of the expected design around the robot that the Q head reads (0: the "
+                              "window's; larger: an egocentric view of more of the design)", low=0)
+    design_encoder: bool = option(True, "also read a dynamic task's whole design through the design encoder (off: "
+                                  "the egocentric view alone)")
     belief_filter: bool = option(True, "the belief is a histogram filter driven by a learned move head (trained by "
                                  "the move loss: move_coef > 0); off: the position head (position_coef > 0)")
 
@@ -244,6 +262,12 @@ class PQNBeliefConfig(PQNAuxConfig):
         if self.belief_filter and not self.previous_step:
             raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
                              "before the last action and the action")
+        if self.view_radius:
+            env, _ = self.make_env()
+            half = env.config.window_shape[1] // 2
+            if self.view_radius < half:
+                raise ValueError(f"view_radius must be 0 or at least the window's half size ({half} on {self.task}): "
+                                 "the view holds the window")
         if not self.belief_filter and not self.position_coef:
             raise ValueError("pqn-belief needs position_coef > 0 (or belief_filter): the position loss trains its "
                              "belief")
@@ -268,6 +292,7 @@ class PQNBelief(PQNAux):
         self.network = BeliefQNetwork(
             layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
             auxiliary_heads=heads, fixed_design=None if self.layout.dynamic else self._fixed_design(), moves=moves,
+            view_radius=config.view_radius, design_encoder=config.design_encoder,
         )
 
     def _auxiliary_losses(self, loss, info, sown, batch) -> tuple[jax.Array, dict]:

@@ -93,6 +93,7 @@ class ObservationEncoder(nn.Module):
     hidden_size: int  # the design encoder's features, and the MLP's widths unless `layers`
     layers: tuple[int, ...] = ()  # the MLP's widths; empty: two layers of `hidden_size`
     layer_norm: bool = False  # LayerNorm before each ReLU (PQN's networks)
+    read_design: bool = True  # a dynamic task's design through `DesignEncoder` (off: a network that reads it otherwise)
 
     @nn.compact
     def __call__(self, obs: jax.Array, layer: Layer = dense) -> jax.Array:
@@ -111,7 +112,7 @@ class ObservationEncoder(nn.Module):
                 parts["previous_window_classes"].reshape(lead + (-1,)),
                 parts["last_action"],
             ]
-        if "design" in parts:
+        if "design" in parts and self.read_design:
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for width in self.layers or (self.hidden_size,) * 2:

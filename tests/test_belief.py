@@ -52,6 +52,9 @@ def test_expected_window_is_the_belief_weighted_crop_in_2d():
             for c in range(6):
                 want[b] += float(p_row[b, r] * p_col[b, c]) * padded[r : r + 3, c : c + 3]  # the window at (r, c)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    # A wider view holds the window's expectation at its centre.
+    wide = expected_design_window(p_row, p_col, design, (7, 5), outside=-0.5)
+    np.testing.assert_allclose(wide[:, 2:5, 1:4], got, rtol=1e-5, atol=1e-6)
 
 
 def test_a_move_shifts_the_belief_by_the_cells_and_stops_at_the_ends():
@@ -163,6 +166,21 @@ def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observat
     obs, _ = agent.env.reset(jax.random.key(2), agent.env_params)
     action, _ = policy.act(state.params, policy_state, obs, jax.random.key(3))
     assert 0 <= int(action) < agent.env.num_actions
+
+
+def test_a_wider_egocentric_view_without_the_design_encoder():
+    agent = build_algorithm(make_config("pqn-belief", "2d-dynamic-dense", **TINY, view_radius=7, design_encoder=False))
+    params = jax.jit(agent.init)(jax.random.key(0)).params["params"]
+    assert agent.network.view_shape == (15, 15)
+    assert "DesignEncoder_0" not in params["ObservationEncoder_0"]  # the design is read through the view alone
+    # the Q head's hidden layer reads the GRU output (16), the 15 x 15 view and the 7 x 7 window's "missing"
+    assert params["Dense_0"]["kernel"].shape == (16 + 225 + 49, 16)
+    default = build_algorithm(make_config("pqn-belief", "1d-dynamic", **TINY))
+    assert default.network.view_shape == (1, 5) and "DesignEncoder_0" in jax.jit(default.init)(
+        jax.random.key(0)).params["params"]["ObservationEncoder_0"]
+    assert build_algorithm(make_config("pqn-belief", "1d-dynamic", **TINY, view_radius=4)).network.view_shape == (1, 9)
+    with pytest.raises(ValueError, match=r"view_radius must be 0 or at least the window's half size \(3 on 2d-static-dense\)"):
+        make_config("pqn-belief", "2d-static-dense", view_radius=2)
 
 
 def test_each_belief_needs_the_loss_that_trains_it():
