@@ -1,7 +1,8 @@
 """`pqn-belief` (agents/belief.py): the expected design window by hand and against a loop over
 positions, the filter's pieces by hand and the whole filter tracking real episodes, each belief
 trained by its own loss alone, the design it reads (the observation's or the static task's),
-honest acting, tiny runs, resume and the CLI."""
+honest acting and the CLI. Tiny runs with every signal, compile-once and resume are
+tests/test_privileged.py's, shared with the other learners of privileged signals."""
 
 from __future__ import annotations
 
@@ -218,37 +219,6 @@ def test_the_filters_move_head_learns_from_the_move_loss_only():
     after = jax.jit(agent.rollout)(state, agent.env_params)[0].worlds.carry
     np.testing.assert_allclose(after[:, 16:36].sum(-1), 1.0, rtol=1e-5)
     np.testing.assert_allclose(after[:, 36:].sum(-1), 1.0, rtol=1e-5)
-
-
-@pytest.mark.slow  # two compiled training chunks per task
-@pytest.mark.parametrize("task,options", [("1d-static-sin", dict(belief_filter=False)), ("2d-dynamic-dense", dict(belief_filter=True)),
-                                          ("3d-static-dense", dict(belief_filter=True, position_coef=0.0))])
-def test_tiny_runs_are_finite_and_compile_once(task, options):
-    agent = build_algorithm(make_config("pqn-belief", task, **TINY, map_coef=0.1, move_coef=0.1, max_steps=6, **options))
-    traces = []
-    update = agent.update
-    agent.update = lambda state, env_params: (traces.append(1), update(state, env_params))[1]
-    chunk = jax.jit(lambda s, p: agent.train_chunk(s, p, 2))
-    state = jax.jit(agent.init)(jax.random.key(0))
-    state, first = chunk(state, agent.env_params)
-    state, second = chunk(state, agent.env_params)
-    assert len(traces) == 1 and chunk._cache_size() == 1
-    for name in ("loss", "map_loss", "move_loss") + (("position_loss",) if agent.config.position_coef else ()):
-        assert np.all(np.isfinite(first[name])) and np.all(np.isfinite(second[name])), name
-    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
-
-
-@pytest.mark.slow  # three driver runs
-def test_resume_equals_the_uninterrupted_run(tmp_path):
-    from agents.checkpoint import to_storable
-    from agents.driver import train
-
-    config = make_config("pqn-belief", "1d-dynamic", **TINY, chunks=2, max_steps=6, belief_filter=True, move_coef=0.1)
-    _, straight = train(config, tmp_path / "straight", progress=False)
-    train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
-    _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
-    leaves = zip(jax.tree.leaves(to_storable(straight)), jax.tree.leaves(to_storable(resumed)))
-    assert all(np.array_equal(a, b) for a, b in leaves)
 
 
 @pytest.mark.slow  # a training and an evaluation subprocess

@@ -25,7 +25,7 @@ PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_miniba
 DRQN_TINY = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16,
                  burn_in=2, sequence_length=4, learning_starts=0, buffer_size=8 * 40)
 PQN_TINY = PPO_TINY  # PQN's rollout and minibatch options have PPO's names
-TINY = {"ppo-privileged": PPO_TINY, "drqn-aux": DRQN_TINY, "pqn-aux": PQN_TINY}
+TINY = {"ppo-privileged": PPO_TINY, "drqn-aux": DRQN_TINY, "pqn-aux": PQN_TINY, "pqn-belief": PQN_TINY}
 ALL_SIGNALS = dict(position_coef=0.1, map_coef=0.1, move_coef=0.1, stride_curriculum=0.5)
 
 
@@ -207,7 +207,8 @@ def test_with_every_signal_off_the_learners_are_ppo_drqn_and_pqn():
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 @pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense"),
-                                            ("drqn-aux", "1d-static-sin"), ("pqn-aux", "2d-static-sparse")])
+                                            ("drqn-aux", "1d-static-sin"), ("pqn-aux", "2d-static-sparse"),
+                                            ("pqn-belief", "2d-dynamic-dense"), ("pqn-belief", "3d-static-dense")])
 def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task):
     options = TINY[algorithm]
     agent = build_algorithm(make_config(algorithm, task, **options, **ALL_SIGNALS, max_steps=6))
@@ -247,7 +248,7 @@ def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
 
 
 @pytest.mark.slow  # three driver runs of each learner: over 20 s on a 2-core CPU
-@pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux", "pqn-aux"])
+@pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux", "pqn-aux", "pqn-belief"])
 def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
     from agents.checkpoint import to_storable
     from agents.driver import train
