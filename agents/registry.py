@@ -3,7 +3,8 @@ the resolution of a config: class defaults, then the task's tuned entry, then th
 
 Tuned values are data, `agents/tuned/<algorithm>.toml`: one table per task, each naming in
 `result` the page under `bench/results/` that records the runs it was chosen from. A variant
-that adds training signals to a base learner (its config's `tuned_as`) reads the base's file.
+that adds training signals to a base learner (its config's `tuned_as`) reads the base's file, then
+its own where it has one (the settings of its own, or its own choices on a task).
 """
 
 from __future__ import annotations
@@ -66,31 +67,41 @@ def build_algorithm(config: TrainConfig):
     return getattr(importlib.import_module(entry.module), entry.algorithm)(config)
 
 
-def tuned_file(algorithm: str) -> Path:
-    """The tuned file `algorithm` trains with: its own, or its base learner's (`tuned_as`)."""
-    return TUNED_DIR / f"{config_class(algorithm).tuned_as or algorithm}.toml"
+def tuned_files(algorithm: str) -> list[Path]:
+    """The tuned files `algorithm` trains with, in the order they apply: its base learner's
+    (`tuned_as`), then its own; only those that exist."""
+    base = config_class(algorithm).tuned_as
+    names = ([base] if base else []) + [algorithm]
+    return [path for name in names if (path := TUNED_DIR / f"{name}.toml").is_file()]
+
+
+def tuned_source(algorithm: str, task: str, option: str) -> Path | None:
+    """The tuned file whose entry for `task` sets `option` for `algorithm` (the last to apply), if any."""
+    for path in reversed(tuned_files(algorithm)):
+        if option in tomllib.loads(path.read_text()).get(task, {}):
+            return path
+    return None
 
 
 @functools.cache
 def tuned_table(algorithm: str) -> dict[str, dict[str, Any]]:
-    """Task -> tuned values of `algorithm` (without `result`), checked against its config's fields."""
+    """Task -> tuned values of `algorithm` (without `result`), checked against its config's fields:
+    a variant's base learner's values, updated per task by the variant's own file."""
     cls = config_class(algorithm)
-    path = tuned_file(algorithm)
-    if not path.is_file():
-        return {}
     fields = {f.name for f in dataclasses.fields(cls)} - {"task"}
-    table = {}
-    for task, entry in tomllib.loads(path.read_text()).items():
-        entry = dict(entry)
-        if task not in TASKS:
-            raise ValueError(f"{path}: unknown task {task!r}; allowed: {', '.join(TASKS)}")
-        if "result" not in entry:
-            raise ValueError(f"{path}: [{task}] must name the result it was tuned for (`result = \"bench/results/...\"`)")
-        entry.pop("result")
-        unknown = sorted(set(entry) - fields)
-        if unknown:
-            raise ValueError(f"{path}: [{task}] has unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
-        table[task] = entry
+    table: dict[str, dict[str, Any]] = {}
+    for path in tuned_files(algorithm):
+        for task, entry in tomllib.loads(path.read_text()).items():
+            entry = dict(entry)
+            if task not in TASKS:
+                raise ValueError(f"{path}: unknown task {task!r}; allowed: {', '.join(TASKS)}")
+            if "result" not in entry:
+                raise ValueError(f"{path}: [{task}] must name the result it was tuned for (`result = \"bench/results/...\"`)")
+            entry.pop("result")
+            unknown = sorted(set(entry) - fields)
+            if unknown:
+                raise ValueError(f"{path}: [{task}] has unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+            table[task] = {**table.get(task, {}), **entry}
     return table
 
 

@@ -37,14 +37,15 @@ def test_config_json_round_trips(algorithm):
 def test_every_tuned_entry_names_the_result_page_it_was_tuned_for(algorithm):
     import tomllib
 
-    from agents.registry import tuned_file
+    from agents.registry import tuned_files
 
     root = Path(__file__).parents[1]
-    path = tuned_file(algorithm)
-    if not path.is_file():
+    paths = tuned_files(algorithm)
+    if not paths:
         pytest.skip(f"{algorithm} has no tuned settings: every task uses the config class's defaults")
-    for task, entry in tomllib.loads(path.read_text()).items():
-        assert (root / entry["result"]).is_file(), (algorithm, task, entry["result"])
+    for path in paths:
+        for task, entry in tomllib.loads(path.read_text()).items():
+            assert (root / entry["result"]).is_file(), (algorithm, task, entry["result"])
     assert tuned_table(algorithm)  # loads and checks the keys against the config's fields
 
 
@@ -107,6 +108,30 @@ def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
     try:
         with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['learning_rat'\]"):
             registry.tuned_table("ppo")
+    finally:
+        registry.tuned_table.cache_clear()
+
+
+def test_a_variant_reads_its_base_learners_tuned_file_then_its_own(tmp_path, monkeypatch):
+    from agents import registry
+
+    (tmp_path / "pqn.toml").write_text('["1d-dynamic"]\nresult = "r"\nnum_envs = 64\nlearning_rate = 0.003\n'
+                                      '["2d-static-dense"]\nresult = "r"\nnum_envs = 128\n')
+    (tmp_path / "pqn-belief.toml").write_text('["1d-dynamic"]\nresult = "r"\nlearning_rate = 0.001\nview_radius = 4\n')
+    monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
+    registry.tuned_table.cache_clear()
+    try:
+        assert registry.tuned_table("pqn-belief") == {"1d-dynamic": {"num_envs": 64, "learning_rate": 0.001, "view_radius": 4},
+                                                      "2d-static-dense": {"num_envs": 128}}
+        assert registry.tuned_table("pqn") == {"1d-dynamic": {"num_envs": 64, "learning_rate": 0.003},
+                                               "2d-static-dense": {"num_envs": 128}}
+        assert registry.tuned_source("pqn-belief", "1d-dynamic", "num_envs") == tmp_path / "pqn.toml"
+        assert registry.tuned_source("pqn-belief", "1d-dynamic", "learning_rate") == tmp_path / "pqn-belief.toml"
+        assert registry.tuned_source("pqn-belief", "1d-dynamic", "total_steps") is None
+        (tmp_path / "pqn.toml").write_text('["1d-dynamic"]\nresult = "r"\nview_radius = 4\n')  # not a pqn option
+        registry.tuned_table.cache_clear()
+        with pytest.raises(ValueError, match=r"unknown pqn option\(s\) \['view_radius'\]"):
+            registry.tuned_table("pqn")
     finally:
         registry.tuned_table.cache_clear()
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from agents import checkpoint
 from agents.config import TrainConfig
-from agents.registry import ALGORITHMS, config_class, make_config, tuned_file, tuned_table
+from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
 from snac_jax.designs import NUM_TEST_DESIGNS
@@ -93,8 +93,8 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
         why = budget["source"]
     elif "total_steps" in preset.overrides(config.algorithm):
         why = "the preset's total_steps"
-    elif "total_steps" in tuned_table(config.algorithm).get(config.task, {}):
-        why = f"tuned total_steps (agents/tuned/{tuned_file(config.algorithm).name})"
+    elif (source := tuned_source(config.algorithm, config.task, "total_steps")) is not None:
+        why = f"tuned total_steps (agents/tuned/{source.name})"
     else:
         why = f"{type(config).__name__}'s default total_steps (no tuned entry)"
     return config.total_steps, f"{preset.name}: {why}"
