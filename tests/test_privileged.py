@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
+import tomllib
 
 import jax
 import jax.numpy as jnp
@@ -273,9 +274,16 @@ VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux",
 @pytest.mark.parametrize("task", TASKS)
 def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base, base_options, task):
     """On every task a variant's config is its base learner's tuned config with the training
-    signals added, so a comparison with the base is of the signals alone."""
+    signals added, so a comparison with the base is of the signals alone; where the variant's
+    own tuned file has an entry for the task (`agents.registry.tuned_files`), the base's config
+    with that entry's settings."""
+    from agents.registry import TUNED_DIR
+
     extra = {"algorithm"} | {f.name for f in dataclasses.fields(config_class(algorithm))} - {
         f.name for f in dataclasses.fields(config_class(base))}
+    own_file = TUNED_DIR / f"{algorithm}.toml"
+    own = tomllib.loads(own_file.read_text()).get(task, {}) if own_file.is_file() else {}
+    base_options = {**base_options, **{k: v for k, v in own.items() if k != "result" and k not in extra}}
     variant, plain = make_config(algorithm, task).to_json(), make_config(base, task, **base_options).to_json()
     assert extra - {"algorithm"} and set(variant) - set(plain) == extra - {"algorithm"}
     assert {k: v for k, v in variant.items() if k not in extra} == {k: v for k, v in plain.items() if k not in extra}
