@@ -124,6 +124,12 @@ class AuxiliaryHeads(nn.Module):
         return {name: mlp_head(features, self.hidden_size, sizes[name], 1.0) for name in self.heads}
 
 
+def move_directions(actions) -> np.ndarray:
+    """`(num_actions, 2)`: each action's (row, column) direction, (0, 0) for a drop: the axis and
+    sign a move can carry the robot along (`EnvConfig.actions` rows are (is_drop, d_row, d_col))."""
+    return np.asarray([(0, 0) if is_drop else (d_row, d_col) for is_drop, d_row, d_col in actions], np.int32)
+
+
 @dataclasses.dataclass(frozen=True)
 class Auxiliary:
     """The static pieces of a learner's auxiliary losses: which are on, their weights, and what
@@ -142,7 +148,7 @@ class Auxiliary:
         coefs = {"position": config.position_coef, "map": config.map_coef, "move": config.move_coef}
         return cls(
             coefs={name: coef for name, coef in coefs.items() if coef > 0}, plan_shape=layout.plan_shape,
-            height_scale=layout.height_scale, is_move=np.asarray([a[0] == 0 for a in env.config.actions]),
+            height_scale=layout.height_scale, is_move=move_directions(env.config.actions).any(axis=-1),
         )
 
     def heads(self, hidden_size: int) -> AuxiliaryHeads | None:

@@ -46,12 +46,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.auxiliary import AuxiliaryHeads, PQNAux, PQNAuxConfig
+from agents.auxiliary import AuxiliaryHeads, PQNAux, PQNAuxConfig, move_directions
 from agents.config import option
 from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
 from snac_jax.config import MAX_STRIDE
+from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
-PADDING = -1.0  # a window cell off the plan (SPEC §2)
 UNLIKELY = 1e-6  # the filter's weight on a position the window's padding contradicts
 
 
@@ -101,8 +101,8 @@ def padding_agrees(padding: jax.Array, n: int) -> jax.Array:
     `padding (..., w)` (True where the window shows padding), has padding exactly where the
     window reaches off the plan from that position."""
     w = padding.shape[-1]
-    off = (np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2 < 0) | (
-        np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2 >= n)  # (n, w)
+    seen = np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2  # (n, w): the plan cell each window cell shows
+    off = (seen < 0) | (seen >= n)
     return jnp.all(padding[..., None, :] == jnp.asarray(off), axis=-1)
 
 
@@ -112,6 +112,14 @@ def correct_belief(belief: jax.Array, agrees: jax.Array) -> jax.Array:
     allows instead of staying where it contradicts the window."""
     belief = (belief + UNLIKELY) * jnp.where(agrees, 1.0, UNLIKELY)
     return belief / belief.sum(axis=-1, keepdims=True)
+
+
+def belief_cross_entropy(p_row: jax.Array, p_col: jax.Array, position: jax.Array) -> jax.Array:
+    """Mean over steps of -log P(true row) P(true column) under the belief, `position (..., 2)`:
+    how well the belief the Q head read knew where the robot was (a metric, in the position
+    loss's units; ln rows + ln cols when it guesses)."""
+    picked = (jnp.take_along_axis(p_row, position[..., 0:1], -1) * jnp.take_along_axis(p_col, position[..., 1:2], -1))
+    return -jnp.log(jnp.maximum(picked, 1e-12)).mean()
 
 
 def start_belief(n: int) -> jax.Array:
@@ -158,8 +166,9 @@ class BeliefQNetwork(LayerNormQNetwork):
 
     `auxiliary_heads` (on the GRU state) hold the position head where the belief is learned; their
     outputs, and the filter's move head, are sown for the losses as in `LayerNormQNetwork`.
-    `moves` (per action its row and column direction, drops 0) turns the filter on; its belief
-    rides in the carry after the GRU's state. `fixed_design` is a static task's design (nested
+    `moves` (per action its row and column direction, drops 0; `move_directions`) given turns the
+    filter on, None reads the belief off the position head; the filter's belief rides in the
+    carry after the GRU's state. `fixed_design` is a static task's design (nested
     tuples, plan-shaped), None on a dynamic task, whose observation carries the design."""
 
     fixed_design: tuple | None = None
@@ -213,13 +222,14 @@ class BeliefQNetwork(LayerNormQNetwork):
         return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(h)
 
     def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
-        """Run `filter_step` along time from the carried belief `(B, rows + cols)`; returns the last
-        belief (for the carry) and the belief after each step, `(T, B, rows)` and `(T, B, cols)`."""
+        """Run `filter_step` along time `(T, B, ...)` from the carried belief `(B, rows + cols)`;
+        returns the last belief (for the carry) and the belief after each step, `(T, B, rows)`
+        and `(T, B, cols)`. It reads from `obs` the last action and where the window shows
+        padding (tests/test_belief.py runs it on real episodes, the move head's part given)."""
         rows, _ = self.layout.plan_shape
         p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
-        # the last action's direction: its one-hot (the last entry is "none", at an episode's start) x the table
-        directions = jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
-        sign = self.layout.split(obs)["last_action"] @ directions
+        # the last action's one-hot (its last entry "none", at an episode's start) x each action's direction
+        sign = self.layout.split(obs)["last_action"] @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
         padding = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size]) == PADDING
 
         def step(belief, inputs):
@@ -278,15 +288,23 @@ class PQNBelief(PQNAux):
     `BeliefQNetwork` in place of PQN-RNN's network.
 
     With `stagger_starts` (PQN's tuned settings) each world's first episode is entered midway but
-    marked as a start, so the filter starts it at the corner; the padding and the floor under
-    every position pull it to where the window allows, and every later episode starts right."""
+    marked as a start, so the filter starts it at the corner, wrongly. The floor under every
+    position and the padding correction pull it off the corner, but away from the plan's edges
+    they only spread it over the cells the window allows; the first episode's `belief_nll` is
+    high for that reason. Every later episode starts right.
+
+    The defaults train both heads: with the filter the position loss (5e-3) still trains a
+    position head on the GRU state, which nothing reads but which shapes the GRU's features;
+    with the learned belief the move loss trains a move head there. So `pqn-belief` with its
+    filter is not `pqn-aux` plus a filter alone: its GRU also carries pqn-aux's position loss,
+    at ten times pqn-aux's weight."""
 
     def __init__(self, config: PQNBeliefConfig):
         super().__init__(config)
         base, heads = self.network, self.auxiliary.heads(config.hidden_size)
         moves = None
         if config.belief_filter:  # the move loss trains the filter's own head, not one on the GRU state
-            moves = tuple((0, 0) if is_drop else (d_row, d_col) for is_drop, d_row, d_col in self.env.config.actions)
+            moves = tuple(map(tuple, move_directions(self.env.config.actions).tolist()))
             others = tuple(name for name in heads.heads if name != "move")
             heads = AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others) if others else None
         self.network = BeliefQNetwork(
@@ -300,9 +318,7 @@ class PQNBelief(PQNAux):
         knew the true position: its cross-entropy, in the position loss's units."""
         loss, info = super()._auxiliary_losses(loss, info, sown, batch)
         p_row, p_col = sown["intermediates"]["belief"][0]
-        row, col = batch.auxiliary["position"][..., 0], batch.auxiliary["position"][..., 1]
-        picked = jnp.take_along_axis(p_row, row[..., None], -1) * jnp.take_along_axis(p_col, col[..., None], -1)
-        return loss, {**info, "belief_nll": -jnp.log(jnp.maximum(picked, 1e-12)).mean()}
+        return loss, {**info, "belief_nll": belief_cross_entropy(p_row, p_col, batch.auxiliary["position"])}
 
     def _fixed_design(self) -> tuple:
         """A static task's design as nested tuples (a hashable module field)."""

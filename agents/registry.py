@@ -46,7 +46,7 @@ ALGORITHMS: dict[str, Entry] = {
     "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
     "pqn-aux": Entry("agents.auxiliary", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
     "pqn-belief": Entry("agents.belief", "PQNBeliefConfig", "PQNBelief",
-                        "PQN-RNN whose Q head reads the design expected at its learned position belief"),
+                        "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)"),
 }
 
 

@@ -17,8 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.belief import (correct_belief, expected_design_window, filter_step, move_belief, padding_agrees,
-                           start_belief)
+from agents.auxiliary import move_directions
+from agents.belief import (BeliefQNetwork, belief_cross_entropy, correct_belief, expected_design_window, filter_step,
+                           move_belief, padding_agrees, start_belief)
 from agents.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 
@@ -111,7 +112,7 @@ def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     by bricks (3D), drops, and the resets of auto-reset."""
     env, params = make(task, max_steps=40)
     config = env.config
-    moves = np.array([(0, 0) if drop else (dr, dc) for drop, dr, dc in config.actions] + [(0, 0)], np.float32)
+    moves = np.concatenate([move_directions(config.actions), [(0, 0)]]).astype(np.float32)
     worlds, steps = 16, 120
     keys = jax.random.split(jax.random.key(0), worlds)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
@@ -125,12 +126,61 @@ def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
         belief = filter_step(belief, reset, jax.nn.one_hot(cells, 4), sign, padding)
         np.testing.assert_array_equal(jnp.argmax(belief[0], -1), state.position[:, 0], err_msg=f"row, step {t}")
         np.testing.assert_array_equal(jnp.argmax(belief[1], -1), state.position[:, 1], err_msg=f"column, step {t}")
-        assert float(jnp.min(jnp.max(belief[1], -1))) > 0.99
+        assert float(jnp.min(jnp.max(belief[0], -1))) > 0.99 and float(jnp.min(jnp.max(belief[1], -1))) > 0.99
         action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, len(config.actions))
         before = state.position
         obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
         reset, last_action = terminated | truncated, action
         cells = jnp.abs(state.position - before).sum(-1)
+
+
+@pytest.mark.parametrize("task", ["2d-static-sparse", "3d-dynamic-dense"])
+def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(task):
+    """The network's own wiring of the filter (the action's direction from the observation's
+    last-action one-hot, the padding read off the window, the carry split into rows and columns),
+    given move logits that put all the mass on the true cells moved: its belief's peak is the
+    robot's position at every step, through auto-resets, as the acting path computes it."""
+    agent = build_algorithm(make_config("pqn-belief", task, **TINY, max_steps=30))
+    network, layout, env, params = agent.network, agent.layout, agent.env, agent.env_params
+    worlds = 16
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), worlds), params)
+    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    run_filter = jax.jit(lambda belief, logits, net_obs, reset: network.apply(
+        {}, belief, logits, net_obs, reset, method=BeliefQNetwork._filter))
+    previous, last_action = obs, jnp.zeros(worlds, jnp.int32)
+    reset, cells = jnp.ones(worlds, bool), jnp.zeros(worlds, jnp.int32)
+    belief = network.initial_carry(worlds)[:, network.rnn_size:]
+    ends = 0
+    for t in range(70):
+        net_obs = layout.with_previous_step(obs, previous, last_action, reset)
+        belief, (b_row, b_col) = run_filter(belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None])
+        np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), state.position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), state.position[:, 1], err_msg=f"column, step {t}")
+        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
+        before, previous = state.position, obs
+        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
+        reset, last_action = terminated | truncated, action
+        cells = jnp.abs(state.position - before).sum(-1)
+        ends += int(reset.sum())
+    assert ends >= 2 * worlds  # episodes of at most 30 steps: every world crossed two auto-resets
+
+
+def test_belief_cross_entropy_by_hand():
+    # Step 1: sure of row 2; the column split between 1 and 5, the robot at (2, 5): -log(1 x 0.5) = ln 2.
+    # Step 2: uniform over 4 rows and 6 columns: ln 4 + ln 6. The metric is the mean of the two.
+    p_row = jnp.array([[0.0, 0.0, 1.0, 0.0], [0.25, 0.25, 0.25, 0.25]])
+    p_col = jnp.array([[0.0, 0.5, 0.0, 0.0, 0.0, 0.5], [1 / 6] * 6])
+    position = jnp.array([[2, 5], [3, 0]])
+    np.testing.assert_allclose(belief_cross_entropy(p_row, p_col, position), (np.log(2) + np.log(24)) / 2, rtol=1e-6)
+    # Rows and columns are not interchangeable: the same beliefs at (5, 2) would be off the rows.
+    swapped = belief_cross_entropy(p_row[:1], p_col[:1], jnp.array([[1, 2]]))
+    assert float(swapped) > 20.0  # no mass on row 1 or column 2: the 1e-12 floor
+
+
+def test_move_directions_of_each_dimension():
+    np.testing.assert_array_equal(move_directions(make("1d-static-sin")[0].config.actions), [(0, -1), (0, 1), (0, 0)])
+    np.testing.assert_array_equal(move_directions(make("3d-static-dense")[0].config.actions),
+                                  [(0, -1), (0, 1), (1, 0), (-1, 0), (0, 0), (0, 0), (0, 0), (0, 0)])
 
 
 @pytest.mark.parametrize("task,dynamic", [("1d-dynamic", True), ("2d-static-sparse", False)])
