@@ -105,33 +105,41 @@ def test_filter_step_by_hand():
     np.testing.assert_allclose(b_row[0], [0, 0.5, 0.5, 0], atol=1e-5)
 
 
+def random_episode_steps(env, params, worlds: int, steps: int):
+    """Random actions in `worlds` worlds with auto-reset, one step after another. Yields what a
+    filter sees before acting: `(obs, previous_obs, reset, last_action, cells, position)`, the
+    cells the last move carried the robot (0 after a reset: the episode's first step) and its
+    true plan position. At the start `last_action` is "none" (`num_actions`)."""
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), worlds), params)
+    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    previous, reset = obs, jnp.ones(worlds, bool)
+    last_action, cells = jnp.full(worlds, env.num_actions), jnp.zeros(worlds, jnp.int32)
+    for t in range(steps):
+        yield obs, previous, reset, last_action, cells, state.position
+        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
+        before, previous = state.position, obs
+        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
+        reset, last_action = terminated | truncated, action
+        cells = jnp.abs(state.position - before).sum(-1)
+
+
 @pytest.mark.parametrize("task", ["1d-static-sin", "2d-dynamic-sparse", "3d-static-dense"])
 def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     """With the true cells moved as its move distribution, the filter's belief is the robot's
     position, step after step, through random episodes: moves clipped at the plan's edge, blocked
     by bricks (3D), drops, and the resets of auto-reset."""
     env, params = make(task, max_steps=40)
-    config = env.config
-    moves = np.concatenate([move_directions(config.actions), [(0, 0)]]).astype(np.float32)
-    worlds, steps = 16, 120
-    keys = jax.random.split(jax.random.key(0), worlds)
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
-    rows, cols = config.plan_shape
-    belief = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols)))
-    reset, last_action, cells = jnp.ones(worlds, bool), jnp.full(worlds, len(config.actions)), jnp.zeros(worlds, int)
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
-    for t in range(steps):
+    moves = jnp.asarray(np.concatenate([move_directions(env.config.actions), [(0, 0)]]), jnp.float32)
+    worlds, (rows, cols) = 16, env.config.plan_shape
+    belief, ends = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols))), 0
+    for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 120)):
         padding = env.observation_layout.window_cells(obs) == -1
-        sign = jnp.asarray(moves)[last_action]
-        belief = filter_step(belief, reset, jax.nn.one_hot(cells, 4), sign, padding)
-        np.testing.assert_array_equal(jnp.argmax(belief[0], -1), state.position[:, 0], err_msg=f"row, step {t}")
-        np.testing.assert_array_equal(jnp.argmax(belief[1], -1), state.position[:, 1], err_msg=f"column, step {t}")
+        belief = filter_step(belief, reset, jax.nn.one_hot(cells, 4), moves[last_action], padding)
+        np.testing.assert_array_equal(jnp.argmax(belief[0], -1), position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(jnp.argmax(belief[1], -1), position[:, 1], err_msg=f"column, step {t}")
         assert float(jnp.min(jnp.max(belief[0], -1))) > 0.99 and float(jnp.min(jnp.max(belief[1], -1))) > 0.99
-        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, len(config.actions))
-        before = state.position
-        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
-        reset, last_action = terminated | truncated, action
-        cells = jnp.abs(state.position - before).sum(-1)
+        ends += int(reset.sum()) if t else 0
+    assert ends >= 2 * worlds  # episodes of at most 40 steps: every world crossed two auto-resets
 
 
 @pytest.mark.parametrize("task", ["2d-static-sparse", "3d-dynamic-dense"])
@@ -141,27 +149,17 @@ def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(ta
     given move logits that put all the mass on the true cells moved: its belief's peak is the
     robot's position at every step, through auto-resets, as the acting path computes it."""
     agent = build_algorithm(make_config("pqn-belief", task, **TINY, max_steps=30))
-    network, layout, env, params = agent.network, agent.layout, agent.env, agent.env_params
-    worlds = 16
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), worlds), params)
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    network, layout, worlds = agent.network, agent.layout, 16
     run_filter = jax.jit(lambda belief, logits, net_obs, reset: network.apply(
         {}, belief, logits, net_obs, reset, method=BeliefQNetwork._filter))
-    previous, last_action = obs, jnp.zeros(worlds, jnp.int32)
-    reset, cells = jnp.ones(worlds, bool), jnp.zeros(worlds, jnp.int32)
-    belief = network.initial_carry(worlds)[:, network.rnn_size:]
-    ends = 0
-    for t in range(70):
+    belief, ends = network.initial_carry(worlds)[:, network.rnn_size:], 0
+    episode_steps = random_episode_steps(agent.env, agent.env_params, worlds, 70)
+    for t, (obs, previous, reset, last_action, cells, position) in enumerate(episode_steps):
         net_obs = layout.with_previous_step(obs, previous, last_action, reset)
         belief, (b_row, b_col) = run_filter(belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None])
-        np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), state.position[:, 0], err_msg=f"row, step {t}")
-        np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), state.position[:, 1], err_msg=f"column, step {t}")
-        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
-        before, previous = state.position, obs
-        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
-        reset, last_action = terminated | truncated, action
-        cells = jnp.abs(state.position - before).sum(-1)
-        ends += int(reset.sum())
+        np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), position[:, 1], err_msg=f"column, step {t}")
+        ends += int(reset.sum()) if t else 0
     assert ends >= 2 * worlds  # episodes of at most 30 steps: every world crossed two auto-resets
 
 
@@ -172,9 +170,11 @@ def test_belief_cross_entropy_by_hand():
     p_col = jnp.array([[0.0, 0.5, 0.0, 0.0, 0.0, 0.5], [1 / 6] * 6])
     position = jnp.array([[2, 5], [3, 0]])
     np.testing.assert_allclose(belief_cross_entropy(p_row, p_col, position), (np.log(2) + np.log(24)) / 2, rtol=1e-6)
-    # Rows and columns are not interchangeable: the same beliefs at (5, 2) would be off the rows.
-    swapped = belief_cross_entropy(p_row[:1], p_col[:1], jnp.array([[1, 2]]))
-    assert float(swapped) > 20.0  # no mass on row 1 or column 2: the 1e-12 floor
+    # Rows and columns are not interchangeable: sure of (2, 5), the robot at (2, 5) costs nothing and
+    # at (5, 2) the product is 0, floored at 1e-12: 27.6 nats.
+    sure = jax.nn.one_hot(jnp.array([2]), 6), jax.nn.one_hot(jnp.array([5]), 6)
+    np.testing.assert_allclose(belief_cross_entropy(*sure, jnp.array([[2, 5]])), 0.0, atol=1e-6)
+    np.testing.assert_allclose(belief_cross_entropy(*sure, jnp.array([[5, 2]])), -np.log(1e-12), rtol=1e-5)
 
 
 def test_move_directions_of_each_dimension():

@@ -281,7 +281,7 @@ def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base
 
     extra = {"algorithm"} | {f.name for f in dataclasses.fields(config_class(algorithm))} - {
         f.name for f in dataclasses.fields(config_class(base))}
-    own_file = TUNED_DIR / f"{algorithm}.toml"
+    own_file = TUNED_DIR / f"{algorithm}.toml"  # read here, not through the registry's layering under test
     own = tomllib.loads(own_file.read_text()).get(task, {}) if own_file.is_file() else {}
     base_options = {**base_options, **{k: v for k, v in own.items() if k != "result" and k not in extra}}
     variant, plain = make_config(algorithm, task).to_json(), make_config(base, task, **base_options).to_json()
