@@ -149,6 +149,25 @@ class Rainbow(DQN):
 
     # --- learning ----------------------------------------------------------------------------------
 
+    def window_logits(self, params, target_params, frames: jax.Array, resets: jax.Array, key_online: jax.Array,
+                      key_target: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Logits `(length, S, A, atoms)` along a replayed window of `length + n` rows (row 0 = the
+        batch's row `context`): the online network's at the learning rows `[0, length)`, and, under
+        `stop_gradient`, the online and the target network's at the rows n steps later `[n, n + length)`.
+
+        Why not all rows: the network is feed-forward (DQN's, without the LSTM), so each row is read
+        alone and only these need computing. The rows in between feed nothing to the loss, yet
+        computing them, and their zero gradients, was most of a gradient step's cost. Each network
+        draws one noise for the whole batch, so splitting the rows over calls with the same key
+        computes the same function."""
+        cfg = self.config
+        length, n = cfg.sequence_length, cfg.n_step
+        carry = self.network.initial_carry(frames.shape[1])
+        _, learning = self.logits(params, carry, frames[:length], resets[:length], key_online)
+        _, bootstrap_online = self.logits(params, carry, frames[n:], resets[n:], key_online)
+        _, bootstrap_target = self.logits(target_params, carry, frames[n:], resets[n:], key_target)
+        return learning, jax.lax.stop_gradient(bootstrap_online), jax.lax.stop_gradient(bootstrap_target)
+
     def loss(self, params, target_params, batch: Step, weights: jax.Array, key_online: jax.Array, key_target: jax.Array):
         """`(loss, (metrics, per-window priority))` of a time-major batch `(L, S)` with importance
         weights `(S,)`. The online and the target network draw independent noise. The priority is
@@ -156,18 +175,16 @@ class Rainbow(DQN):
         cfg = self.config
         length, c, n = cfg.sequence_length, cfg.context, cfg.n_step
         frames, resets = self.replayed_frames(batch, batch.obs.astype(jnp.float32))
-        carry = self.network.initial_carry(frames.shape[1])
-        _, logits = self.logits(params, carry, frames, resets, key_online)  # (length + n, S, A, atoms); 0 = batch row c
-        _, target_logits = self.logits(target_params, carry, frames, resets, key_target)
-        target_logits = jax.lax.stop_gradient(target_logits)
-        greedy_from = jax.lax.stop_gradient(logits[n:]) if cfg.double_q else target_logits[n:]
+        learning, bootstrap_online, bootstrap_target = self.window_logits(
+            params, target_params, frames, resets, key_online, key_target)
+        greedy_from = bootstrap_online if cfg.double_q else bootstrap_target
         next_action = jnp.argmax(self.expected(greedy_from), axis=-1)  # (length, S)
-        next_probs = jax.nn.softmax(jnp.take_along_axis(target_logits[n:], next_action[..., None, None], axis=-2)[..., 0, :])
+        next_probs = jax.nn.softmax(jnp.take_along_axis(bootstrap_target, next_action[..., None, None], axis=-2)[..., 0, :])
         returns, discounts = n_step_returns(batch.reward[c:] * cfg.reward_scale, batch.done[c:], cfg.gamma, n, length)
         target = jax.lax.stop_gradient(categorical_projection(self.support, next_probs, returns, discounts))
 
         actions = batch.action[c : c + length].astype(jnp.int32)
-        taken = jnp.take_along_axis(logits[:length], actions[..., None, None], axis=-2)[..., 0, :]  # (length, S, atoms)
+        taken = jnp.take_along_axis(learning, actions[..., None, None], axis=-2)[..., 0, :]  # (length, S, atoms)
         cross_entropy, kl = cross_entropy_and_kl(target, taken)  # (length, S)
         loss = (weights * kl.mean(axis=0)).mean()
         priority = (cross_entropy if cfg.cross_entropy_priority else kl).mean(axis=0)  # (S,)

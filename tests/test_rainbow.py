@@ -179,6 +179,31 @@ def test_cross_entropy_priority_changes_the_priority_not_the_loss():
     assert np.all(np.asarray(ce) > np.asarray(kl) + 1e-3)
 
 
+@pytest.mark.parametrize("options", [dict(), dict(sequence_length=3, n_step=2, frame_stack=2)])
+def test_window_logits_are_the_full_windows_rows_the_loss_reads(options):
+    """The loss computes only the learning rows and the rows n steps later; under the same noise
+    keys they equal those rows of the whole window read at once (the network is feed-forward)."""
+    agent = _agent(**options)
+    cfg = agent.config
+    state = jax.jit(agent.init)(jax.random.key(0))
+    state, _ = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 1))(state)
+    batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), agent.buffer.sample(state.buffer, jax.random.key(1)).experience)
+    frames, resets = agent.replayed_frames(batch, batch.obs.astype(jnp.float32))
+    assert frames.shape[0] == cfg.sequence_length + cfg.n_step
+    target_params = jax.tree.map(lambda x: 1.1 * x, state.params)  # a target that differs from the online network
+    key_online, key_target = jax.random.split(jax.random.key(2))
+    learning, bootstrap_online, bootstrap_target = agent.window_logits(
+        state.params, target_params, frames, resets, key_online, key_target)
+    carry = agent.initial_carry(frames.shape[1])
+    _, online = agent.logits(state.params, carry, frames, resets, key_online)
+    _, target = agent.logits(target_params, carry, frames, resets, key_target)
+    length, n = cfg.sequence_length, cfg.n_step
+    np.testing.assert_allclose(learning, online[:length], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(bootstrap_online, online[n:], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(bootstrap_target, target[n:], rtol=1e-5, atol=1e-5)
+    assert not np.allclose(bootstrap_online, bootstrap_target, atol=1e-3)  # the two networks and keys differ
+
+
 @pytest.fixture(scope="module")
 def trained_1d():
     agent = _agent()
