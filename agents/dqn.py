@@ -33,6 +33,7 @@ class DQNConfig(ReplayConfig):
     paper_method: ClassVar[str] = "dqn"
 
     learning_rate: float = option(3e-4, "Adam step size", low=0, low_open=True)
+    anneal_lr: bool = option(False, "decay the learning rate linearly to 0 over the run's gradient steps")
     huber_delta: float = option(1.0, "Huber loss threshold", low=0, low_open=True)
     max_grad_norm: float = option(10.0, "global gradient norm clip", low=0, low_open=True)
     eps_start: float = option(1.0, "exploration rate at the start", low=0, high=1)
@@ -63,11 +64,21 @@ class DQN(ReplayLearner):
         super().__init__(config)
         self.network = self.make_network()
         self.optimizer = optax.chain(
-            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=1e-5)
+            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(self.learning_rate_schedule(config), eps=1e-5)
         )
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.total_steps))
         )
+
+    @staticmethod
+    def learning_rate_schedule(config: DQNConfig):
+        """The step size: constant, or with `anneal_lr` decaying linearly to 0 over every gradient
+        step the run would take if it learned from its first update (learning starts a little
+        later, so it ends just above 0). Why: a late, small step size keeps a policy that has
+        learned from drifting away again (rainbow.md, Session 25)."""
+        if not config.anneal_lr:
+            return config.learning_rate
+        return optax.linear_schedule(config.learning_rate, 0.0, config.num_updates * config.gradient_steps)
 
     def make_network(self) -> QNetwork:
         cfg = self.config

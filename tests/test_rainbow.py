@@ -286,7 +286,7 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("options", [
     pytest.param(dict(noisy=False, eps_start=1.0, eps_end=0.1, double_q=False, dueling=False, n_step=1,
-                      priority_exponent=0.0, cross_entropy_priority=True), id="ablations"),
+                      priority_exponent=0.0, cross_entropy_priority=True, anneal_lr=True), id="ablations"),
     pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
 ])
 def test_ablated_and_other_configurations_train(options):
