@@ -75,7 +75,7 @@ class DQN(ReplayLearner):
         """The step size: constant, or with `anneal_lr` decaying linearly to 0 over every gradient
         step the run would take if it learned from its first update (learning starts a little
         later, so it ends just above 0). Why: a late, small step size keeps a policy that has
-        learned from drifting away again (rainbow.md, Session 25)."""
+        learned from drifting away again (bench/results/rainbow.md)."""
         if not config.anneal_lr:
             return config.learning_rate
         return optax.linear_schedule(config.learning_rate, 0.0, config.num_updates * config.gradient_steps)
