@@ -64,21 +64,21 @@ class DQN(ReplayLearner):
         super().__init__(config)
         self.network = self.make_network()
         self.optimizer = optax.chain(
-            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(self.learning_rate_schedule(config), eps=1e-5)
+            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(self.learning_rate_schedule(), eps=1e-5)
         )
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.total_steps))
         )
 
-    @staticmethod
-    def learning_rate_schedule(config: DQNConfig):
+    def learning_rate_schedule(self):
         """The step size: constant, or with `anneal_lr` decaying linearly to 0 over every gradient
         step the run would take if it learned from its first update (learning starts a little
-        later, so it ends just above 0). Why: a late, small step size keeps a policy that has
-        learned from drifting away again (bench/results/rainbow.md)."""
-        if not config.anneal_lr:
-            return config.learning_rate
-        return optax.linear_schedule(config.learning_rate, 0.0, config.num_updates * config.gradient_steps)
+        later, so it ends just above 0). Why: it keeps late updates small, one way to keep a
+        learned policy from drifting; bench/results/rainbow.md records what it did for Rainbow."""
+        cfg = self.config
+        if not cfg.anneal_lr:
+            return cfg.learning_rate
+        return optax.linear_schedule(cfg.learning_rate, 0.0, cfg.num_updates * cfg.gradient_steps)
 
     def make_network(self) -> QNetwork:
         cfg = self.config

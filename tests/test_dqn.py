@@ -230,9 +230,9 @@ def test_annealed_learning_rate_decays_linearly_over_the_runs_gradient_steps():
     # 4 updates of 8 worlds x 8 steps, 2 gradient steps each: 8 gradient steps, 1e-3 down to 0.
     options = dict(total_steps=4 * 64, gradient_steps=2, buffer_size=8 * 40)
     constant, annealed = _agent("dqn", **options), _agent("dqn", anneal_lr=True, **options)
-    schedule = annealed.learning_rate_schedule(annealed.config)
+    schedule = annealed.learning_rate_schedule()
     np.testing.assert_allclose([schedule(k) for k in (0, 2, 6, 8, 9)], [1e-3, 7.5e-4, 2.5e-4, 0.0, 0.0], atol=1e-12)
-    assert constant.learning_rate_schedule(constant.config) == 1e-3
+    assert constant.learning_rate_schedule() == 1e-3
     # The optimiser applies it: with the same gradient every step, Adam's k-th step (from 0) is the
     # constant rate's times 1 - k/8.
     params, grads = {"w": jnp.ones(3)}, {"w": jnp.array([0.1, -0.2, 0.3])}
