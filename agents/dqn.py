@@ -42,6 +42,7 @@ class DQNConfig(ReplayConfig):
     target_update_interval: int = option(250, "gradient steps between copies into the target network", low=1)
     hidden_size: int = option(128, "width of the encoder and the heads", low=1)
     dueling: bool = option(True, "separate value and advantage heads")
+    layer_norm: bool = option(False, "LayerNorm before every hidden ReLU of the network (as PQN's)")
     double_q: bool = option(True, "the online network picks the bootstrap action")
     frame_stack: int = option(1, "observations the network reads at once (the newest and those before it)", low=1)
 
@@ -83,7 +84,7 @@ class DQN(ReplayLearner):
     def make_network(self) -> QNetwork:
         cfg = self.config
         return QNetwork(layout=self.layout, num_actions=self.env.num_actions, hidden_size=cfg.hidden_size,
-                        lstm_size=self.lstm_size, dueling=cfg.dueling)
+                        lstm_size=self.lstm_size, dueling=cfg.dueling, layer_norm=cfg.layer_norm)
 
     # --- hooks of the replay loop ----------------------------------------------------------------
 

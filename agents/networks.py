@@ -147,8 +147,10 @@ class ScannedRNN(nn.Module):
         return nn.GRUCell(self.features, **inits)(carry, inputs)
 
 
-def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense) -> jax.Array:
-    x = nn.relu(layer(hidden_size, np.sqrt(2))(x))
+def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense,
+             layer_norm: bool = False) -> jax.Array:
+    x = layer(hidden_size, np.sqrt(2))(x)
+    x = nn.relu(nn.LayerNorm()(x) if layer_norm else x)
     return layer(out, gain)(x)
 
 
@@ -233,6 +235,7 @@ class QNetwork(nn.Module):
     atoms: int = 1  # 1: Q-values (T, B, A); more: logits (T, B, A, atoms)
     noisy: bool = False
     sigma0: float = 0.1  # of the noisy layers
+    layer_norm: bool = False  # LayerNorm before every hidden ReLU, as in `LayerNormQNetwork`
     # Heads on the core's features for auxiliary losses (`agents.auxiliary`); their outputs are
     # sown into "intermediates", which only a training loss asks for, so acting never computes them.
     auxiliary_heads: nn.Module | None = None
@@ -250,9 +253,10 @@ class QNetwork(nn.Module):
         """`noise`: the noisy layers draw their noise (rng "noise"), one draw for the batch or, with
         `noise_per_world`, one per (step, world); otherwise they are their mean."""
         layer = noisy_dense(self.sigma0, noise, noise_per_world) if self.noisy else dense
-        x = ObservationEncoder(self.layout, self.hidden_size)(frames, layer)  # (T, B, k, H)
+        x = ObservationEncoder(self.layout, self.hidden_size, layer_norm=self.layer_norm)(frames, layer)  # (T, B, k, H)
         if frames.shape[-2] > 1:
-            x = nn.relu(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))))
+            x = nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,)))
+            x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
         else:
             x = x[..., 0, :]
         if self.lstm_size:
@@ -260,11 +264,11 @@ class QNetwork(nn.Module):
         if self.auxiliary_heads is not None:
             self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         per_action = (self.num_actions,) if self.atoms == 1 else (self.num_actions, self.atoms)
-        advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer).reshape(
+        advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer, self.layer_norm).reshape(
             x.shape[:-1] + per_action)
         if not self.dueling:
             return carry, advantage()
-        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer).reshape(x.shape[:-1] + (1,) + per_action[1:])
+        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer, self.layer_norm).reshape(x.shape[:-1] + (1,) + per_action[1:])
         advantage = advantage()  # built after the value stream, so parameter names stay those of the plain head
         return carry, value + advantage - advantage.mean(axis=-len(per_action), keepdims=True)
 

@@ -286,7 +286,7 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("options", [
     pytest.param(dict(noisy=False, eps_start=1.0, eps_end=0.1, double_q=False, dueling=False, n_step=1,
-                      priority_exponent=0.0, cross_entropy_priority=True, anneal_lr=True), id="ablations"),
+                      priority_exponent=0.0, cross_entropy_priority=True, anneal_lr=True, layer_norm=True), id="ablations"),
     pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
 ])
 def test_ablated_and_other_configurations_train(options):
@@ -297,6 +297,29 @@ def test_ablated_and_other_configurations_train(options):
     assert np.all(np.isfinite(metrics["loss"])) and int(state.gradient_step) == 3
     if not agent.config.noisy:
         assert "NoisyDense_0" not in state.params["params"] and metrics["epsilon"][0] > 0.0
+
+
+def test_layer_norm_normalises_every_hidden_layer_and_is_off_by_default():
+    # Four hidden ReLUs (two in the encoder, one per dueling stream), each after a LayerNorm; with
+    # them the output no longer depends on the scale of the first layer's pre-activations.
+    def init(**options):
+        agent = build_algorithm(make_config("rainbow", "1d-static-sin", num_envs=8, **options))
+        return agent, jax.jit(agent.init)(jax.random.key(0)).params
+
+    def layer_norms(params):  # the modules' paths, without their scale and bias leaves
+        paths = [path[:-1] for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+        return {path for path in paths if "LayerNorm" in jax.tree_util.keystr(path)}
+
+    assert not layer_norms(init()[1])
+    agent, params = init(layer_norm=True)
+    assert len(layer_norms(params)) == 4
+    frames = jax.random.uniform(jax.random.key(1), (1, 5, 1, agent.layout.obs_size))
+    carry, resets = agent.network.initial_carry(5), jnp.ones((1, 5), bool)
+    first = params["params"]["ObservationEncoder_0"]["NoisyDense_0"]
+    scaled = jax.tree.map(lambda x: x, params)
+    scaled["params"]["ObservationEncoder_0"]["NoisyDense_0"] = jax.tree.map(lambda x: 7.0 * x, first)
+    np.testing.assert_allclose(agent.q_values(scaled, carry, frames, resets)[1],
+                               agent.q_values(params, carry, frames, resets)[1], rtol=1e-4, atol=1e-4)
 
 
 # --- config -----------------------------------------------------------------------------------------------
