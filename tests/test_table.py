@@ -68,6 +68,27 @@ def test_paper_budgets_estimates_and_caps(tmp_path):
     assert "x the step limit (1D: 750)" in text
 
 
+def test_an_algorithms_own_wall_limit_replaces_the_presets(tmp_path):
+    (tmp_path / "own.toml").write_text(
+        '[a]\nseeds = 3\nwall_limit_minutes = 30\n[a.budgets]\n'
+        'drqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\nppo = { env_steps = 10_000_000, source = "s" }\n')
+    preset = load_presets(tmp_path / "own.toml")["a"]
+    assert (preset.wall_limit("drqn"), preset.wall_limit("ppo"), preset.wall_limit("dqn")) == (3600.0, 1800.0, 1800.0)
+    rates = {"drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
+             "ppo": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
+    drqn, ppo = make_plan(preset, ["drqn", "ppo"], ["1d-static-sin"], None, tmp_path, rates)
+    # (3600 s - 3 x 10 s) x 3000/s / 3 seeds = 3.57M -> 3.5M; PPO keeps the preset's 30 minutes: 1.7M.
+    assert (drqn.budget.env_steps, drqn.budget.capped, ppo.budget.env_steps) == (3_500_000, True, 1_700_000)
+    text = format_plan([drqn, ppo], tmp_path)
+    assert "capped to fit ~30 min per cell (drqn 60)" in text
+    assert "drqn capped: the largest budget (two significant figures) whose estimate fits 60 min" in text
+    assert "ppo capped: the largest budget (two significant figures) whose estimate fits 30 min" in text
+    _refused(tmp_path / "bad.toml", '[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_limit_minutes = 0 }\n',
+             "drqn's wall_limit_minutes must be a positive number of minutes, got 0")
+    _refused(tmp_path / "odd.toml", '[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_minutes = 5 }\n',
+             "may give its own wall_limit_minutes")
+
+
 def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, monkeypatch):
     from agents import checkpoint
     from agents.config import save_config

@@ -108,10 +108,10 @@ def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: di
     config = make_config(algorithm, task, **overrides)
     requested, source = requested_budget(preset, config)
     steps, capped = requested, False
-    rate = measured(rates, algorithm, task, "steps_per_s")
-    if preset.wall_limit_s is not None and rate is not None:
+    rate, limit_s = measured(rates, algorithm, task, "steps_per_s"), preset.wall_limit(algorithm)
+    if limit_s is not None and rate is not None:
         evaluation = eval_seconds(rates, algorithm, task, preset)
-        training_s = preset.wall_limit_s - seeds * (evaluation[0] if evaluation else 0.0)
+        training_s = limit_s - seeds * (evaluation[0] if evaluation else 0.0)
         fits = _round_down(max(training_s, 0.0) * rate[0] / seeds)
         if fits < requested:
             steps, capped = max(fits, config.steps_per_update), True
@@ -182,7 +182,8 @@ def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
     finished run."""
     stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
-    if differ == ["total_steps"] and cell.preset.wall_limit_s is not None and config.total_steps <= cell.budget.requested:
+    if (differ == ["total_steps"] and cell.preset.wall_limit(cell.algorithm) is not None
+            and config.total_steps <= cell.budget.requested):
         return []
     return differ
 
@@ -363,7 +364,10 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
         return "nothing to run"
     preset = cells[0].preset
     width = max(18, *(len(c.directory.name) for c in cells))
-    limit = "" if preset.wall_limit_s is None else f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
+    own = sorted({f"{c.algorithm} {preset.wall_limit(c.algorithm) / 60:g}" for c in cells
+                  if preset.wall_limit(c.algorithm) is not None and preset.wall_limit(c.algorithm) != preset.wall_limit_s})
+    limit = "" if preset.wall_limit_s is None else (f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
+                                                    + (f" ({', '.join(own)})" if own else ""))
     lines = [f"snac table, preset {preset.name!r}: {preset.description}{limit}",
              f"{len(cells)} cells, {_seed_counts(cells)} (vmapped), under {Path(runs_dir) / preset.name}/", "",
              f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'seeds':>5} {'status':<9} {'estimate':>13}  estimate from"]
@@ -375,9 +379,9 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
     lines += ["", "budgets:"]
     for source in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells):
         lines.append(f"  {source}")
-    if any(c.budget.capped for c in cells):
-        lines.append(f"  capped: the largest budget (two significant figures) whose estimate fits "
-                     f"{preset.wall_limit_s / 60:g} min with every seed's evaluation")
+    for algorithm in dict.fromkeys(c.algorithm for c in cells if c.budget.capped):
+        lines.append(f"  {algorithm} capped: the largest budget (two significant figures) whose estimate fits "
+                     f"{preset.wall_limit(algorithm) / 60:g} min with every seed's evaluation")
     known = [c.estimate_s for c in cells if c.estimate_s is not None]
     unknown = len(cells) - len(known)
     adopted = sum(c.status == "new" and c.adopts_from is not None for c in cells)

@@ -63,6 +63,12 @@ class Preset:
         shared = {k: v for k, v in self.settings.items() if not isinstance(v, dict)}
         return {**shared, **self.settings.get(algorithm, {})}
 
+    def wall_limit(self, algorithm: str) -> float | None:
+        """Seconds a cell of `algorithm` may take (None: no cap): its budget's own
+        `wall_limit_minutes` where it gives one, else the preset's."""
+        own = self.budgets.get(algorithm, {}).get("wall_limit_minutes")
+        return self.wall_limit_s if own is None else 60.0 * own
+
     @property
     def protocol(self) -> dict[str, int]:
         return {"static_episodes": self.static_episodes, "episodes_per_test_design": self.episodes_per_test_design}
@@ -76,8 +82,15 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}")
         limit = table.get("wall_limit_minutes")
         for algorithm, budget in table.get("budgets", {}).items():
-            if set(budget) - {"env_steps", "episodes", "source"} or ("env_steps" in budget and "episodes" in budget):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source)")
+            if set(budget) - {"env_steps", "episodes", "source", "wall_limit_minutes"} or (
+                    "env_steps" in budget and "episodes" in budget):
+                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source), "
+                                 "and may give its own wall_limit_minutes")
+            own_limit = budget.get("wall_limit_minutes")
+            if own_limit is not None and (isinstance(own_limit, bool) or not isinstance(own_limit, (int, float))
+                                          or own_limit <= 0):
+                raise ValueError(f"{path}: [{name}.budgets] {algorithm}'s wall_limit_minutes must be a positive number "
+                                 f"of minutes, got {own_limit!r}")
             per_task = budget.get("env_steps")
             if isinstance(per_task, dict) and sorted(set(per_task) - set(TASKS)):
                 raise ValueError(f"{path}: [{name}.budgets] {algorithm}'s env_steps names unknown task(s) "
