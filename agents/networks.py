@@ -86,6 +86,12 @@ class DesignEncoder(nn.Module):
         return x.reshape(lead + (self.features,))
 
 
+def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
+    """A hidden layer's ReLU, after a LayerNorm where the network asks for one (inside a compact
+    module: the LayerNorm is a submodule of the caller)."""
+    return nn.relu(nn.LayerNorm()(x) if layer_norm else x)
+
+
 class ObservationEncoder(nn.Module):
     """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding."""
 
@@ -116,8 +122,7 @@ class ObservationEncoder(nn.Module):
             features.append(DesignEncoder(self.hidden_size)(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for width in self.layers or (self.hidden_size,) * 2:
-            x = layer(width, np.sqrt(2))(x)
-            x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
+            x = hidden_activation(layer(width, np.sqrt(2))(x), self.layer_norm)
         return x
 
 
@@ -149,8 +154,7 @@ class ScannedRNN(nn.Module):
 
 def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense,
              layer_norm: bool = False) -> jax.Array:
-    x = layer(hidden_size, np.sqrt(2))(x)
-    x = nn.relu(nn.LayerNorm()(x) if layer_norm else x)
+    x = hidden_activation(layer(hidden_size, np.sqrt(2))(x), layer_norm)
     return layer(out, gain)(x)
 
 
@@ -255,8 +259,7 @@ class QNetwork(nn.Module):
         layer = noisy_dense(self.sigma0, noise, noise_per_world) if self.noisy else dense
         x = ObservationEncoder(self.layout, self.hidden_size, layer_norm=self.layer_norm)(frames, layer)  # (T, B, k, H)
         if frames.shape[-2] > 1:
-            x = nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,)))
-            x = nn.relu(nn.LayerNorm()(x) if self.layer_norm else x)
+            x = hidden_activation(nn.Dense(self.hidden_size)(x.reshape(x.shape[:-2] + (-1,))), self.layer_norm)
         else:
             x = x[..., 0, :]
         if self.lstm_size:
