@@ -218,6 +218,41 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     assert gif.stat().st_size > 0
 
 
+def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, capsys, monkeypatch):
+    """A `--seeds 2` run keeps both policies in one checkpoint: `snac eval --checkpoint
+    --seed-index 1` and `snac render` load the second (the first by default), an index past the
+    run's seeds is refused by range, and `--seed-index` without a checkpoint is refused by name."""
+    run = tmp_path / "run"
+    train(make_config("ppo", "1d-static-sin", seeds=2, total_steps=128, chunks=1, **TINY), run, progress=False)
+    loaded = []
+    load = trained.checkpoint_policy
+
+    def recording(env, directory, seed_index=0):
+        loaded.append(seed_index)
+        return load(env, directory, seed_index=seed_index)
+
+    monkeypatch.setattr(trained, "checkpoint_policy", recording)
+    code, out, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "1", "--episodes", "2", "--devices", "1"],
+                          capsys)
+    assert code == 0, err
+    assert "training seed index 1" in out and "| 1d-static-sin | 2 |" in out and set(loaded) == {1}
+    loaded.clear()
+    code, out, err = _cli(["eval", "--checkpoint", str(run), "--episodes", "2", "--devices", "1"], capsys)
+    assert code == 0 and "training seed index 0" in out and set(loaded) == {0}, err
+    loaded.clear()
+    code, _, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--seed-index", "1",
+                         "--out", str(tmp_path / "r.gif"), "--max-steps", "6"], capsys)
+    assert code == 0 and loaded == [1], err
+
+    code, _, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "2", "--episodes", "2"], capsys)
+    assert code == 2 and "seed index (--seed-index) must be in 0..1" in err
+    code, _, err = _cli(["eval", "--policy", "random", "--seed-index", "1"], capsys)
+    assert code == 2 and "--seed-index picks one training seed of a run: give it with --checkpoint DIR" in err
+    code, _, err = _cli(["render", "--task", "1d-static-sin", "--seed-index", "1", "--out", str(tmp_path / "r.gif")],
+                        capsys)
+    assert code == 2 and "give it with --checkpoint DIR" in err
+
+
 def test_checkpoint_policy_rejects_another_task(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
     train(config, tmp_path, progress=False)

@@ -48,6 +48,15 @@ def task_id(text: str) -> str:
     return text
 
 
+def add_seed_index_argument(parser: argparse.ArgumentParser) -> None:
+    """`--seed-index K`: which of a `snac train --seeds N` run's seeds a checkpoint command reads.
+    A run trains its seeds side by side in one checkpoint, so the policy must be picked out."""
+    parser.add_argument(
+        "--seed-index", type=bounded_number(int, 0), default=None, metavar="K",
+        help="with --checkpoint: which of the run's training seeds to load, 0..seeds-1 (default 0)",
+    )
+
+
 def add_devices_argument(parser: argparse.ArgumentParser, cpu_default: str = "one per core") -> None:
     """`--devices N`: how many devices the worlds are split over (`snac_jax.devices`)."""
     parser.add_argument(

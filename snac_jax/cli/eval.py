@@ -7,12 +7,13 @@ plugs in by registering a builder; options such as `--checkpoint` are handed to 
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from pathlib import Path
 
 from snac_jax.atomic import atomic_write_json, check_writable
-from snac_jax.cli.arguments import add_devices_argument, positive_int, seed
+from snac_jax.cli.arguments import add_devices_argument, add_seed_index_argument, positive_int, seed
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_TASKS
 from snac_jax.policies import POLICIES
@@ -45,6 +46,7 @@ def add_parser(subparsers) -> None:
         "--checkpoint", type=Path, default=None, metavar="DIR",
         help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given)",
     )
+    add_seed_index_argument(parser)
     parser.add_argument(
         "--human", type=Path, default=None, metavar="FILE",
         help="summarise the episodes `snac play` recorded in FILE (each is replayed and checked first)",
@@ -84,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     sources = [args.policy, args.checkpoint, args.human]
     if sum(source is not None for source in sources) != 1:
         raise ValueError("give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+    if args.seed_index is not None and args.checkpoint is None:
+        raise ValueError("--seed-index picks one training seed of a run: give it with --checkpoint DIR")
     if args.json is not None:
         check_writable(args.json, "--json")  # before the evaluation, not after it
     if args.human is not None:
@@ -94,13 +98,15 @@ def run(args: argparse.Namespace) -> int:
     if args.checkpoint is not None:
         from snac_jax.plugins import load_checkpoint
 
-        builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint)
+        run_builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint)
+        seed_index = args.seed_index or 0
+        builder = functools.partial(run_builder, seed_index=seed_index)
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:
             raise ValueError(f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
                              f"{', '.join(others)} (leave out --task to evaluate it on its own)")
-        policy_name = f"checkpoint {args.checkpoint}"
+        policy_name = f"checkpoint {args.checkpoint}, training seed index {seed_index}"
     else:
         builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy
         run_overrides = {}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from snac_jax.cli.arguments import bounded_number, positive_int, seed, task_id
+from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
 def _policy_names() -> list[str]:
@@ -30,6 +30,7 @@ def add_parser(subparsers) -> None:
         help="a registered policy (default: random; with --checkpoint, the trained agent)",
     )
     parser.add_argument("--checkpoint", default=None, metavar="DIR", help="a trained agent's checkpoint directory")
+    add_seed_index_argument(parser)
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the reset, the strides and the policy")
     parser.add_argument("--max-steps", type=positive_int, default=None, help="override the task's step limit")
@@ -76,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--hold must be >= 0 seconds, got {args.hold}")
     if args.policy is not None and args.checkpoint is not None:
         raise ValueError("give --policy NAME or --checkpoint DIR, not both")
+    if args.seed_index is not None and args.checkpoint is None:
+        raise ValueError("--seed-index picks one training seed of a run: give it with --checkpoint DIR")
     check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             # the run's switches (its observation and rules); the length is --max-steps'
             overrides = {**{k: v for k, v in run_overrides.items() if k != "max_steps"}, **overrides}
         env, params = make(args.task, **overrides)
-        policy = build_policy(name, env) if args.checkpoint is None else builder(env)
+        policy = build_policy(name, env) if args.checkpoint is None else builder(env, seed_index=args.seed_index or 0)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
     one_frame = frame_bytes(env, params, args.cell)
