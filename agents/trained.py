@@ -51,7 +51,7 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
         raise ValueError(f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
                          f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)")
     if not 0 <= seed_index < config.seeds:
-        raise ValueError(f"the seed index (--seed-index) must be in 0..{config.seeds - 1} for {checkpoint}, got {seed_index}")
+        raise ValueError(f"the seed index (seed_index, --seed-index) must be in 0..{config.seeds - 1} for {checkpoint}, got {seed_index}")
     algorithm, state, _ = load_trained(checkpoint)
     params = jax.tree.map(lambda x: x[seed_index], state.params)
     return algorithm.policy(params)

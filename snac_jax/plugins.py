@@ -5,7 +5,9 @@ pyproject.toml a `train` subcommand (group `snac_jax.commands`: a module with
 `add_parser(subparsers)`) and a loader of trained policies (group `snac_jax.checkpoint_loaders`:
 `loader(run_directory) -> (builder(env, **options) -> Policy, the run's task, its paper row,
 the `make` overrides the run trained with)`, the last optional), and `snac eval --checkpoint` /
-`snac render --checkpoint` reach them here by name (`load_checkpoint`). The overrides (the
+`snac render --checkpoint` reach them here by name (`load_checkpoint`). The one option they pass
+is `seed_index=K`, and only when the user gives `--seed-index K`: which of a multi-seed run's
+training seeds to load (a builder that takes no options serves runs of one seed). The overrides (the
 switches and step limit a run trained with) are applied when the run is evaluated, so it is
 scored in the world and on the episodes it learned.
 """

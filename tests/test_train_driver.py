@@ -240,15 +240,15 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
     code, out, err = _cli(["eval", "--checkpoint", str(run), "--episodes", "2", "--devices", "1"], capsys)
     assert code == 0 and "training seed index 0" in out and set(loaded) == {0}, err
     loaded.clear()
-    code, _, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--seed-index", "1",
-                         "--out", str(tmp_path / "r.gif"), "--max-steps", "6"], capsys)
-    assert code == 0 and loaded == [1], err
+    code, out, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--seed-index", "1",
+                           "--out", str(tmp_path / "r.gif"), "--max-steps", "6"], capsys)
+    assert code == 0 and loaded == [1] and "(training seed 1)" in out, err
 
     code, _, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "2", "--episodes", "2"], capsys)
-    assert code == 2 and "seed index (--seed-index) must be in 0..1" in err
-    code, _, err = _cli(["eval", "--policy", "random", "--seed-index", "1"], capsys)
+    assert code == 2 and "seed index (seed_index, --seed-index) must be in 0..1" in err
+    code, _, err = _cli(["eval", "--policy", "random", "--seed-index", "0"], capsys)
     assert code == 2 and "--seed-index picks one training seed of a run: give it with --checkpoint DIR" in err
-    code, _, err = _cli(["render", "--task", "1d-static-sin", "--seed-index", "1", "--out", str(tmp_path / "r.gif")],
+    code, _, err = _cli(["render", "--task", "1d-static-sin", "--seed-index", "0", "--out", str(tmp_path / "r.gif")],
                         capsys)
     assert code == 2 and "give it with --checkpoint DIR" in err
 

@@ -99,14 +99,14 @@ def run(args: argparse.Namespace) -> int:
         from snac_jax.plugins import load_checkpoint
 
         run_builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint)
-        seed_index = args.seed_index or 0
-        builder = functools.partial(run_builder, seed_index=seed_index)
+        # Passed only when asked for, so a loader whose builder takes no options still works.
+        builder = run_builder if args.seed_index is None else functools.partial(run_builder, seed_index=args.seed_index)
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:
             raise ValueError(f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
                              f"{', '.join(others)} (leave out --task to evaluate it on its own)")
-        policy_name = f"checkpoint {args.checkpoint}, training seed index {seed_index}"
+        policy_name = f"checkpoint {args.checkpoint}, training seed index {args.seed_index or 0}"
     else:
         builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy
         run_overrides = {}

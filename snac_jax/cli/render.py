@@ -92,7 +92,10 @@ def run(args: argparse.Namespace) -> int:
             # the run's switches (its observation and rules); the length is --max-steps'
             overrides = {**{k: v for k, v in run_overrides.items() if k != "max_steps"}, **overrides}
         env, params = make(args.task, **overrides)
-        policy = build_policy(name, env) if args.checkpoint is None else builder(env, seed_index=args.seed_index or 0)
+        if args.checkpoint is None:
+            policy = build_policy(name, env)
+        else:  # the seed index only when asked for, so a loader whose builder takes no options still works
+            policy = builder(env) if args.seed_index is None else builder(env, seed_index=args.seed_index)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
     one_frame = frame_bytes(env, params, args.cell)
@@ -105,12 +108,13 @@ def run(args: argparse.Namespace) -> int:
     # the frames, and the GIF encoder's copy of them
     memory.require(f"{num_frames} frames at --cell {args.cell}", 2 * num_frames * one_frame, "lower --cell or raise --every")
 
+    label = policy.name if args.seed_index is None else f"{policy.name} (training seed {args.seed_index})"
     start = time.perf_counter()
     frames = []
     for t in frame_indices(trajectory.length, args.every):
         state = trajectory.state_at(t)
         lines = [
-            f"{args.task}  policy {policy.name}  seed {args.seed}",
+            f"{args.task}  policy {label}  seed {args.seed}",
             f"step {int(state.time)}  bricks {int(state.bricks_used)}/{int(state.max_bricks)}  "
             f"IoU {float(metrics.iou(state)):.3f}",
         ]
@@ -122,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
 
     ending = "terminated" if trajectory.terminated else "truncated"
     print(
-        f"{args.task}, policy {policy.name}, seed {args.seed}: {trajectory.length} steps ({ending}), "
+        f"{args.task}, policy {label}, seed {args.seed}: {trajectory.length} steps ({ending}), "
         f"{int(trajectory.state_at(-1).bricks_used)} bricks, final IoU {trajectory.final_iou:.4f}"
     )
     print(f"wrote {path} ({len(frames)} frames, {frames[0].shape[1]}x{frames[0].shape[0]} px, "
