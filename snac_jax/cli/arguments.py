@@ -57,6 +57,12 @@ def add_seed_index_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def check_seed_index(args: argparse.Namespace) -> None:
+    """`--seed-index` names a seed of a checkpoint's run; without `--checkpoint` it means nothing."""
+    if args.seed_index is not None and args.checkpoint is None:
+        raise ValueError("--seed-index picks one training seed of a run: give it with --checkpoint DIR")
+
+
 def add_devices_argument(parser: argparse.ArgumentParser, cpu_default: str = "one per core") -> None:
     """`--devices N`: how many devices the worlds are split over (`snac_jax.devices`)."""
     parser.add_argument(

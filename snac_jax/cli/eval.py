@@ -7,13 +7,12 @@ plugs in by registering a builder; options such as `--checkpoint` are handed to 
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 import time
 from pathlib import Path
 
 from snac_jax.atomic import atomic_write_json, check_writable
-from snac_jax.cli.arguments import add_devices_argument, add_seed_index_argument, positive_int, seed
+from snac_jax.cli.arguments import add_devices_argument, add_seed_index_argument, check_seed_index, positive_int, seed
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_TASKS
 from snac_jax.policies import POLICIES
@@ -86,8 +85,7 @@ def run(args: argparse.Namespace) -> int:
     sources = [args.policy, args.checkpoint, args.human]
     if sum(source is not None for source in sources) != 1:
         raise ValueError("give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
-    if args.seed_index is not None and args.checkpoint is None:
-        raise ValueError("--seed-index picks one training seed of a run: give it with --checkpoint DIR")
+    check_seed_index(args)
     if args.json is not None:
         check_writable(args.json, "--json")  # before the evaluation, not after it
     if args.human is not None:
@@ -98,9 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if args.checkpoint is not None:
         from snac_jax.plugins import load_checkpoint
 
-        run_builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint)
-        # Passed only when asked for, so a loader whose builder takes no options still works.
-        builder = run_builder if args.seed_index is None else functools.partial(run_builder, seed_index=args.seed_index)
+        builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint, args.seed_index)
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, positive_int, seed, task_id
+from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, check_seed_index, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
 def _policy_names() -> list[str]:
@@ -77,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--hold must be >= 0 seconds, got {args.hold}")
     if args.policy is not None and args.checkpoint is not None:
         raise ValueError("give --policy NAME or --checkpoint DIR, not both")
-    if args.seed_index is not None and args.checkpoint is None:
-        raise ValueError("--seed-index picks one training seed of a run: give it with --checkpoint DIR")
+    check_seed_index(args)
     check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
@@ -86,16 +85,13 @@ def run(args: argparse.Namespace) -> int:
         if args.checkpoint is not None:
             from snac_jax.plugins import load_checkpoint
 
-            builder, run_task, _, run_overrides = load_checkpoint(args.checkpoint)
+            builder, run_task, _, run_overrides = load_checkpoint(args.checkpoint, args.seed_index)
             if run_task != args.task:
                 raise ValueError(f"it was trained on {run_task!r}, not {args.task!r}")
             # the run's switches (its observation and rules); the length is --max-steps'
             overrides = {**{k: v for k, v in run_overrides.items() if k != "max_steps"}, **overrides}
         env, params = make(args.task, **overrides)
-        if args.checkpoint is None:
-            policy = build_policy(name, env)
-        else:  # the seed index only when asked for, so a loader whose builder takes no options still works
-            policy = builder(env) if args.seed_index is None else builder(env, seed_index=args.seed_index)
+        policy = build_policy(name, env) if args.checkpoint is None else builder(env)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
     one_frame = frame_bytes(env, params, args.cell)
