@@ -1,7 +1,11 @@
-"""Test helpers: run any env through a jitted random episode and collect what it did."""
+"""Test helpers: run any env through a jitted random episode and collect what it did; check a
+two-seed run's command-line evaluation."""
 
 from __future__ import annotations
 
+import re
+import subprocess
+import sys
 from functools import partial
 
 import jax
@@ -38,3 +42,23 @@ def batch_index(tree, i):
 
 def as_numpy(tree):
     return jax.tree.map(lambda x: jnp.asarray(x), tree)
+
+
+def mean_iou_rows(stdout: str, task: str) -> dict[int | None, str]:
+    """The mean IoU printed on each of a result table's rows for `task`, by training seed (None
+    for a row that names none, as `snac eval` prints one seed's row)."""
+    rows = re.findall(rf"^\| {re.escape(task)}(?: \(seed (\d+)\))? \| \d+ \| ([0-9.]+) \|", stdout, flags=re.M)
+    return {int(seed) if seed else None: mean for seed, mean in rows}
+
+
+def check_each_seed_evaluates_from_the_checkpoint(train_stdout: str, out, task: str, env: dict) -> None:
+    """After `snac train ... --seeds 2 --out out`: the run printed a row for each seed, and
+    `snac eval --checkpoint out` scores the first seed by default and the second with
+    `--seed-index 1`, each as the run did (same parameters, same evaluation key)."""
+    trained = mean_iou_rows(train_stdout, task)
+    assert set(trained) == {0, 1}, train_stdout[-3000:]
+    for index, flag in ((0, []), (1, ["--seed-index", "1"])):
+        again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2",
+                                *flag], capture_output=True, text=True, env=env, timeout=600)
+        assert again.returncode == 0, again.stderr[-3000:]
+        assert mean_iou_rows(again.stdout, task) == {None: trained[index]}, (index, again.stdout[-2000:])

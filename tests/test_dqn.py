@@ -1,11 +1,14 @@
 """DQN / DRQN / DRQN+HER: sequence replay, burn-in, hindsight relabelling against a replay of the
-episode, the target network's schedule, n-step targets, tiny runs of each agent, resume, config errors.
+episode, the target network's schedule, n-step targets and the loss by hand, tiny runs of each
+agent, resume, config errors.
 
 Episodes are cut short with the `max_steps` training option so that tiny buffers hold many
 episode boundaries.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +17,7 @@ import pytest
 
 from agents.hindsight import hindsight_rewards
 from agents.networks import stack_frames
+from agents.offpolicy import Step
 from agents.registry import build_algorithm, make_config
 from agents.targets import n_step_targets
 
@@ -59,6 +63,40 @@ def test_n_step_targets_match_hand_computation():
         4.0 + 0.5 * 8.0 + 0.25 * 500.0,  # two rewards, then the value two steps on
     ]
     np.testing.assert_allclose(targets[:, 0], expected)
+
+
+def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask():
+    """`DQN.loss` on hand-set Q-values (the network is replaced by them): the double-Q bootstrap,
+    the Huber loss, the episode end and the loss mask's weighted mean."""
+    agent = _agent("dqn", n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0, huber_delta=1.0)
+    c = agent.config.context
+    # Q-values (rows: the learning step, the step after it; 2 windows; 3 actions), as the
+    # online network (`params`) and the target network (`target_params`) give them.
+    online = jnp.array([[[0.5, 9.0, 9.0], [9.0, 9.0, 0.0]],
+                        [[1.0, 3.0, 0.0], [7.0, 7.0, 7.0]]])
+    target = jnp.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+                        [[5.0, 2.0, 0.0], [7.0, 7.0, 7.0]]])
+    agent.replayed_frames = lambda batch, obs: (None, None)
+    agent.sequence_q = lambda params, frames, resets, sown=False: (params, {}) if sown else params
+
+    rows = c + 2
+    column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
+    batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
+                 action=column(0, 2).astype(jnp.int8), reward=column(9.0, 9.0), done=column(0, 1).astype(bool))
+    rewards = column(1.0, 0.4)  # the rewards the loss learns from (hindsight relabels them, not batch.reward)
+
+    loss, info = agent.loss(online, target, batch, None, rewards, jnp.ones((rows, 2)))
+    # Window 0: the online network picks action 1 at the next step (3 > 1), the target network
+    # values it 2: y = 1 + 0.5 * 2 = 2; Q(s, 0) = 0.5, error 1.5, Huber (delta 1) 1.5 - 0.5 = 1.
+    # Window 1: the episode ends: y = 0.4; Q(s, 2) = 0, error 0.4, Huber 0.4^2 / 2 = 0.08.
+    np.testing.assert_allclose(loss, (1.0 + 0.08) / 2, rtol=1e-6)
+    np.testing.assert_allclose(info["q_mean"], (0.5 + 0.0) / 2, rtol=1e-6)
+    loss, _ = agent.loss(online, target, batch, None, rewards, column(1, 0))  # window 1 masked out
+    np.testing.assert_allclose(loss, 1.0, rtol=1e-6)
+    # Without double Q the target network's own maximum 5: y = 3.5, error 3, Huber 3 - 0.5 = 2.5.
+    agent.config = dataclasses.replace(agent.config, double_q=False)
+    loss, _ = agent.loss(online, target, batch, None, rewards, jnp.ones((rows, 2)))
+    np.testing.assert_allclose(loss, (2.5 + 0.08) / 2, rtol=1e-6)
 
 
 def test_stacked_frames_are_zero_before_the_episode_start():

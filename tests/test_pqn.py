@@ -1,6 +1,7 @@
-"""PQN / PQN-RNN: Q(lambda) returns by hand, the truncation values, the LayerNorm GRU Q-network
-against step-by-step application, the rollout's Q-values against a pass over the sequence, tiny
-training runs, one compile per configuration, seeds, resume, the CLI, and the paper's missing row.
+"""PQN / PQN-RNN: Q(lambda) returns by hand, the learner's targets and loss by hand, the truncation
+values, the LayerNorm GRU Q-network against step-by-step application, the rollout's Q-values against
+a pass over the sequence, tiny training runs, one compile per configuration, seeds, resume, the CLI,
+and the paper's missing row.
 
 Episodes are cut short with the `max_steps` training option so that short rollouts hold both
 terminations and truncations.
@@ -12,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -20,11 +22,12 @@ import pytest
 
 from agents.inputs import ObsLayout
 from agents.networks import ActorCritic, LayerNormQNetwork
-from agents.pqn import PQN
+from agents.pqn import PQN, Transition
 from agents.registry import make_config
 from agents.targets import q_lambda, truncation_values
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
+from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned per-task entry may set is pinned here, so retuning never changes the tests.
 TINY = dict(recurrent=False, num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=2, hidden_size=16,
@@ -70,6 +73,43 @@ def test_q_lambda_matches_hand_computation_with_a_termination_and_a_truncation()
     assert float(both[3, 0]) == pytest.approx(4.0)
 
 
+def test_learner_targets_and_loss_match_hand_computation():
+    """`PQN.targets` and `PQN._loss` with the network replaced by one whose Q-values are its input:
+    the next values are the rollout's own shifted one row (the last from where the rollout
+    stopped), a truncation bootstraps from its final observation, a step both terminated and
+    truncated bootstraps nothing."""
+    pqn = _pqn(gamma=0.5, q_lambda=0.5, reward_scale=1.0)
+
+    def network(params, carry, obs, resets, mutable=None):
+        out = (carry, obs)  # Q-values (T, B, A) = the input
+        return (out, {}) if mutable else out
+
+    pqn.network = SimpleNamespace(apply=network)
+    pqn._network_obs = lambda worlds: worlds.obs
+    q = lambda *rows: jnp.array(rows, jnp.float32)[:, None]  # (T, B=1, A=2)
+    batch = Transition(
+        obs=q([7, 0], [0, 6], [1, 3], [0, 10]),  # the Q-values the loss learns (the parameters moved since)
+        reset=jnp.zeros((4, 1), bool), action=jnp.array([0, 1, 0, 1])[:, None],
+        value=jnp.array([10.0, 20.0, 30.0, 40.0])[:, None],  # max Q as the rollout computed it
+        reward=jnp.array([1.0, 2.0, 3.0, 4.0])[:, None],
+        terminated=jnp.array([False, False, True, False])[:, None],
+        truncated=jnp.array([False, True, True, False])[:, None],
+        final_obs=q([99, 99], [4, 6], [100, 100], [99, 99]),
+        carry_after=jnp.zeros((4, 1, 1)),
+    )
+    stopped = SimpleNamespace(obs=jnp.array([[7.0, 8.0]]), carry=jnp.zeros((1, 1)), reset=jnp.zeros((1,), bool))
+    targets = pqn.targets(None, batch, stopped)
+    # G3 = 4 + 0.5 * 8 = 8 (the rollout's end: max Q where it stopped)
+    # G2 = 3 (terminated, and truncated: its final observation's 100 is not read)
+    # G1 = 2 + 0.5 * 6 = 5 (truncated: max Q of its final observation)
+    # G0 = 1 + 0.5 * (0.5 * 20 + 0.5 * 5) = 7.25 (the next value is row 1's, 20)
+    np.testing.assert_allclose(targets[:, 0], [7.25, 5.0, 3.0, 8.0], rtol=1e-6)
+    loss, info = pqn._loss(None, None, batch, targets)
+    # Taken Q-values 7, 6, 1, 10: errors -0.25, 1, -2, 2; half the mean square: 0.5 * 9.0625 / 4
+    np.testing.assert_allclose(loss, 0.5 * 9.0625 / 4, rtol=1e-6)
+    np.testing.assert_allclose(info["q_mean"], 6.0, rtol=1e-6)
+
+
 @pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
 def test_truncation_values_score_exactly_the_truncated_steps(truncations):
     t, n = 5, 4
@@ -108,6 +148,18 @@ def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():
     _, q_other = net.apply(variables, carry0 + 5.0, obs, resets)
     after = np.asarray(resets).cumsum(axis=0) >= 1
     np.testing.assert_allclose(np.asarray(q_other)[after], np.asarray(q_scan)[after], rtol=1e-5, atol=1e-6)
+    # A reset inside the sequence forgets the carry the episode before it built: world 0 restarts
+    # at step 4, so changing its observations before then changes only its outputs before then.
+    resets = jnp.zeros((t, b), bool).at[0].set(True).at[4, 0].set(True)
+    changed = obs.at[:4, 0].add(3.0)
+    _, q_a = net.apply(variables, carry0, obs, resets)
+    _, q_b = net.apply(variables, carry0, changed, resets)
+    np.testing.assert_allclose(q_b[4:, 0], q_a[4:, 0], rtol=1e-5, atol=1e-6)
+    assert not np.allclose(q_b[:4, 0], q_a[:4, 0], atol=1e-4)
+    # Without that reset the earlier observations reach the later outputs through the carry.
+    _, q_c = net.apply(variables, carry0, obs, resets.at[4, 0].set(False))
+    _, q_d = net.apply(variables, carry0, changed, resets.at[4, 0].set(False))
+    assert not np.allclose(q_d[4:, 0], q_c[4:, 0], atol=1e-4)
 
 
 def test_other_learners_networks_have_no_layer_norm():
@@ -186,11 +238,12 @@ def test_two_seeds_through_the_driver_differ(tmp_path):
 
 
 @pytest.mark.slow  # two runs and a resume through the driver, with compiles: ~30 s or more on a 2-core CPU
-def test_resume_equals_uninterrupted(tmp_path):
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_resume_equals_uninterrupted(tmp_path, recurrent):
     from agents import checkpoint
     from agents.driver import train
 
-    config = make_config("pqn", "1d-static-gauss", **{**TINY, "recurrent": True, "seeds": 2, "total_steps": 4 * 8 * 8,
+    config = make_config("pqn", "1d-static-gauss", **{**TINY, "recurrent": recurrent, "seeds": 2, "total_steps": 4 * 8 * 8,
                                                         "chunks": 4, "max_steps": 6})
     _, straight = train(config, tmp_path / "straight", progress=False)
     _, first = train(config, tmp_path / "killed", progress=False, stop_after_chunks=2)
@@ -237,21 +290,20 @@ def test_the_paper_has_no_pqn_row_and_the_table_shows_dashes():
     assert row.startswith("| 1d-static-sin | 2 | 0.600 |") and row.count("—") == 3, row
 
 
-@pytest.mark.slow  # a training and an evaluation subprocess
-def test_cli_trains_pqn_rnn_and_evaluates_it_without_a_paper_row(tmp_path):
+@pytest.mark.slow  # a training and two evaluation subprocesses
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_cli_trains_pqn_with_two_seeds_and_evaluates_each_without_a_paper_row(tmp_path, recurrent):
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn", "--recurrent", "--task", "1d-static-step",
-           "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8", "--num-minibatches", "2",
-           "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress"]
+    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn", "--recurrent" if recurrent else "--no-recurrent",
+           "--task", "1d-static-step", "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8",
+           "--num-minibatches", "2", "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2",
+           "--out", str(out), "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
         assert (out / name).is_file(), name
     saved = json.loads((out / "config.json").read_text())
-    assert saved["algorithm"] == "pqn" and saved["recurrent"] is True
-    assert "| 1d-static-step |" in result.stdout and "paper row: pqn" in result.stdout
-    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
-                           capture_output=True, text=True, env=env, timeout=600)
-    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
+    assert saved["algorithm"] == "pqn" and saved["recurrent"] is recurrent and saved["seeds"] == 2
+    assert "paper row: pqn" in result.stdout
+    check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)

@@ -1,8 +1,11 @@
-"""Rainbow: the C51 projection and n-step returns by hand, prioritised replay's importance weights
-for hand-set priorities, the noisy layer, tiny runs (finite losses, compiled once, two seeds
-through the driver), the noise-free greedy policy, resume, the CLI, and the paper's settings."""
+"""Rainbow: the C51 projection, n-step returns and the loss with its priorities by hand, prioritised
+replay's importance weights for hand-set priorities, the noisy layer, tiny runs (finite losses,
+compiled once, two seeds through the driver), the noise-free greedy policy, resume, the CLI, and the
+paper's settings."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import flashbax as fbx
 import jax
@@ -11,9 +14,11 @@ import numpy as np
 import pytest
 
 from agents.noisy import NoisyDense
+from agents.offpolicy import Step
 from agents.rainbow import Rainbow, RainbowConfig, cross_entropy_and_kl, importance_weights
 from agents.registry import build_algorithm, make_config
 from agents.targets import categorical_projection, n_step_returns
+from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
 TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
@@ -38,6 +43,9 @@ def test_categorical_projection_matches_hand_computation():
         # Beyond V_max: 1.5 + z = 1.5, 2.5, 3.5, 4.5, 5.5, clipped to 1.5, 2.5, 3.5, 4, 4:
         # 0.05 / 0.05 onto 1, 2; 0.1 / 0.1 onto 2, 3; 0.15 / 0.15 onto 3, 4; 0.2 + 0.2 onto 4.
         (1.5, 1.0, [0.0, 0.05, 0.15, 0.25, 0.55]),
+        # Discounted and beyond V_max: 3 + 0.5 z = 3, 3.5, 4, 4.5, 5, clipped to 3, 3.5, 4, 4, 4:
+        # 0.1 onto 3; 0.2 at 3.5 splits 0.1 / 0.1 onto 3 and 4; 0.3 + 0.2 + 0.2 onto 4.
+        (3.0, 0.5, [0.0, 0.0, 0.0, 0.2, 0.8]),
         # Below V_min: -2.5 + z = -2.5, -1.5, -0.5, 0.5, 1.5, clipped to 0, 0, 0, 0.5, 1.5:
         # 0.1 + 0.2 + 0.3 onto 0; 0.1 / 0.1 onto 0, 1; 0.1 / 0.1 onto 1, 2.
         (-2.5, 1.0, [0.7, 0.2, 0.1, 0.0, 0.0]),
@@ -93,7 +101,7 @@ def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
     w = (4 * P) ** -0.4
     expected = (w / w.max())[sample.indices]
     np.testing.assert_allclose(importance_weights(sample.probabilities, 0.4), expected, rtol=1e-5)
-    np.testing.assert_allclose(w / w.max(), [1.0, 0.7579, 0.6444, 0.5743], atol=1e-4)
+    np.testing.assert_allclose(importance_weights(jnp.asarray(P), 0.4), [1.0, 0.7579, 0.6444, 0.5743], atol=1e-4)
     # beta = 1 (the end of training) fully corrects: w = P(0) / P(i) = 1, 1/2, 1/3, 1/4.
     np.testing.assert_allclose(importance_weights(sample.probabilities, 1.0), (0.1 / P)[sample.indices], rtol=1e-5)
     # A window drawn at probability 0 (no longer valid) gets no weight.
@@ -158,6 +166,55 @@ def test_cross_entropy_and_kl_by_hand():
     np.testing.assert_allclose(cross_entropy, [1.5 * np.log(2), 1.5 * np.log(2)], rtol=1e-6)
     # The second row predicts its target exactly: KL 0, cross-entropy its entropy 1.5 ln 2.
     np.testing.assert_allclose(kl, [0.5 * np.log(2), 0.0], atol=1e-6)
+
+
+def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an_episode_end():
+    """`Rainbow.loss` on hand-set logits (the network is replaced by them): the double-Q bootstrap
+    action, the projected target, the KL of the taken action, importance weights and priorities."""
+    agent = _agent(atoms=3, v_min=0.0, v_max=2.0, n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0)
+    c, a = agent.config.context, agent.env.num_actions  # 3 actions in 1D
+    assert a == 3 and agent.config.sample_length == c + 2
+
+    def logits(*rows):  # probabilities (action, atom) of one window -> log-probabilities
+        return jnp.log(jnp.array(rows))
+
+    eps = 1e-9  # "zero" probability, whose log stays finite
+    # Window 0: the online network's greedy bootstrap action is 1 (expected 2 against 0); the
+    # target network prefers action 0 (expected 2 against 0.5) but reads action 1: (1/2, 1/2, 0).
+    # Window 1: its episode ends at the learning step (discount 0); its bootstrap is ignored.
+    online_next = jnp.stack([logits([1, eps, eps], [eps, eps, 1], [1, eps, eps])] * 2)[None]
+    target_next = jnp.stack([logits([eps, eps, 1], [0.5, 0.5, eps], [1, eps, eps])] * 2)[None]
+    learning = jnp.stack([logits([0.25, 0.5, 0.25], [1 / 3] * 3, [1 / 3] * 3),
+                          logits([1 / 3] * 3, [1 / 3] * 3, [0.25, 0.25, 0.5])])[None]  # (1, S=2, A, atoms)
+    agent.replayed_frames = lambda batch, obs: (None, None)
+    agent.window_logits = lambda *args: (learning, online_next, target_next)
+
+    rows = c + 2
+    column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
+    batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
+                 action=column(0, 2).astype(jnp.int8), reward=column(1.0, 2.0), done=column(0, 1).astype(bool))
+    weights = jnp.array([1.0, 0.5])
+    loss, (info, priority) = agent.loss(None, None, batch, weights, None, None)
+    # Window 0: 1 + 0.5 z over (1/2, 1/2, 0) = 1 (1/2), 1.5 (1/2, split 1/4 / 1/4 onto atoms 1 and
+    # 2): target (0, 3/4, 1/4); the taken action 0 predicts (1/4, 1/2, 1/4):
+    # KL = 3/4 ln(3/4 / 1/2) + 1/4 ln(1/4 / 1/4) = 0.75 ln 1.5 = 0.304099.
+    # Window 1: reward 2, discount 0: target (0, 0, 1); action 2 predicts 1/2 there: KL = ln 2.
+    kl = np.array([0.75 * np.log(1.5), np.log(2.0)])
+    np.testing.assert_allclose(priority, kl, rtol=1e-5)
+    np.testing.assert_allclose(loss, (1.0 * kl[0] + 0.5 * kl[1]) / 2, rtol=1e-5)  # 0.325337
+    np.testing.assert_allclose(info["q_mean"], (1.0 + 1.25) / 2, rtol=1e-5)  # expected returns of the taken actions
+
+    # The cross-entropy priority adds the target's entropy: 3/4 ln 4/3 + 1/4 ln 4 = 0.562335 for window 0.
+    agent.config = dataclasses.replace(agent.config, cross_entropy_priority=True)
+    _, (_, priority) = agent.loss(None, None, batch, weights, None, None)
+    np.testing.assert_allclose(priority, kl + [0.75 * np.log(4 / 3) + 0.25 * np.log(4.0), 0.0], rtol=1e-5)
+
+    # Without double Q the target network's own greedy action 0 is read: 1 + 0.5 * 2 = 2, target
+    # (0, 0, 1), and window 0's KL becomes ln 4.
+    agent.config = dataclasses.replace(agent.config, cross_entropy_priority=False, double_q=False)
+    loss, (_, priority) = agent.loss(None, None, batch, weights, None, None)
+    np.testing.assert_allclose(priority, [np.log(4.0), np.log(2.0)], rtol=1e-5)
+    np.testing.assert_allclose(loss, (np.log(4.0) + 0.5 * np.log(2.0)) / 2, rtol=1e-5)
 
 
 def test_cross_entropy_priority_changes_the_priority_not_the_loss():
@@ -387,17 +444,15 @@ def test_cli_trains_rainbow_and_evaluates_it(tmp_path):
     cmd = [sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--task", "1d-static-step", "--total-steps", "512",
            "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
            "--atoms", "11", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress"]
+           "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
         assert (out / name).is_file(), name
-    assert json.loads((out / "config.json").read_text())["algorithm"] == "rainbow"
-    assert "| 1d-static-step |" in result.stdout
-    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
-                           capture_output=True, text=True, env=env, timeout=600)
-    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["algorithm"] == "rainbow" and saved["seeds"] == 2
+    check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)
     bad = subprocess.run([sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--huber-delta", "2"],
                          capture_output=True, text=True, env=env, timeout=600)
     assert bad.returncode != 0 and "unrecognized arguments: --huber-delta" in bad.stderr

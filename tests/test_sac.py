@@ -1,19 +1,23 @@
-"""SAC-Discrete: the soft value, critic, actor and temperature losses against hand computation,
-which parameters each loss moves, the Polyak target, tiny runs (one compile per configuration, two
-seeds through the driver), the greedy policy, resume and the command line."""
+"""SAC-Discrete: the soft value, critic, actor and temperature losses and the learner's sum of them
+against hand computation, which parameters each loss moves, the Polyak target, tiny runs (one
+compile per configuration, two seeds through the driver), the greedy policy, resume and the command
+line."""
 
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from agents.offpolicy import Step
 from agents.registry import build_algorithm, make_config
 from agents.sac import actor_loss, critic_loss, soft_values, temperature_loss
 from agents.targets import n_step_targets
+from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned entry could set is pinned here, so retuning never changes the tests.
 TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_sizes="16,16", learning_starts=0, chunks=2,
@@ -96,6 +100,46 @@ def test_temperature_loss_matches_hand_computation_and_moves_only_alpha():
     np.testing.assert_allclose(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.ones(2)), 0.027741, rtol=1e-4)
     assert float(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.array([0.0, 1.0]))) < 0
     assert not np.any(jax.grad(temperature_loss, argnums=1)(2.0, log_probs, 0.6, jnp.ones(2)))
+
+
+def test_the_learners_loss_combines_the_three_by_hand():
+    """`SAC.loss` with the actor and the critics replaced by hand-set outputs: which rows, which
+    network (the target critics bootstrap) and which temperature each loss reads."""
+    agent = _agent(n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0)
+    c = agent.config.context
+    assert agent.env.num_actions == 3
+    agent.actor = SimpleNamespace(apply=lambda p, inputs: p[: inputs.shape[0]])  # logits (rows, S, A)
+    agent.critic = SimpleNamespace(apply=lambda p, inputs: p[:, : inputs.shape[0]])  # Q-values (2, rows, S, A)
+    params = {
+        # The learning row's policy (1/2, 1/4, 1/4); the next row's uniform.
+        "actor": jnp.log(jnp.array([[0.5, 0.25, 0.25], [1 / 3, 1 / 3, 1 / 3]]))[:, None],
+        # The critics at the learning row (the next row's 1000s must never be read).
+        "critic": jnp.array([[[5.0, 0.0, 0.0], [1e3] * 3], [[3.0, 2.0, 8.0], [1e3] * 3]])[:, :, None],
+        "log_alpha": jnp.log(jnp.asarray(2.0)),
+    }
+    # The target critics at the next row: minimum (3, 3, 9) (the learning row's 500s are never read).
+    target = jnp.array([[[500.0] * 3, [3.0, 6.0, 9.0]], [[500.0] * 3, [6.0, 3.0, 12.0]]])[:, :, None]
+    rows = c + 2
+    obs = jnp.zeros((rows, 1, agent.layout.env_obs_size))
+    action = jnp.zeros((rows, 1), jnp.int8)  # action 0 at the learning row
+    batch = Step(obs=obs.astype(jnp.int16), reset=jnp.zeros((rows, 1), bool), action=action,
+                 reward=jnp.zeros((rows, 1)), done=jnp.zeros((rows, 1), bool))
+    rewards = jnp.zeros((rows, 1)).at[c].set(1.0)
+
+    total, info = agent.loss(params, target, batch, obs, rewards, jnp.ones((rows, 1)))
+    # alpha = 2. V(next) = sum_a 1/3 (min Q - 2 ln 1/3) = (3 + 3 + 9) / 3 + 2 ln 3 = 7.197225;
+    # y = 1 + 0.5 * 7.197225 = 4.598612. Critics at action 0: (5 - y)^2 + (3 - y)^2 = 2.716672.
+    # Actor: 1/2 (2 ln 1/2 - 3) + 2 * 1/4 (2 ln 1/4 - 0) = -2.193147 - 1.386294 = -3.579441.
+    # Temperature: H(1/2, 1/4, 1/4) = 1.039721, target 0.98 ln 3 = 1.076640; ln 2 * (-0.036919) = -0.025590.
+    np.testing.assert_allclose(info["critic_loss"], 2.716672, rtol=1e-5)
+    np.testing.assert_allclose(info["actor_loss"], -3.579441, rtol=1e-5)
+    np.testing.assert_allclose(info["alpha_loss"], -0.025590, rtol=1e-4)
+    np.testing.assert_allclose(total, 2.716672 - 3.579441 - 0.025590, rtol=1e-5)
+    np.testing.assert_allclose([info["alpha"], info["entropy"], info["q_mean"]], [2.0, 1.039721, 3.0], rtol=1e-5)
+    # The episode ends at the learning row: y = 1, critics (5 - 1)^2 + (3 - 1)^2 = 20.
+    ended = batch.replace(done=batch.done.at[c].set(True))
+    np.testing.assert_allclose(agent.loss(params, target, ended, obs, rewards, jnp.ones((rows, 1)))[1]["critic_loss"],
+                               20.0, rtol=1e-6)
 
 
 # --- the learner --------------------------------------------------------------------------------------
@@ -238,15 +282,13 @@ def test_cli_trains_sac_and_evaluates_it(tmp_path):
     cmd = [sys.executable, "-m", "snac_jax.cli", "train", "sac", "--task", "1d-static-step", "--total-steps", "512",
            "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-sizes", "8,8", "--buffer-size",
            "256", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress"]
+           "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
         assert (out / name).is_file(), name
     saved = json.loads((out / "config.json").read_text())
-    assert saved["algorithm"] == "sac" and saved["hidden_sizes"] == "8,8"
-    assert "paper row: sac" in result.stdout and "| 1d-static-step |" in result.stdout
-    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
-                           capture_output=True, text=True, env=env, timeout=600)
-    assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
+    assert saved["algorithm"] == "sac" and saved["hidden_sizes"] == "8,8" and saved["seeds"] == 2
+    assert "paper row: sac" in result.stdout
+    check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)
