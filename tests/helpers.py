@@ -44,21 +44,23 @@ def as_numpy(tree):
     return jax.tree.map(lambda x: jnp.asarray(x), tree)
 
 
-def mean_iou_rows(stdout: str, task: str) -> dict[int | None, str]:
-    """The mean IoU printed on each of a result table's rows for `task`, by training seed (None
-    for a row that names none, as `snac eval` prints one seed's row)."""
-    rows = re.findall(rf"^\| {re.escape(task)}(?: \(seed (\d+)\))? \| \d+ \| ([0-9.]+) \|", stdout, flags=re.M)
-    return {int(seed) if seed else None: mean for seed, mean in rows}
+def result_rows(stdout: str, task: str) -> dict[int | None, tuple[str, ...]]:
+    """The measured cells (episodes, mean, interval, min, std, length, bricks; not the paper's
+    columns) of each of a result table's rows for `task`, by training seed (None for a row that
+    names none, as `snac eval` prints one seed's row)."""
+    rows = re.findall(rf"^\| {re.escape(task)}(?: \(seed (\d+)\))? \|(.*)\|$", stdout, flags=re.M)
+    cells = {int(seed) if seed else None: tuple(c.strip() for c in row.split("|")) for seed, row in rows}
+    return {seed: row[:5] + row[-2:] for seed, row in cells.items()}
 
 
 def check_each_seed_evaluates_from_the_checkpoint(train_stdout: str, out, task: str, env: dict) -> None:
-    """After `snac train ... --seeds 2 --out out`: the run printed a row for each seed, and
-    `snac eval --checkpoint out` scores the first seed by default and the second with
+    """After `snac train ... --seeds 2 --out out`: the run printed a row for each seed, the two
+    differ, and `snac eval --checkpoint out` scores the first seed by default and the second with
     `--seed-index 1`, each as the run did (same parameters, same evaluation key)."""
-    trained = mean_iou_rows(train_stdout, task)
-    assert set(trained) == {0, 1}, train_stdout[-3000:]
+    trained = result_rows(train_stdout, task)
+    assert set(trained) == {0, 1} and trained[0] != trained[1], train_stdout[-3000:]
     for index, flag in ((0, []), (1, ["--seed-index", "1"])):
         again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2",
                                 *flag], capture_output=True, text=True, env=env, timeout=600)
         assert again.returncode == 0, again.stderr[-3000:]
-        assert mean_iou_rows(again.stdout, task) == {None: trained[index]}, (index, again.stdout[-2000:])
+        assert result_rows(again.stdout, task) == {None: trained[index]}, (index, again.stdout[-2000:])

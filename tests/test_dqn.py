@@ -68,11 +68,11 @@ def test_n_step_targets_match_hand_computation():
 def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask():
     """`DQN.loss` on hand-set Q-values (the network is replaced by them): the double-Q bootstrap,
     the Huber loss, the episode end and the loss mask's weighted mean."""
-    agent = _agent("dqn", n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0, huber_delta=1.0)
+    agent = _agent("dqn", n_step=1, sequence_length=1, gamma=0.5, reward_scale=2.0, huber_delta=1.0)
     c = agent.config.context
     # Q-values (rows: the learning step, the step after it; 2 windows; 3 actions), as the
     # online network (`params`) and the target network (`target_params`) give them.
-    online = jnp.array([[[0.5, 9.0, 9.0], [9.0, 9.0, 0.0]],
+    online = jnp.array([[[0.5, 0.0, 9.0], [9.0, 9.0, 0.0]],
                         [[1.0, 3.0, 0.0], [7.0, 7.0, 7.0]]])
     target = jnp.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
                         [[5.0, 2.0, 0.0], [7.0, 7.0, 7.0]]])
@@ -83,10 +83,13 @@ def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask()
     column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
     batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
                  action=column(0, 2).astype(jnp.int8), reward=column(9.0, 9.0), done=column(0, 1).astype(bool))
-    rewards = column(1.0, 0.4)  # the rewards the loss learns from (hindsight relabels them, not batch.reward)
+    # The rewards the loss learns from (hindsight relabels them, not batch.reward), as 1 and 0.4
+    # after reward_scale 2.
+    rewards = column(0.5, 0.2)
 
     loss, info = agent.loss(online, target, batch, None, rewards, jnp.ones((rows, 2)))
-    # Window 0: the online network picks action 1 at the next step (3 > 1), the target network
+    # Window 0: the online network picks action 1 at the next step (3 > 1; not its choice 2 at the
+    # learning step), the target network
     # values it 2: y = 1 + 0.5 * 2 = 2; Q(s, 0) = 0.5, error 1.5, Huber (delta 1) 1.5 - 0.5 = 1.
     # Window 1: the episode ends: y = 0.4; Q(s, 2) = 0, error 0.4, Huber 0.4^2 / 2 = 0.08.
     np.testing.assert_allclose(loss, (1.0 + 0.08) / 2, rtol=1e-6)

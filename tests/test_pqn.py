@@ -78,7 +78,7 @@ def test_learner_targets_and_loss_match_hand_computation():
     the next values are the rollout's own shifted one row (the last from where the rollout
     stopped), a truncation bootstraps from its final observation, a step both terminated and
     truncated bootstraps nothing."""
-    pqn = _pqn(gamma=0.5, q_lambda=0.5, reward_scale=1.0)
+    pqn = _pqn(gamma=0.5, q_lambda=0.25, reward_scale=2.0)
 
     def network(params, carry, obs, resets, mutable=None):
         out = (carry, obs)  # Q-values (T, B, A) = the input
@@ -91,22 +91,23 @@ def test_learner_targets_and_loss_match_hand_computation():
         obs=q([7, 0], [0, 6], [1, 3], [0, 10]),  # the Q-values the loss learns (the parameters moved since)
         reset=jnp.zeros((4, 1), bool), action=jnp.array([0, 1, 0, 1])[:, None],
         value=jnp.array([10.0, 20.0, 30.0, 40.0])[:, None],  # max Q as the rollout computed it
-        reward=jnp.array([1.0, 2.0, 3.0, 4.0])[:, None],
+        reward=jnp.array([1.0, 2.0, 3.0, 4.0])[:, None],  # learned from as 2, 4, 6, 8 (reward_scale 2)
         terminated=jnp.array([False, False, True, False])[:, None],
         truncated=jnp.array([False, True, True, False])[:, None],
-        final_obs=q([99, 99], [4, 6], [100, 100], [99, 99]),
+        final_obs=q([99, 99], [4, 5], [100, 100], [99, 99]),
         carry_after=jnp.zeros((4, 1, 1)),
     )
     stopped = SimpleNamespace(obs=jnp.array([[7.0, 8.0]]), carry=jnp.zeros((1, 1)), reset=jnp.zeros((1,), bool))
     targets = pqn.targets(None, batch, stopped)
-    # G3 = 4 + 0.5 * 8 = 8 (the rollout's end: max Q where it stopped)
-    # G2 = 3 (terminated, and truncated: its final observation's 100 is not read)
-    # G1 = 2 + 0.5 * 6 = 5 (truncated: max Q of its final observation)
-    # G0 = 1 + 0.5 * (0.5 * 20 + 0.5 * 5) = 7.25 (the next value is row 1's, 20)
-    np.testing.assert_allclose(targets[:, 0], [7.25, 5.0, 3.0, 8.0], rtol=1e-6)
+    # G3 = 8 + 0.5 * 8 = 12 (the rollout's end: max Q where it stopped)
+    # G2 = 6 (terminated, and truncated: its final observation's 100 is not read)
+    # G1 = 4 + 0.5 * 5 = 6.5 (truncated: max Q of its final observation, not of the row's own 6)
+    # G0 = 2 + 0.5 * (0.75 * 20 + 0.25 * 6.5) = 10.3125 (the next value is row 1's, 20)
+    np.testing.assert_allclose(targets[:, 0], [10.3125, 6.5, 6.0, 12.0], rtol=1e-6)
     loss, info = pqn._loss(None, None, batch, targets)
-    # Taken Q-values 7, 6, 1, 10: errors -0.25, 1, -2, 2; half the mean square: 0.5 * 9.0625 / 4
-    np.testing.assert_allclose(loss, 0.5 * 9.0625 / 4, rtol=1e-6)
+    # Taken Q-values 7, 6, 1, 10: errors -3.3125, -0.5, -5, -2; squares 10.97265625, 0.25, 25, 4;
+    # half their mean: 0.5 * 40.22265625 / 4
+    np.testing.assert_allclose(loss, 0.5 * 40.22265625 / 4, rtol=1e-6)
     np.testing.assert_allclose(info["q_mean"], 6.0, rtol=1e-6)
 
 

@@ -171,7 +171,7 @@ def test_cross_entropy_and_kl_by_hand():
 def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an_episode_end():
     """`Rainbow.loss` on hand-set logits (the network is replaced by them): the double-Q bootstrap
     action, the projected target, the KL of the taken action, importance weights and priorities."""
-    agent = _agent(atoms=3, v_min=0.0, v_max=2.0, n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0)
+    agent = _agent(atoms=3, v_min=0.0, v_max=2.0, n_step=1, sequence_length=1, gamma=0.5, reward_scale=2.0)
     c, a = agent.config.context, agent.env.num_actions  # 3 actions in 1D
     assert a == 3 and agent.config.sample_length == c + 2
 
@@ -192,8 +192,8 @@ def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an
     rows = c + 2
     column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
     batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
-                 action=column(0, 2).astype(jnp.int8), reward=column(1.0, 2.0), done=column(0, 1).astype(bool))
-    weights = jnp.array([1.0, 0.5])
+                 action=column(0, 2).astype(jnp.int8), reward=column(0.5, 1.0), done=column(0, 1).astype(bool))
+    weights = jnp.array([1.0, 0.5])  # the rewards are learned from as 1 and 2 (reward_scale 2)
     loss, (info, priority) = agent.loss(None, None, batch, weights, None, None)
     # Window 0: 1 + 0.5 z over (1/2, 1/2, 0) = 1 (1/2), 1.5 (1/2, split 1/4 / 1/4 onto atoms 1 and
     # 2): target (0, 3/4, 1/4); the taken action 0 predicts (1/4, 1/2, 1/4):
@@ -444,7 +444,7 @@ def test_cli_trains_rainbow_and_evaluates_it(tmp_path):
     cmd = [sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--task", "1d-static-step", "--total-steps", "512",
            "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
            "--atoms", "11", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
+           "--eval-episodes", "2", "--no-progress", "--seeds", "2", "--seed", "2"]  # two different greedy policies
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr

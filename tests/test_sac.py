@@ -103,28 +103,30 @@ def test_temperature_loss_matches_hand_computation_and_moves_only_alpha():
 
 
 def test_the_learners_loss_combines_the_three_by_hand():
-    """`SAC.loss` with the actor and the critics replaced by hand-set outputs: which rows, which
-    network (the target critics bootstrap) and which temperature each loss reads."""
-    agent = _agent(n_step=1, sequence_length=1, gamma=0.5, reward_scale=1.0)
+    """`SAC.loss` with the actor and the critics replaced by tables of hand-set outputs, looked up
+    by the row index each window's observation carries: which rows, which network (the target
+    critics bootstrap), which rewards and which temperature each loss reads."""
+    agent = _agent(n_step=1, sequence_length=1, gamma=0.5, reward_scale=2.0)
     c = agent.config.context
-    assert agent.env.num_actions == 3
-    agent.actor = SimpleNamespace(apply=lambda p, inputs: p[: inputs.shape[0]])  # logits (rows, S, A)
-    agent.critic = SimpleNamespace(apply=lambda p, inputs: p[:, : inputs.shape[0]])  # Q-values (2, rows, S, A)
+    assert agent.env.num_actions == 3 and c == 1  # rows: 0 the context, 1 the learning step, 2 the next
+    row = lambda inputs: inputs[..., 0, 0].astype(jnp.int32)  # one window: (rows, 1, O) -> (rows,)
+    agent.actor = SimpleNamespace(apply=lambda p, inputs: p[row(inputs)][:, None])  # logits (rows, 1, A)
+    agent.critic = SimpleNamespace(apply=lambda p, inputs: p[:, row(inputs)][:, :, None])  # (2, rows, 1, A)
+    never = [1e3] * 3  # outputs no loss may read
     params = {
         # The learning row's policy (1/2, 1/4, 1/4); the next row's uniform.
-        "actor": jnp.log(jnp.array([[0.5, 0.25, 0.25], [1 / 3, 1 / 3, 1 / 3]]))[:, None],
-        # The critics at the learning row (the next row's 1000s must never be read).
-        "critic": jnp.array([[[5.0, 0.0, 0.0], [1e3] * 3], [[3.0, 2.0, 8.0], [1e3] * 3]])[:, :, None],
+        "actor": jnp.log(jnp.array([[0.9, 0.05, 0.05], [0.5, 0.25, 0.25], [1 / 3, 1 / 3, 1 / 3]])),
+        # The critics at the learning row.
+        "critic": jnp.array([[never, [5.0, 0.0, 0.0], never], [never, [3.0, 2.0, 8.0], never]]),
         "log_alpha": jnp.log(jnp.asarray(2.0)),
     }
-    # The target critics at the next row: minimum (3, 3, 9) (the learning row's 500s are never read).
-    target = jnp.array([[[500.0] * 3, [3.0, 6.0, 9.0]], [[500.0] * 3, [6.0, 3.0, 12.0]]])[:, :, None]
+    # The target critics at the next row: minimum (3, 3, 9).
+    target = jnp.array([[never, [500.0] * 3, [3.0, 6.0, 9.0]], [never, [500.0] * 3, [6.0, 3.0, 12.0]]])
     rows = c + 2
-    obs = jnp.zeros((rows, 1, agent.layout.env_obs_size))
-    action = jnp.zeros((rows, 1), jnp.int8)  # action 0 at the learning row
-    batch = Step(obs=obs.astype(jnp.int16), reset=jnp.zeros((rows, 1), bool), action=action,
-                 reward=jnp.zeros((rows, 1)), done=jnp.zeros((rows, 1), bool))
-    rewards = jnp.zeros((rows, 1)).at[c].set(1.0)
+    obs = jnp.zeros((rows, 1, agent.layout.env_obs_size)).at[:, 0, 0].set(jnp.arange(rows))
+    batch = Step(obs=obs.astype(jnp.int16), reset=jnp.zeros((rows, 1), bool), action=jnp.zeros((rows, 1), jnp.int8),
+                 reward=jnp.zeros((rows, 1)), done=jnp.zeros((rows, 1), bool))  # action 0 at the learning row
+    rewards = jnp.full((rows, 1), 9.0).at[c].set(0.5)  # learned from as 1 (reward_scale 2)
 
     total, info = agent.loss(params, target, batch, obs, rewards, jnp.ones((rows, 1)))
     # alpha = 2. V(next) = sum_a 1/3 (min Q - 2 ln 1/3) = (3 + 3 + 9) / 3 + 2 ln 3 = 7.197225;
