@@ -3,10 +3,11 @@ two-seed run's command-line evaluation."""
 
 from __future__ import annotations
 
-import re
+import json
 import subprocess
 import sys
 from functools import partial
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -44,23 +45,19 @@ def as_numpy(tree):
     return jax.tree.map(lambda x: jnp.asarray(x), tree)
 
 
-def result_rows(stdout: str, task: str) -> dict[int | None, tuple[str, ...]]:
-    """The measured cells (episodes, mean, interval, min, std, length, bricks; not the paper's
-    columns) of each of a result table's rows for `task`, by training seed (None for a row that
-    names none, as `snac eval` prints one seed's row)."""
-    rows = re.findall(rf"^\| {re.escape(task)}(?: \(seed (\d+)\))? \|(.*)\|$", stdout, flags=re.M)
-    cells = {int(seed) if seed else None: tuple(c.strip() for c in row.split("|")) for seed, row in rows}
-    return {seed: row[:5] + row[-2:] for seed, row in cells.items()}
-
-
-def check_each_seed_evaluates_from_the_checkpoint(train_stdout: str, out, task: str, env: dict) -> None:
-    """After `snac train ... --seeds 2 --out out`: the run printed a row for each seed, the two
-    differ, and `snac eval --checkpoint out` scores the first seed by default and the second with
-    `--seed-index 1`, each as the run did (same parameters, same evaluation key)."""
-    trained = result_rows(train_stdout, task)
-    assert set(trained) == {0, 1} and trained[0] != trained[1], train_stdout[-3000:]
+def check_each_seed_evaluates_from_the_checkpoint(out: Path, task: str, env: dict) -> None:
+    """After `snac train ... --seeds 2 --out out`: the run's `eval.json` holds a result for each
+    seed, the two differ, and `snac eval --checkpoint out --json` scores the first seed by default
+    and the second with `--seed-index 1`, each exactly as the run did (same parameters, same
+    evaluation key): every field but the row's name and the wall time."""
+    measured = lambda result: {k: v for k, v in result.items() if k not in ("task", "wall_s")}
+    trained = {key: measured(result) for key, result in json.loads((out / "eval.json").read_text()).items()}
+    assert set(trained) == {f"{task} (seed 0)", f"{task} (seed 1)"}, sorted(trained)
+    assert trained[f"{task} (seed 0)"] != trained[f"{task} (seed 1)"]
     for index, flag in ((0, []), (1, ["--seed-index", "1"])):
+        path = out / f"eval-again-{index}.json"
         again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2",
-                                *flag], capture_output=True, text=True, env=env, timeout=600)
+                                "--json", str(path), *flag], capture_output=True, text=True, env=env, timeout=600)
         assert again.returncode == 0, again.stderr[-3000:]
-        assert result_rows(again.stdout, task) == {None: trained[index]}, (index, again.stdout[-2000:])
+        result = json.loads(path.read_text())
+        assert {key: measured(r) for key, r in result.items()} == {task: trained[f"{task} (seed {index})"]}, index
