@@ -213,7 +213,7 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
 
     from snac_jax.atomic import atomic_write_json
     from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
-    from snac_jax.paper import load_paper_results, markdown_table, paper_column, paper_row
+    from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
 
     config = algorithm.config
     if counts is None:
@@ -231,7 +231,7 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)
     paper = paper_row(load_paper_results(), config.paper_method)
-    paper = {r.task: paper.get(paper_column(config.task), {}) for r in results}
+    paper = {r.task: paper_cell(paper, config.task) for r in results}
     print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
           f"(the paper's {paper_column(config.task)} column)")
     print()

@@ -32,6 +32,13 @@ def paper_column(task: str) -> str:
     return next((column for column, tasks in PAPER_GROUPS.items() if task in tasks), task)
 
 
+def paper_cell(row: dict[str, dict[str, float | None]], task: str) -> dict[str, float | None]:
+    """The paper's `{"avg", "min"}` to print beside a result on `task` (`row` from `paper_row`):
+    its column's, so a single 1D shape stands beside the 1d-static column, the paper's mean over
+    the three shapes; {} where the row has no such column."""
+    return row.get(paper_column(task), {})
+
+
 def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
     """The paper's tables: `path`, or the copy shipped in the package."""
     if path is None:

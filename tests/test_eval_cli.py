@@ -36,6 +36,15 @@ def test_eval_reads_another_paper_results_file(tmp_path, capsys):
     assert "| 0.123 | 0.045 |" in capsys.readouterr().out
 
 
+def test_a_1d_shape_is_printed_beside_the_papers_1d_static_column(capsys):
+    """The paper reports the three 1D shapes as one column; a single shape is shown beside it,
+    as `snac train`'s own evaluation shows it, and the header says so."""
+    main(["eval", "--policy", "handcrafted", "--task", "1d-static-sin", "--episodes", "2"])
+    printed = capsys.readouterr().out
+    assert "beside 1d-static-sin: the paper's 1d-static column" in printed
+    assert "| 0.948 | 0.839 |" in printed  # the paper's handcrafted 1d-static column
+
+
 def test_random_policy_has_no_paper_row(capsys):
     main(["eval", "--policy", "random", "--task", "2d-static-sparse", "--episodes", "2"])
     printed = capsys.readouterr().out

@@ -79,7 +79,7 @@ def _environment_tasks(task: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from snac_jax.evaluation import evaluate_task
-    from snac_jax.paper import load_paper_results, markdown_table, paper_row
+    from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
     from snac_jax.policies import policy_builder
 
     sources = [args.policy, args.checkpoint, args.human]
@@ -124,9 +124,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
     total_s = time.perf_counter() - start
 
-    print(f"policy {policy_name} (paper row: {method or 'none'}), seed {args.seed}")
+    shared = sorted({paper_column(task) for task in tasks if paper_column(task) != task})
+    columns = "".join(f"; beside {', '.join(t for t in tasks if paper_column(t) == c)}: the paper's {c} column"
+                      for c in shared)
+    print(f"policy {policy_name} (paper row: {method or 'none'}{columns}), seed {args.seed}")
     print()
-    print(markdown_table(results, paper))
+    print(markdown_table(results, {r.task: paper_cell(paper, r.task) for r in results}))
     print()
     print(f"wall time {total_s:.1f} s (compile included)")
     if args.json is not None:
