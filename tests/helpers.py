@@ -45,11 +45,12 @@ def as_numpy(tree):
     return jax.tree.map(lambda x: jnp.asarray(x), tree)
 
 
-def check_each_seed_evaluates_from_the_checkpoint(out: Path, task: str, env: dict) -> None:
-    """After `snac train ... --seeds 2 --out out`: the run's `eval.json` holds a result for each
-    seed, the two differ, and `snac eval --checkpoint out --json` scores the first seed by default
+def check_each_seed_evaluates_from_the_checkpoint(train_stdout: str, out: Path, task: str, env: dict) -> None:
+    """After `snac train ... --seeds 2 --out out`: the run printed a row for each seed, its
+    `eval.json` holds a result for each seed, the two differ, and `snac eval --checkpoint out --json` scores the first seed by default
     and the second with `--seed-index 1`, each exactly as the run did (same parameters, same
     evaluation key): every field but the row's name and the wall time."""
+    assert f"| {task} (seed 0) |" in train_stdout and f"| {task} (seed 1) |" in train_stdout, train_stdout[-3000:]
     measured = lambda result: {k: v for k, v in result.items() if k not in ("task", "wall_s")}
     trained = {key: measured(result) for key, result in json.loads((out / "eval.json").read_text()).items()}
     assert set(trained) == {f"{task} (seed 0)", f"{task} (seed 1)"}, sorted(trained)

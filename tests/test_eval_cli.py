@@ -41,7 +41,7 @@ def test_a_1d_shape_is_printed_beside_the_papers_1d_static_column(capsys):
     as `snac train`'s own evaluation shows it, and the header says so."""
     main(["eval", "--policy", "handcrafted", "--task", "1d-static-sin", "--episodes", "2"])
     printed = capsys.readouterr().out
-    assert "beside 1d-static-sin: the paper's 1d-static column" in printed
+    assert "1d-static-sin beside the paper's 1d-static column" in printed
     assert "| 0.948 | 0.839 |" in printed  # the paper's handcrafted 1d-static column
 
 

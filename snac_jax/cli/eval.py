@@ -124,9 +124,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
     total_s = time.perf_counter() - start
 
-    shared = sorted({paper_column(task) for task in tasks if paper_column(task) != task})
-    columns = "".join(f"; beside {', '.join(t for t in tasks if paper_column(t) == c)}: the paper's {c} column"
-                      for c in shared)
+    columns = "".join(f"; {t} beside the paper's {paper_column(t)} column" for t in tasks if paper_column(t) != t)
     print(f"policy {policy_name} (paper row: {method or 'none'}{columns}), seed {args.seed}")
     print()
     print(markdown_table(results, {r.task: paper_cell(paper, r.task) for r in results}))
