@@ -15,7 +15,10 @@ The targets bootstrap from the Q-values the rollout itself computed: the paramet
 during a rollout, and the GRU's state at each step is the one a pass over the sequence from the
 rollout's start carry gives, so recomputing them would give the same numbers. A truncated episode
 bootstraps from `max_a Q` of `info["final_observation"]` (before the auto-reset), scored with the
-carry that saw the episode; a terminated one bootstraps nothing.
+carry that saw the episode; a terminated one bootstraps nothing. With `time_limit_ends` the step
+limit ends the return as a termination does: the observation holds the step count, so the limit is
+part of the task, and the bootstrap reads a state (the count at the limit) no update trains on.
+DRQN and Rainbow treat the limit so.
 """
 
 from __future__ import annotations
@@ -59,6 +62,8 @@ class PQNConfig(TrainConfig):
     rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
     reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
                                  low=0, low_open=True)
+    time_limit_ends: bool = option(False, "the step limit ends the return (no bootstrap from the final observation), "
+                                   "as a termination does: the observation holds the step count")
     stagger_starts: bool = option(False, "start each world a random number (up to an episode) of random steps in, "
                                   "so that the worlds' rollouts hold different parts of their episodes")
 
@@ -211,9 +216,13 @@ class PQN:
             _, q = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
             return q[0].max(-1)
 
-        truncated = batch.truncated & ~batch.terminated
-        final_values = truncation_values(score, truncated, batch.final_obs, batch.carry_after)
-        return q_lambda(batch.reward * cfg.reward_scale, next_values, final_values, batch.terminated, truncated,
+        if cfg.time_limit_ends:
+            terminated, truncated = batch.terminated | batch.truncated, jnp.zeros_like(batch.truncated)
+            final_values = jnp.zeros_like(batch.reward)
+        else:
+            terminated, truncated = batch.terminated, batch.truncated & ~batch.terminated
+            final_values = truncation_values(score, truncated, batch.final_obs, batch.carry_after)
+        return q_lambda(batch.reward * cfg.reward_scale, next_values, final_values, terminated, truncated,
                         cfg.gamma, cfg.q_lambda)
 
     def _loss(self, params, carry0, batch: Transition, targets):

@@ -31,7 +31,8 @@ from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned per-task entry may set is pinned here, so retuning never changes the tests.
 TINY = dict(recurrent=False, num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=2, hidden_size=16,
-            rnn_size=8, learning_rate=1e-3, reward_scale=0.01, chunks=2, total_steps=2 * 8 * 8, stagger_starts=False)
+            rnn_size=8, learning_rate=1e-3, reward_scale=0.01, chunks=2, total_steps=2 * 8 * 8, stagger_starts=False,
+            time_limit_ends=False)
 
 
 def _pqn(task="1d-static-sin", **options) -> PQN:
@@ -73,12 +74,8 @@ def test_q_lambda_matches_hand_computation_with_a_termination_and_a_truncation()
     assert float(both[3, 0]) == pytest.approx(4.0)
 
 
-def test_learner_targets_and_loss_match_hand_computation():
-    """`PQN.targets` and `PQN._loss` with the network replaced by one whose Q-values are its input:
-    the next values are the rollout's own shifted one row (the last from where the rollout
-    stopped), a truncation bootstraps from its final observation, a step both terminated and
-    truncated bootstraps nothing."""
-    pqn = _pqn(gamma=0.5, q_lambda=0.25, reward_scale=2.0)
+def _pqn_whose_q_values_are_its_input(**options) -> PQN:
+    pqn = _pqn(gamma=0.5, q_lambda=0.25, reward_scale=2.0, **options)
 
     def network(params, carry, obs, resets, mutable=None):
         out = (carry, obs)  # Q-values (T, B, A) = the input
@@ -86,6 +83,11 @@ def test_learner_targets_and_loss_match_hand_computation():
 
     pqn.network = SimpleNamespace(apply=network)
     pqn._network_obs = lambda worlds: worlds.obs
+    return pqn
+
+
+def _hand_rollout() -> tuple[Transition, SimpleNamespace]:
+    """Four steps of one world: a truncation at row 1, a step both terminated and truncated at row 2."""
     q = lambda *rows: jnp.array(rows, jnp.float32)[:, None]  # (T, B=1, A=2)
     batch = Transition(
         obs=q([7, 0], [0, 6], [1, 3], [0, 10]),  # the Q-values the loss learns (the parameters moved since)
@@ -98,6 +100,16 @@ def test_learner_targets_and_loss_match_hand_computation():
         carry_after=jnp.zeros((4, 1, 1)),
     )
     stopped = SimpleNamespace(obs=jnp.array([[7.0, 8.0]]), carry=jnp.zeros((1, 1)), reset=jnp.zeros((1,), bool))
+    return batch, stopped
+
+
+def test_learner_targets_and_loss_match_hand_computation():
+    """`PQN.targets` and `PQN._loss` with the network replaced by one whose Q-values are its input:
+    the next values are the rollout's own shifted one row (the last from where the rollout
+    stopped), a truncation bootstraps from its final observation, a step both terminated and
+    truncated bootstraps nothing."""
+    pqn = _pqn_whose_q_values_are_its_input()
+    batch, stopped = _hand_rollout()
     targets = pqn.targets(None, batch, stopped)
     # G3 = 8 + 0.5 * 8 = 12 (the rollout's end: max Q where it stopped)
     # G2 = 6 (terminated, and truncated: its final observation's 100 is not read)
@@ -109,6 +121,20 @@ def test_learner_targets_and_loss_match_hand_computation():
     # half their mean: 0.5 * 40.22265625 / 4
     np.testing.assert_allclose(loss, 0.5 * 40.22265625 / 4, rtol=1e-6)
     np.testing.assert_allclose(info["q_mean"], 6.0, rtol=1e-6)
+
+
+def test_with_time_limit_ends_a_truncation_ends_the_return_as_a_termination_does():
+    """The rollout above with `time_limit_ends`: row 1's truncation no longer reads its final
+    observation's values, and row 0's trace stops there."""
+    pqn = _pqn_whose_q_values_are_its_input(time_limit_ends=True)
+    batch, stopped = _hand_rollout()
+    targets = pqn.targets(None, batch, stopped)
+    # G3 = 12 and G2 = 6 as above; G1 = 4 (ended: the final observation's 5 is not read)
+    # G0 = 2 + 0.5 * (0.75 * 20 + 0.25 * 4) = 10.0
+    np.testing.assert_allclose(targets[:, 0], [10.0, 4.0, 6.0, 12.0], rtol=1e-6)
+    loss, _ = pqn._loss(None, None, batch, targets)
+    # Taken Q-values 7, 6, 1, 10: errors -3, 2, -5, -2; squares 9, 4, 25, 4; half their mean: 0.5 * 42 / 4
+    np.testing.assert_allclose(loss, 5.25, rtol=1e-6)
 
 
 @pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
