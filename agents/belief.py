@@ -273,14 +273,23 @@ class PQNBeliefConfig(PQNAuxConfig):
             raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
                              "before the last action and the action")
         if self.view_radius:
-            env, _ = self.make_env()
-            half = env.config.window_shape[1] // 2
-            if self.view_radius < half:
-                raise ValueError(f"view_radius must be 0 or at least the window's half size ({half} on {self.task}): "
-                                 "the view holds the window")
+            low, high = view_radius_range(self.env_config())
+            if not low <= self.view_radius <= high:
+                raise ValueError(f"view_radius must be 0 or in {low}..{high} on {self.task}, got {self.view_radius}: at "
+                                 f"least the window's half size ({low}), as the view holds the window, and at most "
+                                 f"{high}, from where the view already shows the whole plan from every position")
         if not self.belief_filter and not self.position_coef:
             raise ValueError("pqn-belief needs position_coef > 0 (or belief_filter): the position loss trains its "
                              "belief")
+
+
+def view_radius_range(env_config) -> tuple[int, int]:
+    """The view radii that make sense on a task: from the window's half size (the view holds the
+    window) to max(rows, cols) - 1, where the view shows the whole plan from every position. A
+    wider view adds only padding, at a cost that grows with its size (tracing it alone takes
+    minutes for radii in the thousands)."""
+    rows, cols = env_config.plan_shape
+    return env_config.window_shape[1] // 2, max(rows, cols) - 1
 
 
 class PQNBelief(PQNAux):

@@ -23,6 +23,7 @@ from typing import Any, Iterator
 import jax
 import numpy as np
 
+from agents import schemas
 from agents.registry import config_from_json
 
 CONFIG_FILE = "config.json"
@@ -41,7 +42,9 @@ class DamagedCheckpoint(ValueError):
 
 def check_new_run_directory(directory: str | Path) -> Path:
     """`ValueError` unless a new run may start in `directory`: absent, or an empty directory
-    (a lock file aside) whose nearest existing folder is writable. Nothing is created."""
+    whose nearest existing folder is writable. Nothing is created. Its `.lock` alone leaves it
+    empty only when it is a plain file that no other process holds (a link, a folder or a lock
+    in use is named)."""
     from snac_jax.atomic import check_writable
 
     directory = Path(directory)
@@ -53,6 +56,7 @@ def check_new_run_directory(directory: str | Path) -> Path:
         hint = " (if it holds a run, continue it with --resume / resume=True)" if CONFIG_FILE in entries else ""
         raise ValueError(f"{directory} is not empty ({shown}){hint}; a new run needs a new or empty directory")
     if directory.is_dir():
+        check_lock_file(directory)
         if not os.access(directory, os.W_OK | os.X_OK):
             raise ValueError(f"run directory {directory} cannot be written: no permission")
     else:
@@ -63,11 +67,63 @@ def check_new_run_directory(directory: str | Path) -> Path:
 _HELD: dict[Path, list] = {}  # run directory -> [open lock file, depth]: this process's locks
 
 
+def _open_lock(directory: Path, create: bool) -> int | None:
+    """A descriptor of `directory/.lock`, opened without following a link (None: there is none
+    and `create` is False); `ValueError` when it is a link or anything but a plain file, so a
+    lock never writes outside its run directory."""
+    import stat
+
+    path = directory / LOCK_FILE
+    flags = os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK | (os.O_CREAT if create else 0)
+    try:
+        fd = os.open(path, flags, 0o644)
+    except FileNotFoundError:
+        if create:
+            raise
+        return None
+    except OSError:
+        if path.is_symlink():
+            raise ValueError(f"{path} is a symbolic link, not a lock file: a run's lock is never followed; "
+                             "remove the link if it is not this run's") from None
+        if path.exists() and not path.is_file():
+            raise ValueError(f"{path} is not a plain file, not a lock file: remove it if it is not this run's") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise ValueError(f"{path} is not a plain file, not a lock file: remove it if it is not this run's")
+    return fd
+
+
+def _in_use(directory: Path, handle) -> ValueError:
+    handle.seek(0)
+    holder = handle.read(200).strip() or "another process"
+    return ValueError(f"{directory} is in use by {holder}: one run directory takes one process at a time")
+
+
+def check_lock_file(directory: str | Path) -> None:
+    """`ValueError` when `directory/.lock` is not a plain file, or another process holds it; a
+    free one (its holder ended, even by SIGKILL) or this process's own is fine."""
+    import fcntl
+
+    directory = Path(directory)
+    if directory.absolute() in _HELD:
+        return
+    fd = _open_lock(directory, create=False)
+    if fd is None:
+        return
+    with os.fdopen(fd, "r+", errors="replace") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise _in_use(directory, handle) from None
+
+
 @contextlib.contextmanager
 def lock_run(directory: str | Path) -> Iterator[Path]:
     """Hold `directory/.lock` (created with the directory) while working on the run: a second
     process gets a `ValueError` at once. Re-entrant within a process (the CLI holds it across
-    training and evaluation, `train` again inside)."""
+    training and evaluation, `train` again inside). A `.lock` that is a link is refused, never
+    followed (`_open_lock`)."""
     import fcntl
 
     directory = Path(directory)
@@ -76,14 +132,13 @@ def lock_run(directory: str | Path) -> Iterator[Path]:
         _HELD[key][1] += 1
     else:
         directory.mkdir(parents=True, exist_ok=True)
-        handle = open(directory / LOCK_FILE, "a+")
+        handle = os.fdopen(_open_lock(directory, create=True), "r+", errors="replace")
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "another process"
+            error = _in_use(directory, handle)
             handle.close()
-            raise ValueError(f"{directory} is in use by {holder}: one run directory takes one process at a time") from None
+            raise error from None
         handle.seek(0)
         handle.truncate()
         handle.write(f"process {os.getpid()}\n")
@@ -104,21 +159,13 @@ def write_run_options(directory: str | Path, options: dict[str, Any]) -> None:
 
 
 def read_run_options(directory: str | Path) -> dict[str, Any]:
-    """The caller's options stored with the run (`{}` for runs that stored none)."""
+    """The caller's options stored with the run (`{}` for runs that stored none), checked
+    against `agents.schemas.RUN_JSON` (a hand-edited `"no_eval": "false"` is refused, not read
+    as true)."""
     path = Path(directory) / RUN_OPTIONS_FILE
     if not path.is_file():
         return {}
-    return _read_json_object(path)
-
-
-def _read_json_object(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path} is not valid JSON ({error}); it is damaged or was edited by hand") from error
-    if not isinstance(data, dict):
-        raise ValueError(f"{path} must hold a JSON object, got {type(data).__name__}")
-    return data
+    return schemas.load(path, schemas.RUN_JSON)
 
 
 def read_metrics_lines(path: str | Path) -> list[dict]:
@@ -327,11 +374,12 @@ def discard_after(directory: str | Path, chunk: int) -> list[int]:
 
 
 def read_config(directory: str | Path):
-    """The config of run directory `directory` (its config.json); errors name the file."""
+    """The config of run directory `directory` (its config.json, checked against
+    `agents.schemas.CONFIG_JSON`, then the config's own rules); errors name the file."""
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"{directory} is not a training run directory: {CONFIG_FILE} is missing")
-    data = _read_json_object(path)
+    data = schemas.load(path, schemas.CONFIG_JSON)
     try:
         return config_from_json(data)
     except (TypeError, ValueError) as error:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -76,10 +77,13 @@ def add_parser(subparsers) -> None:
                          help="run the final evaluation (the default; on --resume, even if the run was started without)")
         sub.add_argument("--no-eval", dest="no_eval", action="store_true", help="skip the final evaluation")
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
+        sub.add_argument("--sweep", action="append", default=None, metavar="NAME=V1,V2",
+                         help="train every value (the grid of all --sweep options, x --seeds) in one compiled program; "
+                              "each arm's config, metrics and evaluation under DIR/arms/<i>/; float settings only")
         add_devices_argument(sub, cpu_default="1, measured faster for training")
         add_process_arguments(sub)
         options = add_config_flags(sub, config_class(name))
-        sub.set_defaults(func=run, config_options=options)
+        sub.set_defaults(func=run_command, config_options=options)
 
 
 def build_config(args: argparse.Namespace):
@@ -95,7 +99,7 @@ RUN_OPTIONS = ("eval_episodes", "no_eval")
 
 def _options_fixed_by_the_run(args: argparse.Namespace) -> list[str]:
     """The flags given with --resume that the run's config.json already decides."""
-    names = ["task", "out", *args.config_options]
+    names = ["task", "out", "sweep", *args.config_options]
     return ["--" + name.replace("_", "-") for name in names if getattr(args, name) is not None]
 
 
@@ -138,10 +142,46 @@ def _require_evaluation_memory(algorithm, episodes: int | None) -> None:
     require_episode_memory(env, algorithm.env_params, uniform_random_policy(env.num_actions), count)
 
 
+def run_command(args: argparse.Namespace) -> int:
+    """`run`, with Ctrl-C answered by one line: what the run directory keeps and the command that
+    resumes it (the driver lets a chunk's checkpoint finish first), and exit status 130."""
+    args.run_directory = None
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        import jax
+
+        if jax.process_index() == 0:
+            print(interruption_message(args.algorithm, args.run_directory), file=sys.stderr)
+        return 130
+
+
+def interruption_message(algorithm: str, out_dir: Path | None) -> str:
+    """One line on a run interrupted while `snac train` worked on `out_dir` (None: not chosen yet)."""
+    from agents import checkpoint
+    from agents.driver import chunk_sizes
+
+    said = f"snac train {algorithm}: interrupted"
+    if out_dir is None or not (out_dir / checkpoint.CONFIG_FILE).is_file():
+        return f"{said} before the run started; nothing to resume (start it again)"
+    command = f"snac train {algorithm} --resume {shlex.quote(str(out_dir))}"
+    try:
+        config = checkpoint.read_config(out_dir)
+        total = len(chunk_sizes(config.num_updates, config.chunks))
+        last = checkpoint.latest_chunk(out_dir)
+    except ValueError:
+        return f"{said}; continue the run with: {command}"
+    if last is None:
+        return f"{said} before its first checkpoint; the run is resumable from its start: {command}"
+    if last + 1 >= total:
+        return f"{said} after training (all {total} chunks checkpointed); the run is resumable: {command}"
+    return f"{said}; {last + 1} of {total} chunks are done and checkpointed, and the run is resumable: {command}"
+
+
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from agents import checkpoint
+    from agents import checkpoint, sweep
     from agents.driver import read_metrics, train
     from agents.plotting import plot_curve
     from agents.registry import build_algorithm
@@ -161,26 +201,31 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
         stored = checkpoint.read_run_options(out_dir)
         options = {name: given[name] if given[name] is not None else stored.get(name) for name in RUN_OPTIONS}
+        swept = sweep.load(out_dir)
     else:
         config = build_config(args)
+        swept = _parse_sweep(args, config)
         kind = "-rnn" if getattr(config, "recurrent", False) else ""
         out_dir = args.out or Path("runs") / f"{config.algorithm}{kind}-{config.task}-{time.strftime('%Y%m%d-%H%M%S')}"
         if jax.process_index() == 0:
             checkpoint.check_new_run_directory(out_dir)  # before any work
         options = given
+    args.run_directory = out_dir  # what an interruption names (`run_command`)
     options["no_eval"] = bool(options["no_eval"])
     steps = config.num_updates * config.steps_per_update
     rounded = "" if steps == config.total_steps else (
         f" (total_steps {config.total_steps:,} rounded to whole updates of {config.steps_per_update:,})")
-    print(f"{config.algorithm} on {config.task}: {steps:,} env steps{rounded} x {config.seeds} seed(s), "
+    arms = 1 if swept is None else swept.num_arms
+    grid = "" if swept is None else f" x {arms} arms ({', '.join(swept.names)})"
+    print(f"{config.algorithm} on {config.task}: {steps:,} env steps{rounded} x {config.seeds} seed(s){grid}, "
           f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
 
     algorithm = build_algorithm(config)
     describe = getattr(algorithm, "describe_memory", None)  # replay learners: say the buffer's size
     if describe is not None:
         print(describe(), file=sys.stderr)
-    memory.require(f"training {config.seeds} seed(s) x {config.num_envs:,} worlds", training_memory_bytes(algorithm),
-                   "use fewer worlds (--num-envs), shorter rollouts or fewer seeds")
+    memory.require(f"training {config.seeds} seed(s){grid} x {config.num_envs:,} worlds", arms * training_memory_bytes(algorithm),
+                   "use fewer worlds (--num-envs), shorter rollouts, fewer seeds or fewer arms")
     if not options["no_eval"]:
         _require_evaluation_memory(algorithm, options["eval_episodes"])  # now, not after the training
     mesh = training_mesh(args.devices, config.num_envs)
@@ -189,12 +234,15 @@ def run(args: argparse.Namespace) -> int:
     writer = jax.process_index() == 0  # across processes, process 0 writes the run directory
     with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
         algorithm, state = train(config, out_dir, resume=resume, progress=not args.no_progress, mesh=mesh,
-                                 run_options=None if resume else options)
+                                 run_options=None if resume else options, swept=swept)
         if not writer:
             return 0
         if resume:
             checkpoint.write_run_options(out_dir, options)
         state = state.replace(params=host_value(state.params))
+        if swept is not None:
+            evaluate_sweep(config, swept, state, out_dir, None if options["no_eval"] else options)
+            return 0
         config = algorithm.config
         kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
         plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
@@ -204,13 +252,60 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_sweep(args: argparse.Namespace, config):
+    """The run's grid from `--sweep` (None without one), refused in one line where a value would
+    change shapes or is also given as its own flag; traced once to check the learner takes it."""
+    from agents.sweep import check_traceable, parse_sweep
+
+    if not args.sweep:
+        return None
+    swept = parse_sweep(args.sweep, config)
+    both = [name for name in swept.names if getattr(args, name, None) is not None]
+    if both:
+        flag = "--" + both[0].replace("_", "-")
+        raise ValueError(f"{flag} and --sweep {both[0]}=... both set {both[0]}; give it once")
+    check_traceable(config, swept)
+    return swept
+
+
+def evaluate_sweep(config, swept, state, out_dir: Path, options: dict | None) -> None:
+    """Each arm's curve and, with `options`, its evaluation under `arms/<i>/`, then one table of
+    the arms (the mean over seeds of the protocol's mean IoU)."""
+    import jax
+    import numpy as np
+
+    from agents.driver import read_metrics
+    from agents.plotting import plot_curve
+    from agents.registry import build_algorithm
+    from agents.sweep import arm_dir
+
+    rows = []
+    for arm in range(swept.num_arms):
+        arm_config, directory = swept.arm_config(config, arm), arm_dir(out_dir, arm)
+        runs = slice(arm * config.seeds, (arm + 1) * config.seeds)
+        plot_curve(read_metrics(directory), config.task, f"{config.algorithm} on {config.task}: {swept.label(arm)}",
+                   directory / "curve.png")
+        if options is None:
+            continue
+        print(f"\n## arm {arm}: {swept.label(arm)}")
+        arm_state = state.replace(params=jax.tree.map(lambda x: x[runs], state.params))
+        results = evaluate_run(build_algorithm(arm_config), arm_state, directory, options["eval_episodes"])
+        means = [r.mean for r in results]
+        rows.append(f"| {arm} | {swept.label(arm)} | {', '.join(f'{m:.3f}' for m in means)} | {np.mean(means):.3f} |")
+    print(f"wrote {out_dir / 'arms'}/<i>/curve.png for {swept.num_arms} arms", file=sys.stderr)
+    if rows:
+        print(f"\n## {swept.num_arms} arms, greedy mean IoU (tuning key)\n")
+        print("| arm | settings | per seed | mean |\n|---:|---|---|---:|\n" + "\n".join(rows))
+
+
 def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: int | None = None,
-                 counts: dict[str, int] | None = None) -> None:
+                 counts: dict[str, int] | None = None) -> list:
     """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`. `seed` is
     the evaluation key (default `TUNING_EVAL_SEED`; `snac table` reports with `REPORT_EVAL_SEED`);
     `counts` (`static_episodes`, `episodes_per_test_design`) replaces `episodes` where given."""
     import jax
 
+    from agents.driver import divergence_note, read_metrics
     from snac_jax.atomic import atomic_write_json
     from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
@@ -230,11 +325,15 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
         if config.seeds > 1:
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)
+    diverged = divergence_note(read_metrics(out_dir))
     paper = paper_row(load_paper_results(), config.paper_method)
     paper = {r.task: paper_cell(paper, config.task) for r in results}
     print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
           f"(the paper's {paper_column(config.task)} column)")
     print()
     print(markdown_table(results, paper))
+    if diverged:
+        print(f"\nnote: {diverged}")
     atomic_write_json(out_dir / "eval.json", {r.task: r.to_json() for r in results})
     print(f"\nwrote {out_dir / 'eval.json'}")
+    return results

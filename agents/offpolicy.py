@@ -75,6 +75,12 @@ class ReplayConfig(TrainConfig):
         """Steps per sampled sequence: context, learning steps, and n more to bootstrap from."""
         return self.context + self.sequence_length + self.n_step
 
+    def first_learning_update(self) -> int:
+        """The first update (counting from 1) that takes gradient steps: the replay must hold a
+        sampled window (`sample_length` steps per world; each update adds `rollout_steps`) and
+        the run must have taken `learning_starts` env steps (`steps_per_update` per update)."""
+        return max(1, -(-self.sample_length // self.rollout_steps), -(-self.learning_starts // self.steps_per_update))
+
     def check(self) -> None:
         per_world = self.buffer_size // self.num_envs
         if per_world < self.sample_length + self.rollout_steps:
@@ -82,6 +88,26 @@ class ReplayConfig(TrainConfig):
                 f"buffer_size ({self.buffer_size}) holds {per_world} steps per world; it must hold at least "
                 f"sample_length + rollout_steps = {self.sample_length + self.rollout_steps} (raise buffer_size or lower num_envs)"
             )
+        self._check_learns()
+
+    def _check_learns(self) -> None:
+        """A run must take at least one gradient step: a run that never learns would still be
+        scored and reported as trained."""
+        if self.first_learning_update() <= self.num_updates:
+            return
+        run_steps = self.num_updates * self.steps_per_update
+        if self.learning_starts > run_steps:
+            raise ValueError(
+                f"learning_starts ({self.learning_starts:,}) is beyond the run's {run_steps:,} env steps per seed "
+                f"({self.num_updates:,} update(s) of {self.steps_per_update:,}): no gradient step would be taken; "
+                f"learning_starts must be at most {run_steps:,} (or raise total_steps)"
+            )
+        needed = -(-self.sample_length // self.rollout_steps) * self.steps_per_update
+        raise ValueError(
+            f"the run's {self.num_updates:,} update(s) of rollout_steps {self.rollout_steps} put "
+            f"{self.num_updates * self.rollout_steps} steps per world in the replay, fewer than one sampled window "
+            f"(sample_length {self.sample_length}): no gradient step would be taken; total_steps must be at least {needed:,}"
+        )
 
 
 # --- replay contents ---------------------------------------------------------------------------------

@@ -9,18 +9,20 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from agents import sweep
 from agents.checkpoint import CHECKPOINT_DIR, read_config, restore_latest
 from agents.driver import initial_state
 from agents.registry import build_algorithm
 
 
 def load_trained(directory: str | Path):
-    """`(algorithm object, runner state with a leading seed axis, chunk)` of a run directory,
-    from its newest checkpoint. A damaged newest checkpoint is an error (scoring the one before
-    would silently score an older policy) that says how to repair the run."""
+    """`(algorithm object, runner state with a leading run axis, chunk)` of a run directory,
+    from its newest checkpoint; the run axis is the seeds, or a sweep's arms x seeds (arm-major).
+    A damaged newest checkpoint is an error (scoring the one before would silently score an
+    older policy) that says how to repair the run."""
     config = read_config(directory)
     algorithm = build_algorithm(config)
-    like = initial_state(algorithm)
+    like = initial_state(algorithm, swept=sweep.load(Path(directory)))
     chunk, state, notes = restore_latest(directory, like)
     if chunk is None:
         raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ (the run was stopped before its first chunk ended?)")
@@ -50,9 +52,15 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     if env.config != trained_env.config or not _same_stride_noise(env.default_params, trained_params):
         raise ValueError(f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
                          f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)")
-    if not 0 <= seed_index < config.seeds:
-        raise ValueError(f"the seed index (seed_index, --seed-index) must be in 0..{config.seeds - 1} for {checkpoint}, got {seed_index}")
+    swept = sweep.load(Path(checkpoint))
+    runs = config.seeds * (1 if swept is None else swept.num_arms)
+    if not 0 <= seed_index < runs:
+        what = "" if swept is None else f" (a sweep: arm a, seed s is index a * {config.seeds} + s)"
+        raise ValueError(f"the seed index (seed_index, --seed-index) must be in 0..{runs - 1} for {checkpoint}{what}, "
+                         f"got {seed_index}")
     algorithm, state, _ = load_trained(checkpoint)
+    if swept is not None:
+        algorithm = build_algorithm(swept.arm_config(config, seed_index // config.seeds))
     params = jax.tree.map(lambda x: x[seed_index], state.params)
     return algorithm.policy(params)
 

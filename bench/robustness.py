@@ -56,6 +56,29 @@ def snac(work: Path, *argv: str, timeout: float = 600) -> dict:
     return {"code": code, "out": out, "err": err, "seconds": round(time.perf_counter() - start, 1)}
 
 
+def snac_interrupted(work: Path, argv, when: Path, timeout: float = 600) -> dict:
+    """`snac ARGV` sent SIGINT (Ctrl-C) once `when` exists: exit status, stdout, stderr, seconds."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    env.pop("SNAC_TRACEBACK", None)
+    start = time.perf_counter()
+    process = subprocess.Popen([sys.executable, "-m", "snac_jax.cli", *argv], cwd=work, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    while not when.exists() and process.poll() is None and time.perf_counter() - start < timeout:
+        time.sleep(0.05)
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        out, err = process.communicate(timeout=timeout)
+        code = process.returncode
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        code = "timeout"
+    # the run's own progress lines are not the interruption's: keep what follows the last of them
+    err = "\n".join(line for line in err.splitlines() if not line.startswith(("ppo on", "worlds split", "compiled a chunk")))
+    return {"code": code, "out": out, "err": err, "seconds": round(time.perf_counter() - start, 1)}
+
+
 def judge_refusal(result: dict, phrase: str) -> tuple[str, str]:
     """A refusal: `phrase` (in any case) in one clean error line with status 2 is good; the
     phrase with a traceback or another status is poor; no phrase (accepted, or another error)
@@ -77,7 +100,10 @@ def run_cli_case(work: Path, case: dict) -> dict:
                                    str(case["hold_lock"] / ".lock")], stdout=subprocess.PIPE, text=True)
         holder.stdout.readline()
     try:
-        result = snac(work, *case["argv"], timeout=case.get("timeout", 600))
+        if "interrupt_when" in case:
+            result = snac_interrupted(work, case["argv"], case["interrupt_when"])
+        else:
+            result = snac(work, *case["argv"], timeout=case.get("timeout", 600))
     finally:
         if holder is not None:
             holder.kill()
@@ -89,7 +115,9 @@ def run_cli_case(work: Path, case: dict) -> dict:
         if "banner" in case and case["banner"] not in result["err"]:
             verdict, note = "bad", f"banner wrong: {result['err'].splitlines()[:1]}"
     else:
-        ok = result["code"] == 0 and case.get("phrase_ok", "") in result["err"] + result["out"]
+        ok = result["code"] == case.get("exit_code", 0) and case.get("phrase_ok", "") in result["err"] + result["out"]
+        if "exit_code" in case:  # an interruption: one clean line, no traceback
+            ok = ok and "Traceback" not in result["err"] and len(result["err"].strip().splitlines()) <= 3
         try:
             ok = ok and case["check"]()
         except (OSError, ValueError, KeyError) as error:

@@ -10,9 +10,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.dont_write_bytecode = True
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
+import gymnasium  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
+import snac_jax.gymnasium  # noqa: E402, F401  (registers the SNAC/<task>-v0 ids)
+from agents.registry import make_config  # noqa: E402
 
 from snac_jax import make  # noqa: E402
 from snac_jax.evaluation import evaluate_task  # noqa: E402
@@ -26,6 +30,20 @@ envb, pb = make("2d-dynamic-dense", design_bank_size=4)
 s2 = env2.reset(jax.random.key(0), p2)[1]
 sb = envb.reset(jax.random.key(0), pb)[1]
 two = Policy(lambda k, d: 0, lambda p, s, o, k: (jnp.ones(2, jnp.int32), s), None, "two-actions")
+bare = Policy(lambda k, d: jnp.zeros(2), lambda p, s, o, k: jnp.int32(0), None, "bare-action")
+grows = Policy(lambda k, d: jnp.zeros(2), lambda p, s, o, k: (jnp.int32(0), jnp.zeros(3)), None, "memory-grows")
+states2 = jax.vmap(env2.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 3), p2)[1]
+
+
+def step_past_the_end():
+    """The single Gymnasium env stepped once more after its episode was truncated."""
+    env = gymnasium.make("SNAC/1d-static-sin-v0", max_steps=3)
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(2)
+    env.step(2)
+
+
 cases = [
     ("make(max_steps=2**31)", lambda: make("2d-static-dense", max_steps=2**31), "int in 1..2147483647"),
     ("make(design_seed=2**64)", lambda: make("2d-dynamic-dense", design_seed=2**64), "int in 0..4294967295"),
@@ -41,6 +59,21 @@ cases = [
      "design_index must be in 0..3"),
     ("step_with_stride(stride=7)", lambda: envb.step_with_stride(sb, 0, 7, pb), "stride must be in 1..3"),
     ("step_with_stride(action=99)", lambda: envb.step_with_stride(sb, 99, 1, pb), "action must be in 0..4"),
+    ("reset_to_design(design_index=0.5)", lambda: envb.reset_to_design(jax.random.key(0), pb, 0.5),
+     "design_index must be one int in 0..3"),
+    ("step_with_stride(stride=2.0)", lambda: envb.step_with_stride(sb, 0, 2.0, pb), "stride must be one int in 1..3"),
+    ("env.privileged on a batch of 3 states", lambda: env2.privileged(states2, p2), "jax.vmap(env.privileged"),
+    ("evaluate_task: a policy whose act returns a bare action",
+     lambda: evaluate_task("1d-static-sin", bare, static_episodes=2, max_steps=5),
+     "policy.act must return (action, policy_state)"),
+    ("evaluate_task: a policy whose act changes its memory's shape",
+     lambda: evaluate_task("1d-static-sin", grows, static_episodes=2, max_steps=5),
+     "policy.act must return a policy_state like the one it was given"),
+    ("gymnasium.make('SNAC/1d-static-sin-v0', task_id='2d-static-dense')",
+     lambda: gymnasium.make("SNAC/1d-static-sin-v0", task_id="2d-static-dense"), "is the task 1d-static-sin"),
+    ("the single Gymnasium env stepped after truncation", step_past_the_end, "the episode ended (truncated)"),
+    ("make_config('pqn-belief', view_radius=100000)",
+     lambda: make_config("pqn-belief", "2d-static-dense", view_radius=100000), "view_radius must be 0 or in 3..19"),
     ("evaluate_task: a 5-action random policy on a 3-action task",
      lambda: evaluate_task("1d-static-sin", uniform_random_policy(5), static_episodes=4, max_steps=30), "outside 0..2"),
     ("evaluate_task: a policy returning two actions",
@@ -64,8 +97,8 @@ for what, call, phrase, *memory in cases:
     try:
         call()
         verdict, note = "bad", "accepted"
-    except ValueError as error:
-        verdict, note = ("good" if phrase in str(error) else "bad"), f"ValueError: {error}"
+    except (ValueError, gymnasium.error.ResetNeeded) as error:  # ResetNeeded: Gymnasium's convention
+        verdict, note = ("good" if phrase in str(error) else "bad"), f"{type(error).__name__}: {error}"
     except Exception as error:
         verdict, note = ("poor" if phrase in str(error) else "bad"), f"{type(error).__name__}: {error}"
     results.append({"what": what, "input": "Python API", "verdict": verdict, "note": note.splitlines()[0][:300]})

@@ -38,6 +38,7 @@ def setup(work: Path, snac) -> dict:
     (work / "bad_paper.json").write_text("{")
     (work / "empty_traces.json").write_text("[]")
     human_records(work)
+    table_files(work)
     return made
 
 
@@ -70,6 +71,105 @@ def human_records(work: Path) -> None:
         (work / f"human-{name}.jsonl").write_text(EpisodeRecord(**{**vars(honest), **changes}).to_json() + "\n")
     text = (work / "human-honest.jsonl").read_text()
     (work / "human-torn.jsonl").write_text(text + text[: len(text) // 2])
+
+
+def table_files(work: Path) -> None:
+    """Runs directories for `snac table`: a finished cell made from the tiny run (its config and
+    eval.json, a cell.json saying how it was scored), damaged copies of it, another run's files
+    where a cell goes, links where a lock, a report or a README goes; and damaged run.json files."""
+    from agents.table.readme import BEGIN, END
+    from snac_jax.evaluation import TUNING_EVAL_SEED
+
+    good = work / "good-runs" / "smoke" / "ppo" / "1d-static-sin"
+    good.mkdir(parents=True)
+    for name in ("config.json", "eval.json", "metrics.jsonl"):
+        shutil.copyfile(work / "run" / name, good / name)
+    (good / "cell.json").write_text(json.dumps({
+        "preset": "smoke", "algorithm": "ppo", "column": "1d-static", "task": "1d-static-sin",
+        "budget": {"env_steps": 256, "requested": 256, "source": "robustness", "capped": False},
+        "eval_seed": TUNING_EVAL_SEED, "protocol": {"static_episodes": 2, "episodes_per_test_design": 1}}))
+
+    def damaged(name: str, file: str, edit) -> None:
+        cell = work / f"{name}-runs" / "smoke" / "ppo" / "1d-static-sin"
+        shutil.copytree(good, cell)
+        (cell / file).write_text(edit((cell / file).read_text()))
+
+    def edit_json(change):
+        return lambda text: json.dumps(change(json.loads(text)))
+
+    damaged("layout", "metrics.jsonl", lambda text: text)  # another run's finished files, without checkpoints
+    damaged("iou", "eval.json", edit_json(lambda d: {k: {**v, "mean": 7.5, "min": -3.0} for k, v in d.items()}))
+    damaged("nan", "eval.json", edit_json(lambda d: {k: {**v, "mean": float("nan")} for k, v in d.items()}))
+    damaged("cut-eval", "eval.json", lambda text: text[: len(text) // 2])
+    damaged("garbage-cell", "cell.json", lambda text: "garbage")
+    damaged("list-cell", "cell.json", lambda text: "[]")
+    damaged("no-protocol", "cell.json", edit_json(lambda d: {k: v for k, v in d.items() if k != "protocol"}))
+    damaged("bad-task", "cell.json", edit_json(lambda d: {**d, "task": "1d-static-sine"}))
+    damaged("string-seeds", "config.json", edit_json(lambda d: {**d, "seeds": "2"}))
+    damaged("empty-config", "config.json", lambda text: "{}")
+    (work / "table-runs" / "smoke").mkdir(parents=True)
+    (work / "linklock").mkdir()
+    (work / "precious.txt").write_text("a file outside the run\n")
+    (work / "linklock" / ".lock").symlink_to(work / "precious.txt")
+    (work / "link-results").mkdir()
+    (work / "link-results" / "table.md").symlink_to(work / "precious.txt")
+    (work / "readme.md").write_text(f"intro\n{BEGIN}\nold\n{END}\n")
+    (work / "readme-link.md").symlink_to(work / "readme.md")
+    for name, options in (("runjson-string", '{"eval_episodes": 2, "no_eval": "false"}'),
+                          ("runjson-negative", '{"eval_episodes": -5, "no_eval": false}')):
+        shutil.copytree(work / "run", work / name)
+        (work / name / "run.json").write_text(options)
+
+
+def table_cases(work: Path) -> list[dict]:
+    """`snac table`, its runs directory, `--report`, the lock and run.json (see `table_files`)."""
+    def unchanged(*paths: Path):
+        before = {path: path.read_bytes() for path in paths}
+        return lambda: all(path.read_bytes() == data for path, data in before.items())
+
+    cell = ["--preset", "smoke", "--algorithms", "ppo", "--tasks", "1d-static-sin", "--no-progress"]
+    report = ["table", "--preset", "smoke", "--report"]
+    damaged = [("cut-eval", "a truncated eval.json", "eval.json is not valid JSON"),
+               ("nan", "a NaN mean in eval.json", "mean must be a finite number in [0, 1], got nan"),
+               ("garbage-cell", "a garbage cell.json", "cell.json is not valid JSON"),
+               ("list-cell", "cell.json = []", "cell.json must hold a JSON object, got list"),
+               ("no-protocol", "a cell.json without protocol", "cell.json: protocol is missing"),
+               ("bad-task", "a bad task id in cell.json", "cell.json: unknown task '1d-static-sine'"),
+               ("string-seeds", 'config.json with "seeds": "2"', "config.json: seeds must be an int >= 1, got '2'"),
+               ("empty-config", "config.json = {}", "config.json: algorithm is missing")]
+    return [
+        dict(what="table on a runs directory another table run holds", argv=["table", *cell, "--runs-dir", "table-runs"],
+             refuse="is in use by", hold_lock=work / "table-runs" / "smoke",
+             also=lambda: sorted(p.name for p in (work / "table-runs" / "smoke").iterdir()) == [".lock"]),
+        dict(what="table --runs-dir holding another run's cell files (the report's layout)",
+             argv=["table", *cell, "--runs-dir", "layout-runs"], refuse="the table deletes nothing it did not make",
+             also=unchanged(*(work / "layout-runs" / "smoke" / "ppo" / "1d-static-sin").iterdir())),
+        dict(what="train --out DIR whose .lock is a link to a file outside", argv=["train", "ppo", *SHORT, "--out", "linklock"],
+             refuse="is a symbolic link", also=unchanged(work / "precious.txt")),
+        dict(what="table --report with an impossible IoU (mean 7.5, min -3)", argv=[*report, "--runs-dir", "iou-runs",
+             "--results-dir", "iou-results"], refuse="mean must be a finite number in [0, 1], got 7.5",
+             also=lambda: not (work / "iou-results").exists()),
+        dict(what="table --algorithms ppo ppo --dry-run (a cell named twice)", argv=["table", *cell[:3], "ppo", *cell[3:],
+             "--runs-dir", "dup-runs", "--dry-run"], check=lambda: not (work / "dup-runs").exists(), phrase_ok="1 cells,"),
+        dict(what="table --report --dry-run", argv=[*report, "--dry-run", "--runs-dir", "good-runs", "--results-dir",
+             "dry-results"], check=lambda: not (work / "dry-results").exists(), phrase_ok="would write"),
+        dict(what="table --report --runs-dir DIR that does not exist", argv=[*report, "--runs-dir", "nowhere"],
+             refuse="does not exist"),
+        dict(what="table --report --runs-dir FILE", argv=[*report, "--runs-dir", "file"], refuse="is a file"),
+        *[dict(what=f"table --report: {what}", argv=[*report, "--runs-dir", f"{name}-runs", "--results-dir", f"{name}-results"],
+               refuse=phrase, also=lambda name=name: not (work / f"{name}-results").exists()) for name, what, phrase in damaged],
+        dict(what="table --report --readme LINK", argv=[*report, "--runs-dir", "good-runs", "--results-dir", "readme-results",
+             "--readme", "readme-link.md"], refuse="is a symbolic link",
+             also=lambda: (work / "readme-link.md").is_symlink() and not (work / "readme-results").exists()),
+        dict(what="table --report where table.md is a link to a file outside", argv=[*report, "--runs-dir", "good-runs",
+             "--results-dir", "link-results"], refuse="is a symbolic link inside", also=unchanged(work / "precious.txt")),
+        dict(what="table --report on a good cell", argv=[*report, "--runs-dir", "good-runs", "--results-dir", "good-results"],
+             check=lambda: (work / "good-results" / "table" / "smoke" / "ppo" / "1d-static-sin" / "eval.json").is_file()),
+        dict(what='train --resume RUN whose run.json says "no_eval": "false"', argv=["train", "ppo", "--resume",
+             "runjson-string"], refuse="no_eval must be true or false", also=unchanged(work / "runjson-string" / "metrics.jsonl")),
+        dict(what="train --resume RUN whose run.json says eval_episodes -5", argv=["train", "ppo", "--resume",
+             "runjson-negative"], refuse="eval_episodes must be an int >= 1", also=unchanged(work / "runjson-negative" / "metrics.jsonl")),
+    ]
 
 
 def cli_cases(work: Path) -> list[dict]:
@@ -185,4 +285,45 @@ def cli_cases(work: Path) -> list[dict]:
         dict(what="eval --policy nope", argv=["eval", "--policy", "nope"], refuse="registered policies"),
         dict(what="eval with two sources", argv=["eval", "--policy", "random", "--human", "human-honest.jsonl"],
              refuse="exactly one of"),
+        *training_cases(work),
+        *table_cases(work),
+    ]
+
+
+def training_cases(work: Path) -> list[dict]:
+    """Training that would learn nothing, diverge, or be interrupted; sweeps and reset strategies."""
+    def strict_lines(path: Path) -> list[dict]:
+        def refuse(constant):
+            raise ValueError(f"not strict JSON: {constant}")
+        return [json.loads(line, parse_constant=refuse) for line in path.read_text().splitlines() if line]
+
+    small = ["--num-envs", "8", "--rollout-steps", "8", "--total-steps", "256", "--no-progress"]
+    return [
+        dict(what="train dqn --learning-starts beyond the whole budget", argv=["train", "dqn", *small, "--learning-starts",
+             "100000", "--out", "late-dqn"], refuse="learning_starts must be at most 256",
+             also=lambda: not (work / "late-dqn").exists()),
+        dict(what="train sac --learning-starts one step past the budget", argv=["train", "sac", *small, "--learning-starts",
+             "257", "--out", "late-sac"], refuse="learning_starts must be at most 256",
+             also=lambda: not (work / "late-sac").exists()),
+        dict(what="train dqn too short to fill one replay window", argv=["train", "dqn", "--num-envs", "8", "--rollout-steps",
+             "1", "--total-steps", "8", "--learning-starts", "0", "--no-progress", "--out", "short-replay"],
+             refuse="no gradient step would be taken"),
+        dict(what="train sac --reward-scale 1e38 (diverges)", argv=["train", "sac", *small, "--batch-size", "16",
+             "--hidden-sizes", "16,16", "--learning-starts", "0", "--chunks", "2", "--reward-scale", "1e38", "--max-steps",
+             "40", "--eval-episodes", "2", "--out", "diverged"], phrase_ok="note: training diverged",
+             check=lambda: all(r.get("diverged") for r in strict_lines(work / "diverged" / "metrics.jsonl"))),
+        dict(what="Ctrl-C during train (SIGINT after the second checkpoint)", argv=["train", "ppo", "--task", "1d-static-sin",
+             *TINY, "--total-steps", "5120", "--chunks", "40", "--no-eval", "--out", "sigint"],
+             interrupt_when=work / "sigint" / "checkpoints" / "1", exit_code=130,
+             phrase_ok="the run is resumable: snac train ppo --resume sigint"),
+        dict(what="train --sweep num-envs=8,16 (a shape)", argv=["train", "ppo", *SHORT, "--sweep", "num-envs=8,16", "--out",
+             "sweep-shape"], refuse="num_envs cannot be swept in one program", also=lambda: not (work / "sweep-shape").exists()),
+        dict(what="train --learning-rate X --sweep learning-rate=...", argv=["train", "ppo", *SHORT, "--learning-rate", "0.001",
+             "--sweep", "learning-rate=1e-3,2e-3", "--out", "sweep-twice"], refuse="both set learning_rate"),
+        dict(what="train dqn --sweep exploration-fraction=0.1,0.5 (read outside the trace)", argv=["train", "dqn", *small,
+             "--learning-starts", "0", "--sweep", "exploration-fraction=0.1,0.5", "--out", "sweep-python"],
+             refuse="cannot be swept in one program"),
+        dict(what="train --resume RUN --sweep ...", argv=["train", "ppo", "--resume", "run", "--sweep", "learning-rate=1e-3,2e-3"],
+             refuse="--sweep cannot change it"),
+        dict(what="rollout --reset vmap", argv=["rollout", "--reset", "vmap"], refuse="invalid choice: 'vmap'"),
     ]

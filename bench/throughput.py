@@ -9,8 +9,9 @@ auto-reset, for every task and batch size, against the plain NumPy engine in the
 What is timed: `snac_jax.rollout.random_rollout`, one jitted `lax.scan` of `--steps` steps over
 N worlds (uniform-random actions, auto-reset, episode statistics accumulated), split over the
 local devices with `shard_map` (`--devices`; on a CPU one device per core). The worlds step with
-`env.step_batch` (equal to `vmap(env.step)` bit for bit; it resets only the worlds that ended);
-`--vmap-step` also measures `vmap(env.step)`. Each point is
+`env.step_batch` (equal to `vmap(env.step)` bit for bit) and each auto-reset strategy of
+`--reset` (default `auto`: the backend's own; `--reset loop select` measures both, `select` being
+what `vmap(env.step)` computes). Each point is
 the median of `--repeats` timed calls after one warm-up call; compilation is timed on its own.
 The policy does not read observations, so XLA drops their computation, as in gymnax's own
 benchmarks; a learning agent pays for them on top.
@@ -43,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 sys.dont_write_bytecode = True  # nothing but the results is written
 
 from snac_jax import devices  # noqa: E402  (light: does not start JAX)
+from snac_jax.batched_step import RESET_STRATEGIES  # noqa: E402
 from snac_jax.cli.arguments import positive_int  # noqa: E402  (light as well)
 
 DEFAULT_NUM_ENVS = (1, 64, 1024, 4096, 16384)
@@ -69,8 +71,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per point, median reported (>= 3)")
     parser.add_argument("--devices", type=device_counts, default=None,
                         help="device counts to measure, e.g. 'all' (default: one per core), '1', '1,all'")
-    parser.add_argument("--vmap-step", action="store_true",
-                        help="also measure jax.vmap(env.step) (select-all auto-reset) besides env.step_batch")
+    parser.add_argument("--reset", nargs="+", choices=RESET_STRATEGIES, default=["auto"],
+                        help="auto-reset strategies to measure (default: auto, the backend's own); "
+                             "select is what vmap(env.step) computes")
     parser.add_argument("--numpy-steps", type=positive_int, default=None, help="steps of the NumPy baseline per task (default 20000)")
     parser.add_argument("--no-e2e", action="store_true", help="skip timing `snac rollout` end to end")
     parser.add_argument("--quick", action="store_true", help="every task at N=64, T=100: a smoke run (< 2 min)")
@@ -104,7 +107,7 @@ def usable_devices(num_envs: int, num_devices: int) -> int:
     return max(d for d in range(1, min(num_devices, len(jax.devices())) + 1) if num_envs % d == 0)
 
 
-def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repeats: int, step: str = "step_batch") -> dict:
+def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repeats: int, reset: str = "auto") -> dict:
     import jax
 
     from snac_jax import make
@@ -114,7 +117,7 @@ def measure_jax(task: str, num_envs: int, num_steps: int, num_devices: int, repe
     mesh = devices.env_mesh(usable_devices(num_envs, num_devices))
     key = jax.random.key(0)
     start = time.perf_counter()
-    compiled = random_rollout.lower(key, env, params, num_envs, num_steps, mesh, step == "step_batch").compile()
+    compiled = random_rollout.lower(key, env, params, num_envs, num_steps, mesh, reset).compile()
     compile_s = time.perf_counter() - start
     memory = compiled.memory_analysis()
     xla_mb = None
@@ -162,6 +165,12 @@ def load() -> str:
         return "n/a"
 
 
+def reset_of(row: dict) -> str:
+    """The auto-reset strategy a row measured (rows written before `reset` existed name the step:
+    `step_batch` reset one by one, `vmap(step)` selected)."""
+    return row.get("reset") or ("loop" if row["step"] == "step_batch" else "select")
+
+
 def family(task: str) -> str:
     return task[:2]
 
@@ -176,16 +185,16 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
         "NumPy: one world per Python loop (`bench/numpy_engine.py`), one core.",
         "",
     ]
-    columns = sorted({(r["devices_requested"], r["step"]) for r in rows}, key=lambda c: (c[1] != "step_batch", c[0]))
+    columns = sorted({(r["devices_requested"], reset_of(r)) for r in rows}, key=lambda c: (c[1], c[0]))
     largest = max(r["num_envs"] for r in rows)
     lines += [f"## Headline: N = {largest}", ""]
-    header = "| task | " + " | ".join(f"{d} device{'s' if d > 1 else ''}, {step}" for d, step in columns) + " | NumPy | JAX / NumPy (best) |"
+    header = "| task | " + " | ".join(f"{d} device{'s' if d > 1 else ''}, {step} reset" for d, step in columns) + " | NumPy | JAX / NumPy (best) |"
     lines += [header, "|" + "---|" * (len(columns) + 3)]
     for task in dict.fromkeys(r["task"] for r in rows):
         cells = []
         best = None
         for d, step in columns:
-            match = [r for r in rows if r["task"] == task and r["num_envs"] == largest and r["devices_requested"] == d and r["step"] == step]
+            match = [r for r in rows if r["task"] == task and r["num_envs"] == largest and r["devices_requested"] == d and reset_of(r) == step]
             cells.append(f"{match[0]['steps_per_s'] / 1e6:.2f} M" if match else "")
             if match and (best is None or match[0]["steps_per_s"] > best["steps_per_s"]):
                 best = match[0]
@@ -195,12 +204,12 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
         fam_rows = [r for r in rows if family(r["task"]) == fam]
         if not fam_rows:
             continue
-        lines += ["", f"## {fam.upper()}", "", "| task | N | devices | step | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
+        lines += ["", f"## {fam.upper()}", "", "| task | N | devices | reset | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
                   "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
         for r in fam_rows:
             xla = f"{r['xla_buffers_mb']:.0f}" if r["xla_buffers_mb"] is not None else ""
             lines.append(
-                f"| {r['task']} | {r['num_envs']} | {r['devices']} | {r['step']} | {r['steps_per_s']:,.0f} | {r['compile_s']:.2f} | {xla} | "
+                f"| {r['task']} | {r['num_envs']} | {r['devices']} | {reset_of(r)} | {r['steps_per_s']:,.0f} | {r['compile_s']:.2f} | {xla} | "
                 f"{r['peak_rss_mb']:.0f} | {r['numpy_steps_per_s']:,.0f} | {r['ratio']:.1f} |"
             )
     if e2e:
@@ -225,12 +234,12 @@ def plot(rows: list[dict], out: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for i, task in enumerate(dict.fromkeys(r["task"] for r in fam_rows)):
             colour = f"C{i}"
-            for d, step in sorted({(r["devices_requested"], r["step"]) for r in fam_rows}):
+            for d, step in sorted({(r["devices_requested"], reset_of(r)) for r in fam_rows}):
                 points = sorted(
-                    (r["num_envs"], r["steps_per_s"]) for r in fam_rows if r["task"] == task and r["devices_requested"] == d and r["step"] == step
+                    (r["num_envs"], r["steps_per_s"]) for r in fam_rows if r["task"] == task and r["devices_requested"] == d and reset_of(r) == step
                 )
-                style = ("-" if d > 1 else "--") + ("o" if step == "step_batch" else "x")
-                label = f"{task} ({d} dev{'' if step == 'step_batch' else ', vmap(step)'})"
+                style = ("-" if d > 1 else "--") + ("o" if step == "loop" else "x")
+                label = f"{task} ({d} dev, {step})"
                 ax.plot(*zip(*points), style, color=colour, label=label, markersize=4)
             numpy_rate = next(r["numpy_steps_per_s"] for r in fam_rows if r["task"] == task)
             ax.axhline(numpy_rate, color=colour, linestyle=":", linewidth=1)
@@ -312,7 +321,9 @@ def main(argv=None) -> int:
         "load_start": load(),
     }
     print(f"# {len(tasks)} tasks, N in {args.num_envs}, T={args.steps}, devices {args.devices}, load {context['load_start']}", flush=True)
-    steps = ["step_batch", "vmap(step)"] if args.vmap_step else ["step_batch"]
+    from snac_jax.batched_step import resolve_reset
+
+    steps = list(dict.fromkeys(resolve_reset(r) for r in args.reset))
     rows = []
     measured = {}
     for task in tasks:
@@ -333,7 +344,8 @@ def main(argv=None) -> int:
                     "numpy_steps_per_s": numpy_rate,
                     "ratio": result["steps_per_s"] / numpy_rate,
                     "devices_requested": requested,
-                    "step": step,
+                    "step": "step_batch",
+                    "reset": step,
                     **{k: v for k, v in result.items() if k not in ("steps_per_s", "compile_s")},
                     "steps": args.steps,
                     "repeats": args.repeats,

@@ -66,6 +66,27 @@ def check_range(name: str, x: Any, low: int, high: int) -> None:
         raise ValueError(f"{name} must be in {low}..{high}, got {bad}")
 
 
+def _shown(x: Any) -> str:
+    """How an argument that should have been one int appears in an error message."""
+    if isinstance(x, jax.core.Tracer):
+        return f"a traced {x.dtype}{list(x.shape)} value"
+    values = np.asarray(x)
+    return repr(values.item()) if values.ndim == 0 else f"an {values.dtype} array of shape {values.shape}"
+
+
+def check_integer(name: str, x: Any, low: int, high: int) -> None:
+    """`ValueError` unless `x` is one integer (any integer dtype, bool excluded) and, when its value
+    is known, in low..high; a traced integer's value passes unchecked (see `SNACEnv.step`).
+
+    Why: a float, a bool or an array where one index belongs would otherwise fail deep inside
+    JAX without naming the argument (or, a bool, index as a mask). Dtypes and shapes are static,
+    so this holds for traced values too and costs nothing per step."""
+    dtype = x.dtype if isinstance(x, jax.core.Tracer) else np.asarray(x).dtype
+    if np.shape(x) != () or not np.issubdtype(dtype, np.integer):
+        raise ValueError(f"{name} must be one int in {low}..{high}, got {_shown(x)}")
+    check_range(name, x, low, high)
+
+
 class SNACEnv(environment.Environment[EnvState, EnvParams]):
     """One SNAC task. Build it with `snac_jax.make(task_id, **overrides)`.
 
@@ -145,11 +166,12 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
     def reset_to_design(self, key: jax.Array, params: EnvParams, design_index: jax.Array) -> tuple[jax.Array, EnvState]:
         """Reset onto `params.designs[design_index]` (the evaluator pins test designs this way).
 
-        `design_index` must be in 0..K-1 for the K designs of `params`: a known index outside is
-        a `ValueError`; a traced one is not checked (JAX would clamp it to the bank).
+        `design_index` must be one int in 0..K-1 for the K designs of `params`: a known index
+        outside, or anything but one integer, is a `ValueError`; a traced integer's value is not
+        checked (JAX would clamp it to the bank).
         """
         self.check_params(params)
-        check_range("design_index", design_index, 0, params.designs.shape[0] - 1)
+        check_integer("design_index", design_index, 0, params.designs.shape[0] - 1)
         design = params.designs[design_index]
         landmarks = None
         if self.config.num_landmarks:
@@ -226,16 +248,23 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         }
         return self.get_obs(state, params), state, reward, terminated, truncated, info, state_stepped
 
-    @partial(jax.jit, static_argnames=("self",))
     def step_batch(
-        self, keys: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams | None = None
+        self, keys: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams | None = None, reset: str = "auto"
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
-        """`jax.vmap(env.step, in_axes=(0, 0, 0, None))` bit for bit, but resetting only the
-        worlds that ended: the fast path for large batches on one device (`snac_jax.batched_step`
-        says why and when to use it)."""
+        """`jax.vmap(env.step, in_axes=(0, 0, 0, None))` bit for bit, with the auto-reset computed
+        the way that suits the backend: `reset` is `"loop"` (reset the ended worlds one by one:
+        fast on a CPU), `"select"` (compute every world's fresh state and select, as gymnax: fast
+        on a GPU or TPU) or `"auto"` (loop on a CPU, select elsewhere). `snac_jax.batched_step`
+        says why; anything else is a `ValueError` naming the strategies."""
+        return self._step_batch(keys, states, actions, params, batched_step.resolve_reset(reset))
+
+    @partial(jax.jit, static_argnames=("self", "reset"))
+    def _step_batch(
+        self, keys: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams | None, reset: str
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
         if params is None:
             params = self.default_params
-        return batched_step.step_batch(self, keys, states, actions, params)
+        return batched_step.step_batch(self, keys, states, actions, params, reset)
 
     def step_env(
         self, key: jax.Array, state: EnvState, action: int | jax.Array, params: EnvParams
@@ -249,14 +278,14 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         """The deterministic step for a given stride, without auto-reset (replays use it).
 
         `info["final_iou"]` is the IoU after this step: the episode's final IoU on the step
-        that ends it (terminated or truncated). `stride` must be in 1..3 and `action` in
-        0..num_actions-1: known values outside are a `ValueError`, traced ones are not checked
-        (see `step`).
+        that ends it (terminated or truncated). `stride` must be one int in 1..3 and `action` one
+        in 0..num_actions-1: known values outside, and anything but one integer, are a
+        `ValueError`; a traced integer's value is not checked (see `step`).
         """
         self.check_params(params)
         self.check_state(state)
-        check_range("action", action, 0, self.num_actions - 1)
-        check_range("stride", stride, 1, MAX_STRIDE)
+        check_integer("action", action, 0, self.num_actions - 1)
+        check_integer("stride", stride, 1, MAX_STRIDE)
         state, reward, terminated = transition(self.config, state, jnp.asarray(action), jnp.asarray(stride))
         info = {"final_iou": metrics.iou(state), "stride": jnp.asarray(stride, jnp.int32)}
         return self.get_obs(state, params), state, reward, terminated, info
@@ -268,8 +297,14 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         Why: a learner may train its critic or auxiliary losses on what the robot cannot see
         (asymmetric actor-critic, localisation losses), while the policy it is scored with still
         reads only `step`'s observation. `step` and its observation are unchanged; vmap this over
-        a batch of states as `step` is.
+        a batch of states as `step` is (a batch itself is refused: its slices would cut the
+        batch axis, not the plan).
         """
+        grid, one = tuple(state.grid.shape), self.config.grid_shape
+        if len(grid) > len(one) and grid[-len(one):] == one:
+            raise ValueError(f"env.privileged takes one world's state, got a batch of shape {grid[:-len(one)]}: "
+                             "jax.vmap(env.privileged, in_axes=(0, None))(states, params)")
+        self.check_state(state)
         (pr, pc), (h, w) = self.config.pad, self.config.plan_shape
         return PrivilegedState(
             position=state.position.astype(jnp.int32),

@@ -34,7 +34,7 @@ from flax import struct
 from snac_jax import designs, devices, episodes, memory, metrics
 from snac_jax.env import SNACEnv, check_range
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
-from snac_jax.policy import Policy
+from snac_jax.policy import Policy, call_act
 from snac_jax.state import EnvParams
 from snac_jax.tasks import MAX_SEED, TASKS, make, make_params, task_spec, test_design_names
 
@@ -78,20 +78,12 @@ class Episodes:
     invalid_actions: jax.Array  # int32, actions outside 0..num_actions-1 (the env would clamp them)
 
 
-def _check_action(action: jax.Array) -> None:
-    """A policy's action must be one integer per call; checked on shapes while tracing."""
-    if action.shape != () or not jnp.issubdtype(action.dtype, jnp.integer):
-        raise ValueError(f"policy.act must return one integer action (shape ()), got {action.dtype}{list(action.shape)}")
-
-
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, design_indices) -> Episodes:
     def decide(episode: episodes.Episode, _):
         key, policy_state, invalid = episode.agent
         key, key_act, key_step = jax.random.split(key, 3)
-        action, policy_state = act(policy_params, policy_state, episode.obs, key_act)
-        action = jnp.asarray(action)
-        _check_action(action)
+        action, policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
         invalid = invalid + ((action < 0) | (action >= env.num_actions)).astype(jnp.int32)
         return episodes.Move(action, key=key_step), (key, policy_state, invalid)
 

@@ -10,10 +10,12 @@ Importing this module registers every task of `snac_jax.TASKS` as `SNAC/<task id
     envs = gym.make_vec("SNAC/2d-static-dense-v0", num_envs=1024)  # SNACVectorEnv
 
 Keyword arguments of `make`/`make_vec` other than `render_mode` (and `num_envs`) are
-`snac_jax.make` overrides (`snac_jax.OVERRIDES`).
+`snac_jax.make` overrides (`snac_jax.OVERRIDES`). An id builds its own task: a `task_id` naming
+another one is refused.
 
 - `SNACGymEnv` does not reset by itself: after `terminated or truncated` call `reset()`, as
-  Gymnasium expects (Stable-Baselines3's `DummyVecEnv` does).
+  Gymnasium expects (Stable-Baselines3's `DummyVecEnv` does); a step before it raises
+  `gymnasium.error.ResetNeeded`.
 - `SNACVectorEnv` resets a world on the step its episode ends (`AutoresetMode.SAME_STEP`, as
   `snac_jax`'s jitted `step` does): that step returns the new episode's first observation, and
   `info["final_obs"]` (with the mask `info["_final_obs"]`) and `info["final_info"]` hold the
@@ -42,7 +44,8 @@ from gymnasium import spaces as gym_spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from snac_jax import threefry
+from snac_jax import batched_step, threefry
+from snac_jax.batched_step import resolve_reset
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams, EnvState
 from snac_jax.tasks import TASKS, make
@@ -73,6 +76,17 @@ def _key_from(rng: np.random.Generator) -> jax.Array:
     """A JAX Threefry key of two words drawn from the Gymnasium generator (`reset(seed=s)` seeds it
     from any non-negative int, through NumPy's `SeedSequence`)."""
     return jax.random.wrap_key_data(rng.integers(0, 2**32, size=2, dtype=np.uint32), impl="threefry2x32")
+
+
+def _check_registered_task(task_id: str, registered_task_id: str | None) -> None:
+    """`ValueError` unless `task_id` is the task of the Gymnasium id the env is made under.
+
+    Why: `make(id, **kwargs)` lays the caller's keywords over the id's registered `task_id`, so
+    without this check `make("SNAC/1d-static-sin-v0", task_id="2d-static-dense")` would build a
+    2D world that every wrapper, log and `env.spec` names as the 1D task."""
+    if registered_task_id is not None and task_id != registered_task_id:
+        raise ValueError(f"{env_id(registered_task_id)} is the task {registered_task_id}, not task_id={task_id!r}: "
+                         f"make {env_id(task_id)!r} instead")
 
 
 def _check_render_mode(metadata: dict[str, Any], render_mode: str | None) -> str | None:
@@ -122,11 +136,11 @@ def _reset_batch(env: SNACEnv, num_envs: int, key: jax.Array, params: EnvParams)
     return key, obs, states
 
 
-@partial(jax.jit, static_argnums=0, donate_argnums=2)
-def _step_batch(env: SNACEnv, key: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams):
+@partial(jax.jit, static_argnums=(0, 5), donate_argnums=2)
+def _step_batch(env: SNACEnv, key: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams, reset: str):
     key, step_key = threefry.split(key, 2)
     keys = threefry.split(step_key, actions.shape[0])
-    obs, states, reward, terminated, truncated, info = env.step_batch(keys, states, actions, params)
+    obs, states, reward, terminated, truncated, info = batched_step.step_batch(env, keys, states, actions, params, reset)
     packed = _pack(obs, reward, terminated, truncated, info["final_iou"], info["stride"])
     return key, states, packed, info["final_observation"]
 
@@ -140,12 +154,18 @@ class SNACGymEnv(gymnasium.Env):
     `reset(seed=s)` starts a reproducible key chain (later unseeded resets and steps continue
     it); `reset(options={"design_index": i})` starts on `params.designs[i]` (a dynamic task's
     bank, or its pinned test design). The episode ends with `terminated` (out of bricks, or
-    stuck in 3D) or `truncated` (the step limit); the env then waits for `reset()`.
+    stuck in 3D) or `truncated` (the step limit); the env then waits for `reset()`: a step before
+    it raises `gymnasium.error.ResetNeeded` and leaves the ended episode as it was.
+
+    `registered_task_id` is the task of the Gymnasium id the env is made under (the registration
+    passes it); a `task_id` of another task is refused.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
-    def __init__(self, task_id: str, render_mode: str | None = None, **overrides: Any):
+    def __init__(self, task_id: str, render_mode: str | None = None, registered_task_id: str | None = None,
+                 **overrides: Any):
+        _check_registered_task(task_id, registered_task_id)
         self.render_mode = _check_render_mode(self.metadata, render_mode)
         self.jax_env, self.env_params = make(task_id, **overrides)
         self.task_id = task_id
@@ -153,6 +173,7 @@ class SNACGymEnv(gymnasium.Env):
         self.action_space = action_space(self.jax_env, self.env_params)
         self._key: jax.Array | None = None
         self._state: EnvState | None = None
+        self._ended: str | None = None  # "terminated" or "truncated" once the episode has ended
 
     @property
     def state(self) -> EnvState | None:
@@ -173,15 +194,22 @@ class SNACGymEnv(gymnasium.Env):
         if seed is not None or self._key is None:
             self._key = _key_from(self.np_random)
         self._key, obs, self._state = _reset_one(self.jax_env, self._key, self.env_params, design_index)
+        self._ended = None
         return np.array(obs), {}
 
     def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
+        if self._ended is not None:
+            # The step itself would go on past the end (time, bricks and IoU growing): the end is
+            # where the episode's numbers belong.
+            raise gymnasium.error.ResetNeeded(f"the episode ended ({self._ended}): call reset() before step()")
         if not self.action_space.contains(action):
             raise ValueError(f"action must be an int in 0..{self.action_space.n - 1}, got {action!r}")
         self._key, self._state, packed = _step_one(self.jax_env, self._key, self._state, np.int32(action), self.env_params)
         obs, reward, terminated, truncated, iou, stride = _unpack(np.asarray(packed), self.observation_space.shape[0])
+        if terminated or truncated:
+            self._ended = "terminated" if terminated else "truncated"
         info = {"iou": float(iou), "stride": int(stride)}
         return obs, float(reward), bool(terminated), bool(truncated), info
 
@@ -206,12 +234,17 @@ class SNACVectorEnv(VectorEnv):
     the same call; its row of the returned observations is the new episode's first observation,
     `info["final_obs"][i]` the ended episode's last one (the mask `info["_final_obs"]` marks
     those worlds) and `info["final_info"]` that step's info. Top-level `iou` and `stride` belong
-    to the worlds that go on (masks `_iou`, `_stride`).
+    to the worlds that go on (masks `_iou`, `_stride`). `reset` is the auto-reset strategy of
+    `SNACEnv.step_batch` (`"auto"`: one by one on a CPU, a select on a GPU; the same worlds
+    either way).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS, "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, task_id: str, num_envs: int = 1, render_mode: str | None = None, **overrides: Any):
+    def __init__(self, task_id: str, num_envs: int = 1, render_mode: str | None = None,
+                 registered_task_id: str | None = None, reset: str = "auto", **overrides: Any):
+        _check_registered_task(task_id, registered_task_id)
+        self.reset_strategy = resolve_reset(reset)  # how ended worlds are reset: the backend's own by default
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         self.render_mode = _check_render_mode(self.metadata, render_mode)
@@ -254,7 +287,7 @@ class SNACVectorEnv(VectorEnv):
         if np.any((actions < 0) | (actions >= n)):
             raise ValueError(f"actions must lie in 0..{n - 1}, got {actions}")
         self._key, self._states, packed, final_obs = _step_batch(
-            self.jax_env, self._key, self._states, actions.astype(np.int32), self.env_params
+            self.jax_env, self._key, self._states, actions.astype(np.int32), self.env_params, self.reset_strategy
         )
         size = self.single_observation_space.shape[0]
         obs, reward, terminated, truncated, iou, stride = _unpack(np.asarray(packed), size)
@@ -307,7 +340,7 @@ def register_all() -> None:
             id=env_id(task_id),
             entry_point=f"{__name__}:SNACGymEnv",
             vector_entry_point=f"{__name__}:SNACVectorEnv",
-            kwargs={"task_id": task_id},
+            kwargs={"task_id": task_id, "registered_task_id": task_id},
         )
 
 

@@ -10,6 +10,8 @@ A policy is three pure functions of one environment's view (vmap them for a batc
   as an argument rather than closed over so jit does not bake weights into the program.
 
 A recurrent policy keeps its hidden state in `policy_state`; a stateless one returns its input.
+`act` returns the policy state with the structure, shapes and dtypes it was given (episode loops
+carry it); the loops call it through `call_act`, which checks that while tracing.
 """
 
 from __future__ import annotations
@@ -25,6 +27,35 @@ class Policy(NamedTuple):
     act: Callable[[Any, Any, jax.Array, jax.Array], tuple[jax.Array, Any]]
     params: Any = None
     name: str = "policy"
+
+
+def _avals(tree: Any) -> str:
+    """A pytree's leaves as `dtype[shape]`, in the tree's own form: `(float32[8], int32[])`."""
+    shown = jax.tree.map(lambda x: f"{jnp.result_type(x)}{list(jnp.shape(x))}", tree)
+    return str(shown).replace("'", "")
+
+
+def call_act(act: Callable, params: Any, policy_state: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, Any]:
+    """`act(params, policy_state, obs, key)`, its contract checked: the action as a JAX array
+    (one integer, shape ()) and the new policy state, with the structure, shapes and dtypes of
+    the one given.
+
+    Why: an episode loop carries the policy state through `lax.while_loop`/`lax.scan`, so a bare
+    action or a memory that changed form fails deep inside JAX without naming `act`. Shapes and
+    dtypes are static: the check runs once while tracing and costs nothing per step."""
+    out = act(params, policy_state, obs, key)
+    if not (isinstance(out, (tuple, list)) and len(out) == 2):
+        got = f"a bare {_avals(out)} value" if hasattr(out, "dtype") or isinstance(out, (int, float)) else (
+            f"a {type(out).__name__}" + (f" of {len(out)}" if isinstance(out, (tuple, list)) else ""))
+        raise ValueError(f"policy.act must return (action, policy_state), got {got}")
+    action, new_state = out
+    action = jnp.asarray(action)
+    if action.shape != () or not jnp.issubdtype(action.dtype, jnp.integer):
+        raise ValueError(f"policy.act must return one integer action (shape ()), got {action.dtype}{list(action.shape)}")
+    expected, got = _avals(policy_state), _avals(new_state)
+    if jax.tree.structure(policy_state) != jax.tree.structure(new_state) or expected != got:
+        raise ValueError(f"policy.act must return a policy_state like the one it was given, {expected}, got {got}")
+    return action, new_state
 
 
 def uniform_random_policy(num_actions: int) -> Policy:

@@ -17,7 +17,7 @@ import numpy as np
 
 from snac_jax import episodes, metrics
 from snac_jax.env import SNACEnv
-from snac_jax.policy import Policy
+from snac_jax.policy import Policy, call_act
 from snac_jax.state import EnvParams, EnvState
 
 
@@ -50,7 +50,7 @@ def _scan_episode(key, env: SNACEnv, params: EnvParams, init, act, policy_params
 
     def decide(episode: episodes.Episode, step_key):
         key_act, key_step = jax.random.split(step_key)
-        action, policy_state = act(policy_params, episode.agent, episode.obs, key_act)
+        action, policy_state = call_act(act, policy_params, episode.agent, episode.obs, key_act)
         return episodes.Move(action, key=key_step), policy_state
 
     def record(step: episodes.Step):

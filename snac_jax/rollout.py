@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from snac_jax import devices, memory, threefry
+from snac_jax import batched_step, devices, memory, threefry
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
 
@@ -58,15 +58,15 @@ def uniform_actions(key: jax.Array, num_envs: int, num_actions: int) -> jax.Arra
     return (threefry.bits(key, num_envs) % jnp.uint32(num_actions)).astype(jnp.int32)
 
 
-def _rollout(
-    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, reset_ended_only: bool = True
-) -> EpisodeStats:
+def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, reset: str) -> EpisodeStats:
     """`num_envs` worlds on one device: per step, one hash per env for the env key, one for the
-    action and one inside the step. `env.step_batch` (default) or `vmap(env.step)`: the same
-    worlds, the first resets only the worlds that ended."""
+    action and one inside the step, stepped by `env.step_batch` with the concrete `reset`
+    strategy (the same worlds whichever it is)."""
     key_reset, key_run = jax.random.split(key)
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
-    step = env.step_batch if reset_ended_only else jax.vmap(env.step, in_axes=(0, 0, 0, None))
+
+    def step(keys, states, actions, params):
+        return batched_step.step_batch(env, keys, states, actions, params, reset)
 
     def body(carry, step_key):
         states, stats = carry
@@ -86,28 +86,30 @@ def require_rollout_memory(env: SNACEnv, params: EnvParams, num_envs: int) -> No
     memory.require(f"{num_envs:,} worlds", 2 * num_envs * memory.tree_bytes((obs, state)), "use fewer worlds")
 
 
-@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh", "reset_ended_only"))
+@partial(jax.jit, static_argnames=("env", "num_envs", "num_steps", "mesh", "reset"))
 def random_rollout(
-    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None, reset_ended_only: bool = True
+    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, mesh=None, reset: str = "auto"
 ) -> EpisodeStats:
     """`num_envs` worlds under a uniform-random policy for `num_steps` steps each.
 
-    The worlds are stepped with `env.step_batch`, or with `jax.vmap(env.step)` when
-    `reset_ended_only` is False (same worlds and statistics, slower auto-reset).
+    The worlds are stepped with `env.step_batch` and its auto-reset strategy `reset` (`"loop"`,
+    `"select"` or `"auto"`: the backend's own, see `snac_jax.batched_step`): the same worlds and
+    statistics whichever it is.
 
     With `mesh` (`snac_jax.devices.env_mesh()`), the worlds are split evenly over its devices,
     each device running its own scan from its own key; `num_envs` must be a multiple of the
     device count. The same key gives different (equally distributed) worlds for another mesh.
     A `num_envs` whose estimated memory exceeds the device's is refused while tracing.
     """
+    reset = batched_step.resolve_reset(reset)
     require_rollout_memory(env, params, num_envs)
     if mesh is None or mesh.devices.size == 1:
-        return _rollout(key, env, params, num_envs, num_steps, reset_ended_only)
+        return _rollout(key, env, params, num_envs, num_steps, reset)
     devices.check_divisible(num_envs, mesh)
     per_device = num_envs // mesh.devices.size
 
     def shard(device_key, params):
-        stats = _rollout(device_key[0], env, params, per_device, num_steps, reset_ended_only)
+        stats = _rollout(device_key[0], env, params, per_device, num_steps, reset)
         return jax.tree.map(lambda x: x[None], stats)
 
     run = jax.shard_map(shard, mesh=mesh, in_specs=(devices.ENVS, jax.sharding.PartitionSpec()), out_specs=devices.ENVS, check_vma=False)

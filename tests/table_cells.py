@@ -15,3 +15,30 @@ def cell_files(algorithm: str, task: str, means: list[float], steps: int, capped
                             "source": "test"}},
         "metrics": [{"chunk": i, "wall_s": w} for i, w in enumerate(walls)],
     }
+
+
+def write_cell(directory, *, algorithm: str = "ppo", task: str = "1d-static-sin", preset: str = "smoke",
+               means: tuple[float, ...] = (0.5, 0.7), episodes: int = 2) -> dict:
+    """A finished cell's files on disk, written by hand as `snac table` writes them (config.json,
+    cell.json, eval.json scored with the reporting key, metrics.jsonl); returns their contents."""
+    import json
+    from pathlib import Path
+
+    from agents.registry import make_config
+    from snac_jax.paper import paper_column
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    config = make_config(algorithm, task, seeds=len(means), total_steps=2048, num_envs=16, rollout_steps=8).to_json()
+    cell = {"preset": preset, "algorithm": algorithm, "column": paper_column(task), "task": task,
+            "budget": {"env_steps": 2048, "requested": 2048, "source": "test", "capped": False},
+            "eval_seed": REPORT_EVAL_SEED, "protocol": {"static_episodes": episodes, "episodes_per_test_design": 1}}
+    row = {"min": 0.1, "std": 0.1, "episodes": episodes, "mean_length": 40.0, "mean_bricks_used": 3.0,
+           "mean_return": 1.0, "per_design": {}, "seed": REPORT_EVAL_SEED, "wall_s": 1.0}
+    evaluation = {f"{task} (seed {i})": {"task": f"{task} (seed {i})", "mean": m, **row, "ci95": [m - 0.05, m + 0.05]}
+                  for i, m in enumerate(means)}
+    files = {"config.json": config, "cell.json": cell, "eval.json": evaluation}
+    for name, content in files.items():
+        (directory / name).write_text(json.dumps(content, indent=2) + "\n")
+    (directory / "metrics.jsonl").write_text(json.dumps({"chunk": 0, "env_steps": 2048, "wall_s": 3.0}) + "\n")
+    return files

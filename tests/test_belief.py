@@ -230,7 +230,7 @@ def test_a_wider_egocentric_view_without_the_design_encoder():
     assert default.network.view_shape == (1, 5) and "DesignEncoder_0" in jax.jit(default.init)(
         jax.random.key(0)).params["params"]["ObservationEncoder_0"]
     assert build_algorithm(make_config("pqn-belief", "1d-dynamic", **TINY, view_radius=4)).network.view_shape == (1, 9)
-    with pytest.raises(ValueError, match=r"view_radius must be 0 or at least the window's half size \(3 on 2d-static-dense\)"):
+    with pytest.raises(ValueError, match=r"view_radius must be 0 or in 3\.\.19 on 2d-static-dense, got 2"):
         make_config("pqn-belief", "2d-static-dense", view_radius=2)
 
 
@@ -286,3 +286,26 @@ def test_cli_trains_two_seeds_and_evaluates(tmp_path):
     saved = json.loads((out / "config.json").read_text())
     assert saved["algorithm"] == "pqn-belief" and saved["position_coef"] > 0
     assert len(json.loads((out / "eval.json").read_text())) == 2  # one result per training seed
+
+
+@pytest.mark.parametrize(("task", "allowed"), [("2d-static-dense", r"3\.\.19"), ("1d-dynamic", r"2\.\.29")])
+def test_a_view_wider_than_the_plan_is_refused_before_tracing(task, allowed):
+    """A view of radius max(rows, cols) - 1 already shows the whole plan from every position; a
+    wider one only adds padding, and its cost grows with the radius (a huge one never compiles)."""
+    with pytest.raises(ValueError, match=rf"view_radius must be 0 or in {allowed} on {task}, got 100000"):
+        make_config("pqn-belief", task, view_radius=100000)
+    largest = int(allowed.split(r"\.\.")[1])
+    assert make_config("pqn-belief", task, view_radius=largest).view_radius == largest
+
+
+def test_the_cli_refuses_a_view_wider_than_the_plan_in_one_line(tmp_path, capsys, monkeypatch):
+    from snac_jax.cli import main
+
+    monkeypatch.delenv("SNAC_TRACEBACK", raising=False)
+    argv = ["train", "pqn-belief", "--task", "2d-static-dense", "--view-radius", "100000", "--total-steps", "256",
+            "--num-envs", "16", "--no-progress", "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("snac train pqn-belief: error: view_radius must be 0 or in 3..19 on 2d-static-dense")
+    assert err.count("\n") == 1
+    assert not (tmp_path / "run").exists()

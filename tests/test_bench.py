@@ -25,9 +25,12 @@ def _committed_results() -> dict[str, int]:
 def test_tiny_run_writes_rows_table_and_plots(tmp_path):
     committed = _committed_results()
     rows = _run(["--tasks", "3d-dynamic-sparse", "1d-static-sin", "--num-envs", "1", "4", "--steps", "60",
-                 "--numpy-steps", "200", "--no-e2e"], tmp_path)
-    assert [(r["task"], r["num_envs"]) for r in rows] == [
-        ("1d-static-sin", 1), ("1d-static-sin", 4), ("3d-dynamic-sparse", 1), ("3d-dynamic-sparse", 4)]
+                 "--numpy-steps", "200", "--no-e2e", "--reset", "loop", "select"], tmp_path)
+    assert [(r["task"], r["reset"], r["num_envs"]) for r in rows] == [
+        (task, reset, n) for task in ("1d-static-sin", "3d-dynamic-sparse") for reset in ("loop", "select") for n in (1, 4)]
+    loop, select = rows[5], rows[7]  # 3d-dynamic-sparse, N = 4
+    assert loop["episodes"] == select["episodes"] > 0  # the same worlds, whichever strategy resets them
+    rows = [r for r in rows if r["reset"] == "loop"]
     for row in rows:
         assert KEYS <= set(row)
         assert row["steps_per_s"] > 0 and row["numpy_steps_per_s"] > 0 and row["compile_s"] > 0
@@ -50,7 +53,7 @@ def test_the_output_directory_is_required_and_the_only_one():
 
 
 def test_bad_arguments_are_rejected(tmp_path):
-    for args in (["--repeats", "2"], ["--num-envs", "0"], ["--devices", "x"]):
+    for args in (["--repeats", "2"], ["--num-envs", "0"], ["--devices", "x"], ["--reset", "vmap"]):
         done = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
         assert done.returncode == 2, (args, done.stderr)
 
@@ -88,3 +91,33 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm):
     assert matmul_gflops > 0
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
+
+
+@pytest.mark.slow
+def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
+    committed = _committed_results()
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "device_check.py"), "--quick", "--out", str(tmp_path)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["device.json", "device.md"]  # the README run's scratch is gone
+    report = json.loads((tmp_path / "device.json").read_text())
+    assert report["context"]["jax"] and report["context"]["commit"] and report["context"]["auto_reset"] == "loop"
+    measured = [row for row in report["step"] if "steps_per_s" in row]
+    assert {(row["task"], row["reset"]) for row in measured} >= {("3d-static-sparse", "loop"), ("3d-static-sparse", "select")}
+    for row in measured:
+        assert row["episodes"] >= row["num_envs"]  # T = the step limit: every world ended an episode
+    assert {row["algorithm"] for row in report["learn"] if row.get("env_steps_per_s", 0) > 0} == {"ppo-rnn", "pqn-rnn"}
+    assert 0 <= report["readme"][0]["iou_mean"] <= 1
+    assert report["gymnasium"][0]["scan_steps_per_s"] > 0
+    table = (tmp_path / "device.md").read_text()
+    assert "## Stepping" in table and "## Learning" in table and "README" in table
+    assert _committed_results() == committed
+
+
+def test_device_check_refuses_bad_arguments_before_measuring(tmp_path):
+    script = ROOT / "bench" / "device_check.py"
+    for args in (["--repeats", "2"], ["--point-s", "0"], ["--skip", "everything"], ["--tasks", "4d-static"]):
+        done = subprocess.run([sys.executable, str(script), *args, "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT)
+        assert done.returncode == 2, (args, done.stderr)
+        assert done.stderr.strip().splitlines()[-1].startswith(("usage", "device_check.py: error")), done.stderr
+    assert not (tmp_path / "x" / "device.json").exists()

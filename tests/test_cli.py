@@ -88,3 +88,20 @@ def test_seeds_must_fit_in_32_bits(command, seed, capsys):
         main([*command, "--seed", seed])
     assert exit_info.value.code == 2
     assert "must be an int in 0..4294967295" in capsys.readouterr().err
+
+
+def test_ctrl_c_is_one_line_and_status_130(capsys, monkeypatch):
+    """Ctrl-C in any subcommand ends with `snac CMD: interrupted`, not a traceback, and the shell's
+    status for SIGINT (128 + 2)."""
+    from snac_jax.cli import rollout
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rollout, "run", interrupted)
+    try:
+        code = main(["rollout", "--task", "1d-static-sin"])
+    except KeyboardInterrupt:
+        pytest.fail("Ctrl-C escaped `snac` as a KeyboardInterrupt (a traceback for the user)")
+    assert code == 130
+    assert capsys.readouterr().err == "snac rollout: interrupted\n"

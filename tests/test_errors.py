@@ -113,3 +113,71 @@ def test_replay_refuses_actions_and_strides_the_env_would_clamp():
         replay(env, params, [], [])
     with pytest.raises(ValueError, match="one stride per action"):
         replay(env, params, [0, 1], [1])
+
+
+def test_non_integer_indices_strides_and_actions_are_refused_naming_the_argument():
+    """A float, a bool or an array where one int belongs is refused by name: JAX would index with
+    a bool as a mask, and fail on a float deep inside the step."""
+    env, params = make("2d-dynamic-dense", design_bank_size=4)
+    state = _reset(env, params)
+    for bad, shown in ((0.5, "0.5"), (1.0, "1.0"), (True, "True"), (np.float32(2), "2.0"),
+                       (np.array([0, 1]), r"an int64 array of shape \(2,\)")):
+        with pytest.raises(ValueError, match=rf"^design_index must be one int in 0\.\.3, got {shown}$"):
+            env.reset_to_design(jax.random.key(0), params, bad)
+    with pytest.raises(ValueError, match=r"^stride must be one int in 1\.\.3, got 2\.0$"):
+        env.step_with_stride(state, 0, 2.0, params)
+    with pytest.raises(ValueError, match=r"^action must be one int in 0\.\.4, got 1\.5$"):
+        env.step_with_stride(state, 1.5, 1, params)
+    with pytest.raises(ValueError, match=r"^stride must be one int in 1\.\.3, got a traced float32\[\] value"):
+        jax.jit(env.step_with_stride)(state, 0, jnp.float32(2), params)  # dtypes are known while tracing
+    with pytest.raises(ValueError, match=r"^action must be one int in 0\.\.4, got a traced float32\[\] value"):
+        env.step(jax.random.key(0), state, jnp.float32(1), params)
+    env.reset_to_design(jax.random.key(0), params, np.int64(3))  # any integer type passes
+    env.step_with_stride(state, np.uint8(4), jnp.int32(3), params)
+    jax.jit(env.reset_to_design)(jax.random.key(0), params, jnp.int32(9))  # a traced int is not range-checked
+
+
+def test_privileged_refuses_a_batch_of_states():
+    env, params = make("2d-static-dense")
+    states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 3), params)[1]
+    with pytest.raises(ValueError, match=r"^env.privileged takes one world's state, got a batch of shape \(3,\): "
+                                         r"jax.vmap\(env.privileged, in_axes=\(0, None\)\)\(states, params\)$"):
+        env.privileged(states, params)
+    batched = jax.vmap(env.privileged, in_axes=(0, None))(states, params)
+    assert batched.built.shape == (3, 20, 20) and batched.position.shape == (3, 2)
+    with pytest.raises(ValueError, match=r"state.grid has shape \(1, 34\)"):
+        env.privileged(_reset(*make("1d-static-sin")), params)
+
+
+def _bare_action(params, state, obs, key):
+    return jnp.int32(0)
+
+
+def _memory_grows(params, state, obs, key):
+    return jnp.int32(0), jnp.zeros(3)
+
+
+def _memory_turns_float(params, state, obs, key):
+    return jnp.int32(0), (jnp.zeros(2), jnp.float32(0.5))
+
+
+@pytest.mark.parametrize(("init", "act", "message"), [
+    (lambda key, design: jnp.zeros(2), _bare_action,
+     r"policy.act must return \(action, policy_state\), got a bare int32\[\] value"),
+    (lambda key, design: jnp.zeros(2), _memory_grows,
+     r"policy.act must return a policy_state like the one it was given, float32\[2\], got float32\[3\]"),
+    (lambda key, design: (jnp.zeros(2), jnp.int32(0)), _memory_turns_float,
+     r"policy.act must return a policy_state like the one it was given, \(float32\[2\], int32\[\]\), "
+     r"got \(float32\[2\], float32\[\]\)"),
+])
+def test_a_policy_breaking_the_act_contract_is_named_not_jax_internals(init, act, message):
+    from snac_jax.evaluation import evaluate_task
+    from snac_jax.policy import Policy
+    from snac_jax.recording import record_episode
+
+    policy = Policy(init, act, None, "broken")
+    with pytest.raises(ValueError, match=message):
+        evaluate_task("1d-static-sin", policy, static_episodes=2, max_steps=5)
+    env, params = make("1d-static-sin", max_steps=5)
+    with pytest.raises(ValueError, match=message):
+        record_episode(env, params, policy, jax.random.key(0))

@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 import gymnasium
+import jax
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -25,7 +26,7 @@ ID_2D = "SNAC/2d-static-dense-v0"
 def test_every_task_is_registered():
     for task in snac_jax.TASKS:
         spec = gymnasium.spec(f"SNAC/{task}-v0")
-        assert spec.kwargs == {"task_id": task}
+        assert spec.kwargs == {"task_id": task, "registered_task_id": task}
         assert spec.vector_entry_point is not None
         assert spec.max_episode_steps is None  # the env truncates at its own step limit
 
@@ -170,6 +171,25 @@ def test_vector_env_seeding_is_reproducible():
     assert not np.array_equal(first[0], other[0])  # the designs drawn at reset differ
 
 
+def test_vector_env_steps_the_same_worlds_whichever_reset_strategy():
+    def run(reset):
+        envs = gymnasium.make_vec("SNAC/3d-dynamic-dense-v0", num_envs=12, design_bank_size=16, max_steps=15, reset=reset)
+        rng = np.random.default_rng(3)
+        out = [envs.reset(seed=1)[0]]
+        for _ in range(40):
+            step = envs.step(rng.integers(0, envs.single_action_space.n, size=12))
+            out += [step[0], step[1], step[2], step[3]]
+        return out
+
+    loop, select = run("loop"), run("select")
+    for a, b in zip(loop, select):
+        np.testing.assert_array_equal(a, b)
+    assert sum(int(done.sum()) for done in loop[3::4]) >= 12  # the worlds reset along the way
+    assert snac_gym.SNACVectorEnv("1d-static-sin", 2).reset_strategy == ("loop" if jax.default_backend() == "cpu" else "select")
+    with pytest.raises(ValueError, match="reset must be one of auto, loop, select"):
+        snac_gym.SNACVectorEnv("1d-static-sin", 2, reset="vmap")
+
+
 def test_vector_env_same_step_autoreset_at_truncation_keeps_the_true_final_observation():
     num_envs = 6
     envs = gymnasium.make_vec(ID_1D, num_envs=num_envs, max_steps=5)
@@ -272,3 +292,40 @@ def test_sb3_ppo_trains_on_1d_static_sin():
     obs, _ = env.reset(seed=0)
     action, _ = model.predict(obs, deterministic=True)
     assert env.action_space.contains(int(action))
+
+
+def test_an_id_refuses_a_task_id_of_another_task():
+    """`SNAC/<task>-v0` always builds <task>: a `task_id` naming another task would put a 2D world
+    under a 1D id (and into every record that names the id)."""
+    for make in (gymnasium.make, lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, **k),
+                 lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, vectorization_mode="sync", **k)):
+        with pytest.raises(ValueError, match=r"SNAC/1d-static-sin-v0 is the task 1d-static-sin, not task_id="
+                                             r"'2d-static-dense': make 'SNAC/2d-static-dense-v0'"):
+            make(ID_1D, task_id="2d-static-dense")
+    env = gymnasium.make(ID_1D, task_id="1d-static-sin")  # naming the id's own task is harmless
+    assert env.unwrapped.jax_env.config.task_id == "1d-static-sin"
+    again = gymnasium.make(env.spec)  # the spec the env records builds the same task
+    assert again.unwrapped.task_id == "1d-static-sin"
+    assert snac_gym.SNACGymEnv("2d-static-dense").task_id == "2d-static-dense"  # the class itself takes any task
+
+
+@pytest.mark.parametrize("max_steps", [5, 400])
+def test_the_single_env_refuses_to_step_an_ended_episode(max_steps):
+    """After `terminated or truncated` the env waits for `reset()` (time, bricks and IoU stay those
+    of the episode's end), as Gymnasium's `ResetNeeded` says for a step before any reset."""
+    env = gymnasium.make("SNAC/2d-static-sparse-v0", max_steps=max_steps)
+    layout = env.unwrapped.jax_env.observation_layout
+    env.reset(seed=0)
+    done, steps = False, 0
+    while not done:
+        obs, _, terminated, truncated, info = env.step(4)  # drops: out of bricks, or the step limit first
+        done, steps = terminated or truncated, steps + 1
+    assert (truncated, steps) == ((True, 5) if max_steps == 5 else (False, int(obs[layout.bricks_used])))
+    state = env.unwrapped.state
+    for action in (4, 0):
+        with pytest.raises(gymnasium.error.ResetNeeded, match=r"the episode ended \((terminated|truncated)\): call reset\(\)"):
+            env.step(action)
+    assert env.unwrapped.state is state  # nothing moved: the ended episode's time, bricks and IoU
+    obs, _ = env.reset()
+    assert obs[layout.time] == 0
+    env.step(4)

@@ -1,5 +1,6 @@
-"""`env.step_batch` (auto-reset of the ended worlds only) equals `vmap(env.step)` bit for bit,
-and the rollout gives the same statistics either way and on one or several devices."""
+"""`env.step_batch` equals `vmap(env.step)` bit for bit under either auto-reset strategy (the
+ended worlds reset one by one, or every world's fresh state selected), the backend picks its
+strategy, and the rollout gives the same statistics whichever strategy steps it."""
 
 from functools import partial
 
@@ -7,14 +8,19 @@ import jax
 import numpy as np
 import pytest
 
-from snac_jax import make
+from snac_jax import batched_step, make
 from snac_jax.rollout import random_rollout, uniform_actions
 
 
-@partial(jax.jit, static_argnames=("env", "batched", "num_envs", "num_steps"))
-def _trajectory(key, env, params, batched: bool, num_envs: int, num_steps: int):
+@partial(jax.jit, static_argnames=("env", "reset", "num_envs", "num_steps"))
+def _trajectory(key, env, params, reset: str | None, num_envs: int, num_steps: int):
+    """`num_steps` steps of `num_envs` worlds by `env.step_batch(..., reset=reset)`, or by
+    `vmap(env.step)` where `reset` is None."""
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, num_envs), params)
-    step = env.step_batch if batched else jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    if reset is None:
+        step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    else:
+        step = partial(env.step_batch, reset=reset)
 
     def body(states, step_key):
         key_act, key_step = jax.random.split(step_key)
@@ -25,25 +31,60 @@ def _trajectory(key, env, params, batched: bool, num_envs: int, num_steps: int):
     return jax.lax.scan(body, states, jax.random.split(key, num_steps))
 
 
+@pytest.mark.parametrize("reset", ["loop", "select"])
 @pytest.mark.parametrize(
     "task,overrides",
     [("3d-static-sparse", {}), ("2d-dynamic-sparse", {"design_bank_size": 64, "max_steps": 40}),
-     ("1d-dynamic", {"design_bank_size": 8, "max_steps": 30}), ("3d-dynamic-dense", {"landmarks": 4, "design_bank_size": 16})],
+     ("1d-dynamic", {"design_bank_size": 8, "max_steps": 30}), ("1d-static-sin", {"max_steps": 25}),
+     ("2d-static-dense", {"max_steps": 35}), ("3d-dynamic-dense", {"landmarks": 4, "design_bank_size": 16})],
 )
-def test_step_batch_equals_vmapped_step(task, overrides):
+def test_step_batch_equals_vmapped_step(task, overrides, reset):
     env, params = make(task, **overrides)
     key = jax.random.key(11)
-    batched = _trajectory(key, env, params, True, 48, 120)
-    plain = _trajectory(key, env, params, False, 48, 120)
+    batched = _trajectory(key, env, params, reset, 48, 120)
+    plain = _trajectory(key, env, params, None, 48, 120)
     jax.tree.map(np.testing.assert_array_equal, batched, plain)
     done = np.asarray(plain[1][2] | plain[1][3])
     assert done.sum() >= 10  # many auto-resets were compared
 
 
-def test_rollout_statistics_do_not_depend_on_the_reset_path():
+def test_auto_is_loop_on_a_cpu_and_select_on_an_accelerator():
+    assert batched_step.resolve_reset("auto", "cpu") == "loop"
+    assert batched_step.resolve_reset("auto", "gpu") == "select"
+    assert batched_step.resolve_reset("auto", "tpu") == "select"
+    assert batched_step.resolve_reset("select", "cpu") == "select"
+    assert batched_step.resolve_reset("loop", "gpu") == "loop"
+    assert batched_step.resolve_reset("auto") == ("loop" if jax.default_backend() == "cpu" else "select")
+
+
+@pytest.mark.parametrize("bad", ["Loop", "", "vmap", None, 1])
+def test_an_unknown_reset_strategy_is_refused_in_one_line_before_tracing(bad):
+    env, params = make("1d-static-sin")
+    _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 2), params)
+    with pytest.raises(ValueError, match=r"^reset must be one of auto, loop, select, got") as caught:
+        env.step_batch(jax.random.split(jax.random.key(1), 2), states, np.zeros(2, np.int32), params, reset=bad)
+    assert "\n" not in str(caught.value)
+    with pytest.raises(ValueError, match="reset must be one of"):
+        random_rollout(jax.random.key(0), env, params, 4, 3, reset=bad)
+
+
+def test_step_batch_compiles_once_per_strategy():
+    env, params = make("2d-static-dense", max_steps=12)
+    keys = jax.random.split(jax.random.key(0), 8)
+    _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    actions = np.zeros(8, np.int32)
+    env._step_batch.clear_cache()
+    for reset in ("loop", "select", "loop", "select", "auto"):
+        for _ in range(2):
+            env.step_batch(keys, states, actions, params, reset=reset)
+    assert env._step_batch._cache_size() == 2  # "auto" is one of the two
+
+
+@pytest.mark.parametrize("reset", ["loop", "select"])
+def test_rollout_statistics_do_not_depend_on_the_reset_strategy(reset):
     env, params = make("3d-static-dense")
     key = jax.random.key(2)
-    a = random_rollout(key, env, params, 64, 100)
-    b = random_rollout(key, env, params, 64, 100, reset_ended_only=False)
+    a = random_rollout(key, env, params, 64, 100, reset=reset)
+    b = random_rollout(key, env, params, 64, 100, reset="select" if reset == "loop" else "loop")
     jax.tree.map(np.testing.assert_array_equal, a, b)
     assert int(a.episodes) > 64

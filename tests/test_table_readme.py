@@ -58,6 +58,7 @@ def test_cli_writes_the_readme_only_with_report(tmp_path, capsys):
     shutil.copyfile(ROOT / "bench" / "results" / "handcrafted.json", results / "handcrafted.json")
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{BEGIN}\nstale\n{END}\nrest\n")
+    (tmp_path / "runs").mkdir()  # a --runs-dir given must exist
     args = ["table", "--preset", "paper", "--runs-dir", str(tmp_path / "runs"), "--results-dir", str(results),
             "--readme", str(readme)]
     assert main(args) == 2 and "--readme goes with --report" in capsys.readouterr().err

@@ -341,6 +341,57 @@ def test_two_processes_cannot_work_on_one_run_directory(tmp_path):
         assert f"process {os.getpid()}" in (run / checkpoint.LOCK_FILE).read_text()
 
 
+def test_a_lock_is_never_followed_through_a_link(tmp_path):
+    """A `.lock` that is a symbolic link (to a file outside the run, or nowhere) is refused in
+    one line by the lock and by the emptiness check; the file it points to is left alone."""
+    outside = tmp_path / "precious.txt"
+    outside.write_text("someone's file\n")
+    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
+    for name, target in (("run", outside), ("dangling", tmp_path / "nowhere")):
+        run = tmp_path / name
+        run.mkdir()
+        (run / checkpoint.LOCK_FILE).symlink_to(target)
+        with pytest.raises(ValueError, match=r"\.lock is a symbolic link, not a lock file: a run's lock is never followed"):
+            with checkpoint.lock_run(run):
+                pass
+        for check in (checkpoint.check_new_run_directory, lambda d: train(config, d, progress=False)):
+            with pytest.raises(ValueError, match="is a symbolic link"):
+                check(run)
+        assert (run / checkpoint.LOCK_FILE).is_symlink() and [p.name for p in run.iterdir()] == [checkpoint.LOCK_FILE]
+    assert outside.read_text() == "someone's file\n" and not (tmp_path / "nowhere").exists()
+    (tmp_path / "folder" / checkpoint.LOCK_FILE).mkdir(parents=True)
+    with pytest.raises(ValueError, match=r"\.lock is not a plain file"):
+        checkpoint.check_new_run_directory(tmp_path / "folder")
+    # A plain lock its holder left (killed) leaves a directory empty; one held elsewhere does not.
+    (tmp_path / "stale").mkdir()
+    (tmp_path / "stale" / checkpoint.LOCK_FILE).write_text("process 999999\n")
+    checkpoint.check_new_run_directory(tmp_path / "stale")
+
+
+def _stored_run(tmp_path, options: str):
+    """A run directory with its config.json and the given run.json, and no chunk trained yet."""
+    from agents.config import save_config
+
+    save_config(make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY), tmp_path / checkpoint.CONFIG_FILE)
+    (tmp_path / checkpoint.RUN_OPTIONS_FILE).write_text(options)
+    return tmp_path
+
+
+@pytest.mark.parametrize("options, message", [
+    ('{"eval_episodes": 2, "no_eval": "false"}', r"run.json: no_eval must be true or false, got 'false'"),
+    ('{"eval_episodes": -5, "no_eval": false}', r"run.json: eval_episodes must be an int >= 1 or null, got -5"),
+    ('{"eval_episode": 2}', r"run.json: unknown field\(s\) \['eval_episode'\]; allowed: eval_episodes, no_eval"),
+    ('[]', r"run.json must hold a JSON object, got list"),
+])
+def test_resume_checks_run_json_before_training(tmp_path, capsys, options, message):
+    import re
+
+    run = _stored_run(tmp_path, options)
+    code, _, err = _cli(["train", "ppo", "--resume", str(run), "--no-progress", "--devices", "1"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(message, err), err
+    assert not (run / checkpoint.CHECKPOINT_DIR).exists() and not (run / "eval.json").exists()
+
+
 def test_metrics_lines_survive_a_torn_last_line(tmp_path):
     path = tmp_path / checkpoint.METRICS_FILE
     path.write_text('{"chunk": 0, "iou": [0.1]}\n{"chunk": 1, "iou": [0.2]}\n{"chunk": 2, "io')

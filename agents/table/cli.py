@@ -53,10 +53,13 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--arms", nargs="+", default=None, metavar="ARM",
                         help="an ablation preset's arms to run (default: all of them; the report reads every arm found)")
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
-    parser.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS_DIR,
+    parser.add_argument("--runs-dir", type=Path, default=None,
                         help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
-                             f"(default {DEFAULT_RUNS_DIR})")
-    parser.add_argument("--dry-run", action="store_true", help="print the plan with estimated wall times and stop")
+                             f"(default {DEFAULT_RUNS_DIR}; with --report, a RUNS_DIR given must exist, the default "
+                             "may be absent: the report is then rebuilt from RESULTS_DIR alone)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="print the plan with estimated wall times and stop; with --report, check every cell and "
+                             "print what would be copied and written, writing nothing")
     parser.add_argument("--report", action="store_true",
                         help="copy the finished cells' JSON files under RESULTS_DIR/table/<preset>/ and write "
                              "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
@@ -65,7 +68,7 @@ def add_parser(subparsers) -> None:
                         help=f"where --report writes (default {DEFAULT_RESULTS_DIR})")
     parser.add_argument("--readme", type=Path, default=None, metavar="PATH",
                         help="with --report: also rewrite the generated learner table in the README at PATH "
-                             "(between its marker lines)")
+                             "(between its marker lines; a symbolic link is refused: give the file it points to)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_devices_argument(parser, cpu_default="1, as snac train")
     parser.set_defaults(func=run)
@@ -84,37 +87,61 @@ def plan_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    given_runs_dir = args.runs_dir is not None
+    args.runs_dir = args.runs_dir if given_runs_dir else DEFAULT_RUNS_DIR
     if args.readme is not None:
         from agents.table.readme import replace_block
 
         if not args.report:
             raise ValueError("--readme goes with --report (the README's table is written from the report)")
+        if args.readme.is_symlink():
+            raise ValueError(f"--readme {args.readme} is a symbolic link; give the file it points to "
+                             f"({args.readme.resolve()}), so that the link stays a link")
         if not args.readme.is_file():
             raise ValueError(f"--readme {args.readme}: no such file")
         replace_block(args.readme.read_text(), "")  # its marker lines are there, before any work
     if args.report and args.arms is not None:
         raise ValueError("--arms chooses the arms to train; --report reports every arm found (leave --arms out)")
     if args.report:
-        import json
+        return _report(args, given_runs_dir)
 
-        from agents.table.readme import write_readme
-        from agents.table.report import write_report
-
-        paths = write_report(args.preset, args.runs_dir, args.results_dir)
-        if args.readme is not None:
-            paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
-        for path in paths.values():
-            print(f"wrote {path}")
-        return 0
-
+    from agents import checkpoint
     from agents.table.plan import format_plan
     from agents.table.run import run_cells
 
+    if args.dry_run:
+        print(format_plan(plan_from_args(args), args.runs_dir))
+        return 0
+    checkpoint.check_lock_file(args.runs_dir / args.preset)  # a `snac table` at work here: refused before the plan
     cells = plan_from_args(args)
     print(format_plan(cells, args.runs_dir), flush=True)
-    if args.dry_run:
-        return 0
-    finished = run_cells(cells, progress=not args.no_progress, num_devices=args.devices)
+    finished = run_cells(cells, progress=not args.no_progress, num_devices=args.devices)  # under that lock
     print(f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",
           file=sys.stderr)
+    return 0
+
+
+def _report(args: argparse.Namespace, given_runs_dir: bool) -> int:
+    """`--report` (and `--readme`); with `--dry-run`, every check and nothing written."""
+    import json
+
+    from agents.table.readme import write_readme
+    from agents.table.report import write_report
+
+    runs_dir = args.runs_dir
+    if not given_runs_dir and not runs_dir.exists():
+        print(f"no runs under {runs_dir} (the default --runs-dir): the report is rebuilt from "
+              f"{args.results_dir / 'table'} alone", file=sys.stderr)
+        runs_dir = None
+    paths = write_report(args.preset, runs_dir, args.results_dir, dry_run=args.dry_run)
+    if args.dry_run:
+        for key, path in paths.items():
+            print(f"would copy {key.removeprefix('copy:')} to {path}" if key.startswith("copy:") else f"would write {path}")
+        if args.readme is not None:
+            print(f"would rewrite the learner table in {args.readme}")
+        return 0
+    if args.readme is not None:
+        paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
+    for path in paths.values():
+        print(f"wrote {path}")
     return 0

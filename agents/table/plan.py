@@ -11,7 +11,6 @@ paper's `1d-static` column is three cells, one per shape. Budgets come from the 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -19,14 +18,12 @@ from typing import Any
 from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
+from agents.table.files import EVAL_FILE, eval_is_valid, expected_episodes, new_cell_leftovers
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
-from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
 from snac_jax.tasks import task_spec
 
-CELL_FILE = "cell.json"
-EVAL_FILE = "eval.json"
 TRAIN_SEED = 1
 """Base training seed of the table's runs (seed i trains from fold_in(key(1), i)); the runs that
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
@@ -157,24 +154,6 @@ class Cell:
                 "protocol": self.preset.protocol, **arm, **adopted}
 
 
-def expected_episodes(task: str, protocol: dict[str, int]) -> int:
-    if task_spec(task).dynamic:
-        return protocol["episodes_per_test_design"] * NUM_TEST_DESIGNS
-    return protocol["static_episodes"]
-
-
-def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int = REPORT_EVAL_SEED) -> bool:
-    """eval.json holds one finished result per training seed, scored with the evaluation key
-    (and, if given, over `episodes` episodes)."""
-    try:
-        results = list(json.loads(path.read_text()).values())
-    except (OSError, ValueError, AttributeError):
-        return False
-    return len(results) == seeds and all(
-        isinstance(r, dict) and r.get("seed") == seed and isinstance(r.get("mean"), (int, float))
-        and math.isfinite(r["mean"]) and (episodes is None or r.get("episodes") == episodes) for r in results)
-
-
 def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
     """The settings in which a run already made with `config` differs from the cell's. A
     wall-capped budget alone is no difference: a cap is an estimate from rates.json, so the cell
@@ -197,6 +176,15 @@ def _take_run_budget(cell: Cell, config: TrainConfig) -> None:
                                           capped=config.total_steps < cell.budget.requested)
 
 
+def _continues(cell: Cell, config: TrainConfig) -> bool:
+    """Whether a run made with `config` is the cell's (`_settings_differ`); if so the cell takes
+    its budget."""
+    if _settings_differ(cell, config):
+        return False
+    _take_run_budget(cell, config)
+    return True
+
+
 def _check_same_config(cell: Cell) -> None:
     """A started run must have the cell's settings, except a wall-capped budget (`_settings_differ`),
     which the cell then takes over."""
@@ -211,16 +199,17 @@ def _check_same_config(cell: Cell) -> None:
 
 
 def cell_state(cell: Cell) -> None:
-    """Fill in the cell's status and the env steps per seed its run has done."""
+    """Fill in the cell's status and the env steps per seed its run has done. A new cell's
+    directory must hold nothing the table did not make (`files.new_cell_leftovers`)."""
     if checkpoint.latest_chunk(cell.directory) is None:
         cell.status, cell.done_steps = "new", 0
+        new_cell_leftovers(cell.directory, lambda config: _continues(cell, config))
         return
     _check_same_config(cell)
     if eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, expected_episodes(cell.task, cell.preset.protocol)):
         cell.status, cell.done_steps = "done", cell.total_steps
         return
-    path = cell.directory / checkpoint.METRICS_FILE
-    records = [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
+    records = checkpoint.read_metrics_lines(cell.directory / checkpoint.METRICS_FILE)
     last_chunk = checkpoint.latest_chunk(cell.directory)
     cell.metrics = [r for r in records if r["chunk"] <= last_chunk]
     cell.status, cell.done_steps = "partial", (cell.metrics[-1]["env_steps"] if cell.metrics else 0)
@@ -280,6 +269,7 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
     its config, budget, status and estimate."""
     rates = load_rates() if rates is None else rates
+    algorithms = list(dict.fromkeys(algorithms))  # a cell named twice is one cell, planned and run once
     variants = preset.variants
     if arms is not None:
         names = [v.name for v in preset.variants]

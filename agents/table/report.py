@@ -16,16 +16,18 @@ stratified bootstrap interval (`agents.table.statistics`).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from agents import schemas
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
-from agents.table.raw import budget_record, budget_text, collect, load_raw, seed_means
+from agents.table.files import read_cell
+from agents.table.raw import (budget_record, budget_text, collect, copies, load_raw, raw_cells, refuse_links,
+                              seed_means)
 from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
@@ -243,21 +245,41 @@ def figure(table: dict, path: str | Path) -> None:
     plt.close(fig)
 
 
-def write_report(preset: str, runs_dir: str | Path, results_dir: str | Path, *,
-                 reps: int = statistics.DEFAULT_REPS) -> dict[str, Path]:
-    """Copy `preset`'s finished cells from `runs_dir`, then rebuild table.md and table.json from
+def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Path, *,
+                 reps: int = statistics.DEFAULT_REPS, dry_run: bool = False) -> dict[str, Path]:
+    """Copy `preset`'s finished cells from `runs_dir` (None: none), then rebuild table.md and table.json from
     every preset's raw results under `results_dir/table/`, and per preset `table-<preset>.png` (an
-    ablation's: its arms' learning curves, `ablation.curves_name`)."""
+    ablation's: its arms' learning curves, `ablation.curves_name`). Every cell, copied or to be
+    copied, is read and checked before the first file is written (a damaged one is a
+    `ValueError` naming its file and field), and no file is written through a symbolic link in
+    `results_dir`. `dry_run`: check all that and return what would be written, writing nothing
+    (the copies as `copy:<cell directory>`)."""
     results_dir = Path(results_dir)
-    collect(runs_dir, results_dir, preset)
+    planned = copies(runs_dir, results_dir, preset)
     presets = load_presets()
-    found = sorted((p.name for p in (results_dir / "table").glob("*") if p.is_dir()),
+    found = sorted({p.name for p in (results_dir / "table").glob("*") if p.is_dir()}
+                   | ({preset} if planned else set()),
                    key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
     hand_path = results_dir / "handcrafted.json"
-    handcrafted = json.loads(hand_path.read_text()) if hand_path.is_file() else None
-    tables, paths = {}, {"md": results_dir / "table.md", "json": results_dir / "table.json"}
+    handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
+    paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
+    replaced = {destination for _, destination, _ in planned}
+    raws = {name: load_raw(results_dir, name) for name in found if name != preset}
+    for directory in raw_cells(results_dir / "table" / preset):
+        if directory not in replaced:
+            read_cell(directory)  # a damaged copy the copies will not replace stops the report now
     for name in found or [preset]:
-        raw, arms = load_raw(results_dir, name), [v.name for v in presets[name].variants] if name in presets else []
+        arms = [v.name for v in presets[name].variants] if name in presets else []
+        paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms else f"table-{name}.png")
+    for path in paths.values():
+        refuse_links(results_dir, path)
+    if dry_run:
+        return {**{f"copy:{source}": destination for source, destination, _ in planned}, **paths}
+    collect(runs_dir, results_dir, preset)
+    raws[preset] = load_raw(results_dir, preset)
+    tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
+    for name in found or [preset]:
+        raw, arms = raws[name], [v.name for v in presets[name].variants] if name in presets else []
         if arms or ablation.is_ablation(raw):
             figure_path = results_dir / ablation.curves_name(name)
             drawn = ablation.curves(raw, arms=arms, path=figure_path, preset=name)

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import tempfile
 from pathlib import Path
 
 from agents import checkpoint
-from agents.table.plan import CELL_FILE, Cell
+from agents.table.files import CELL_FILE, EVAL_FILE
+from agents.table.plan import Cell, cell_state
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
@@ -19,45 +21,60 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
              num_devices: int | None = None) -> bool:
     """Train (or resume) and evaluate one cell; True when it finished (`stop_after_chunks`, the
     tests' stand-in for a killed run, can leave it unfinished). `num_devices`: how many devices
-    the worlds are split over (default: as `snac train`)."""
+    the worlds are split over (default: as `snac train`).
+
+    The cell's directory is locked first (`checkpoint.lock_run`: another process working on it
+    is refused at once), and where it stands is read again under the lock, so nothing another
+    process made since the plan is trained over, and a cell finished meanwhile is left as it is."""
     from agents.cli import evaluate_run
     from agents.driver import chunk_sizes, train
     from snac_jax import devices
 
     if cell.status == "done":
         return True
-    if cell.status == "new" and cell.adopts_from is not None:
-        adopt(cell)
-        return True
-    if cell.status == "new":  # a run killed before its first checkpoint left nothing to keep
-        shutil.rmtree(cell.directory, ignore_errors=True)  # a new run needs an empty directory
-    algorithm, state = train(cell.config, cell.directory, resume=cell.status == "partial", progress=progress,
-                             stop_after_chunks=stop_after_chunks, mesh=devices.env_mesh(num_devices, cell.config.num_envs))
-    atomic_write_json(cell.directory / CELL_FILE, cell.record())
-    last = checkpoint.latest_chunk(cell.directory)
-    if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
-        cell.status = "partial"
-        return False
-    _plot_curve(cell, cell.directory)
-    evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
+    with checkpoint.lock_run(cell.directory):
+        cell_state(cell)
+        if cell.status == "done":
+            return True
+        started = (cell.directory / checkpoint.CONFIG_FILE).is_file()  # new: this cell's start, cut before a checkpoint
+        if cell.status == "new" and cell.adopts_from is not None and not started:
+            adopt(cell)
+            return True
+        algorithm, state = train(cell.config, cell.directory, resume=started, progress=progress,
+                                 stop_after_chunks=stop_after_chunks,
+                                 mesh=devices.env_mesh(num_devices, cell.config.num_envs))
+        atomic_write_json(cell.directory / CELL_FILE, cell.record())
+        last = checkpoint.latest_chunk(cell.directory)
+        if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
+            cell.status = "partial"
+            return False
+        _plot_curve(cell, cell.directory)
+        evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
     cell.status = "done"
     return True
 
 
 def adopt(cell: Cell) -> None:
     """Take over the cell's twin (`Cell.adopts_from`): its whole run (checkpoints, metrics,
-    eval.json) copied, with this cell's own cell.json and a curve titled for this cell. The copy
-    is assembled in `<algorithm>/.adopting/` and renamed into place, so a kill leaves no
-    half-copied cell for the plan or the report to read."""
-    staging = cell.directory.parent / ".adopting" / cell.directory.name
-    shutil.rmtree(staging, ignore_errors=True)
-    shutil.copytree(cell.adopts_from, staging)
-    atomic_write_json(staging / CELL_FILE, cell.record())
-    _plot_curve(cell, staging)
-    shutil.rmtree(cell.directory, ignore_errors=True)
-    staging.rename(cell.directory)
+    eval.json; not its lock) copied, with this cell's own cell.json and a curve titled for this
+    cell. The copy is assembled in a folder of its own under `<algorithm>/.adopting/`, then moved
+    into the cell's (locked, empty) directory one entry at a time with eval.json last: a kill
+    leaves either no eval.json (a run with every checkpoint, which the next plan resumes and
+    evaluates) or the whole cell."""
+    holder = cell.directory.parent / ".adopting"
+    holder.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f"{cell.directory.name}.", dir=holder))
+    try:
+        shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns(checkpoint.LOCK_FILE))
+        atomic_write_json(staging / CELL_FILE, cell.record())
+        _plot_curve(cell, staging)
+        for entry in sorted(staging.iterdir(), key=lambda p: p.name == EVAL_FILE):
+            entry.rename(cell.directory / entry.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # made by this call; empty unless the copy failed
     with contextlib.suppress(OSError):  # another cell's copy may be under way there
-        staging.parent.rmdir()
+        holder.rmdir()
     cell.status = "done"
 
 
@@ -73,12 +90,21 @@ def _plot_curve(cell: Cell, directory: Path) -> None:
 def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None,
               num_devices: int | None = None) -> int:
     """Run every unfinished cell in order under one progress bar over the grid's env steps;
-    returns how many cells are finished."""
+    returns how many cells are finished. The preset's folder is locked for the whole grid, so a
+    second `snac table` on the same runs directory and preset is refused before it touches a
+    cell."""
+    if not cells:
+        return 0
+    with checkpoint.lock_run(cells[0].directory.parent.parent):
+        return _run_cells(cells, progress, stop_after_chunks, num_devices)
+
+
+def _run_cells(cells: list[Cell], progress: bool, stop_after_chunks: int | None, num_devices: int | None) -> int:
     from tqdm.auto import tqdm
 
     total = sum(c.total_steps * c.config.seeds for c in cells)
     done = sum(c.done_steps * c.config.seeds for c in cells)
-    name = cells[0].preset.name if cells else ""
+    name = cells[0].preset.name
     bar = tqdm(total=total, initial=done, unit="step", unit_scale=True, desc=f"table {name}", disable=not progress,
                dynamic_ncols=True, position=0)
     try:
@@ -96,7 +122,5 @@ def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: in
 
 
 def _done_steps(cell: Cell) -> int:
-    from agents.driver import read_metrics
-
-    records = read_metrics(cell.directory)
+    records = checkpoint.read_metrics_lines(cell.directory / checkpoint.METRICS_FILE)
     return records[-1]["env_steps"] if records else 0

@@ -80,9 +80,21 @@ def join_processes_from(argv: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. Bad input (`ValueError`) and files that cannot be read or written
-    (`OSError`) end with one line, `snac CMD: error: ...`, and exit status 2; anything else is a
-    bug and keeps its traceback (as does every error with `SNAC_TRACEBACK=1`)."""
+    (`OSError`) end with one line, `snac CMD: error: ...`, and exit status 2; Ctrl-C with one
+    line, `snac CMD: interrupted` (a subcommand may say more and return 130 itself), and exit
+    status 130; anything else is a bug and keeps its traceback (as does every error with
+    `SNAC_TRACEBACK=1`)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        if os.environ.get("SNAC_TRACEBACK"):
+            raise
+        print(" ".join(["snac", *argv[:1]]) + ": interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str]) -> int:
     use_cpu_devices_from(argv)
     join_processes_from(argv)
     args = build_parser().parse_args(argv)

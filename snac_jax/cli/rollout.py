@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from snac_jax.batched_step import RESET_STRATEGIES
 from snac_jax.cli.arguments import add_devices_argument, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
 
@@ -15,6 +16,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--num-envs", type=positive_int, default=4096)
     parser.add_argument("--steps", type=positive_int, default=1000)
     parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--reset", choices=RESET_STRATEGIES, default="auto",
+                        help="how ended worlds are reset: loop (one by one, fast on a CPU), select (every world's "
+                             "fresh state, selected: fast on a GPU), auto (loop on a CPU, select elsewhere; default)")
     add_devices_argument(parser)
     parser.set_defaults(func=run)
 
@@ -23,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     from snac_jax import devices, make
+    from snac_jax.batched_step import resolve_reset
     from snac_jax.rollout import random_rollout
 
     mesh = devices.env_mesh(args.devices, args.num_envs)
@@ -30,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
     env, params = make(args.task)
     key = jax.random.key(args.seed)
     start = time.perf_counter()
-    compiled = random_rollout.lower(key, env, params, args.num_envs, args.steps, mesh).compile()
+    reset = resolve_reset(args.reset, mesh.devices.flat[0].platform)
+    compiled = random_rollout.lower(key, env, params, args.num_envs, args.steps, mesh, reset).compile()
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
     stats = jax.block_until_ready(compiled(key, params))
@@ -38,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     num_devices = mesh.devices.size
     print(
         f"task {args.task}: {args.num_envs} envs x {args.steps} steps, uniform-random policy, "
-        f"{num_devices} {mesh.devices.flat[0].platform} device{'s' if num_devices > 1 else ''}"
+        f"{num_devices} {mesh.devices.flat[0].platform} device{'s' if num_devices > 1 else ''}, {reset} reset"
     )
     print(f"compile {compile_s:.2f} s; run {run_s:.2f} s; {args.num_envs * args.steps / run_s:,.0f} env-steps/s")
     if int(stats.episodes):

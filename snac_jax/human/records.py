@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any, Iterable
@@ -21,11 +20,10 @@ from snac_jax.atomic import atomic_write
 from snac_jax.config import PLAN_SIZE_1D, PLAN_SIZE_2D
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.paper import paper_column
-from snac_jax.tasks import MAX_INT32, MAX_SEED, TASKS, task_spec
+from snac_jax.schema import HUMAN_RECORD, MODES, check
+from snac_jax.tasks import task_spec
 
 RECORD_VERSION = 1
-MODES = ("train", "eval")
-"""`train`: the player sees per-step and total reward; `eval`: only steps and bricks (paper)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,46 +53,29 @@ class EpisodeRecord:
         return json.dumps(dataclasses.asdict(self), separators=(",", ":"))
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "EpisodeRecord":
-        fields = {f.name for f in dataclasses.fields(cls)}
-        missing = sorted(f for f in fields - set(data) if f not in ("player", "version"))
-        if missing:
-            raise ValueError(f"human record lacks {missing}")
-        record = cls(**{k: v for k, v in data.items() if k in fields})
+    def from_dict(cls, data: Any) -> "EpisodeRecord":
+        """A record from one parsed line, checked against `snac_jax.schema.HUMAN_RECORD` (the
+        error names the field), then against the rules that tie its fields together."""
+        check(data, HUMAN_RECORD, "")
+        record = cls(**data)
         record.validate()
         return record
 
     def validate(self) -> None:
-        """What can be checked without the environment: types, ranges, lengths, the design's
-        shape, the test design's presence (`verify_record` replays the rest)."""
-        if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; allowed: {', '.join(TASKS)}")
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        _require_int("seed", self.seed, 0, MAX_SEED)
-        _require_int("max_steps", self.max_steps, 1, MAX_INT32)
-        _require_int("bricks_used", self.bricks_used, 0, MAX_INT32)
-        if not isinstance(self.actions, list) or not isinstance(self.strides, list):
-            raise ValueError("actions and strides must be lists")
+        """What can be checked without the environment: each field against `HUMAN_RECORD`, then
+        the lengths, the design's shape and the test design's presence (`verify_record`
+        replays the rest)."""
+        check(dataclasses.asdict(self), HUMAN_RECORD, "")
         if len(self.actions) != len(self.strides) or not self.actions:
             raise ValueError("a record needs one stride per action and at least one action")
         if len(self.actions) > self.max_steps:
             raise ValueError(f"{len(self.actions)} actions, more than the step limit max_steps={self.max_steps}")
-        if any(not _is_int(a) or a < 0 for a in self.actions):
-            raise ValueError("actions must be ints >= 0")
-        if any(not _is_int(s) or s not in (1, 2, 3) for s in self.strides):
-            raise ValueError("strides must be 1, 2 or 3")
-        if not isinstance(self.iou, (int, float)) or not 0.0 <= self.iou <= 1.0:
-            raise ValueError(f"iou must be in [0, 1], got {self.iou!r}")
-        if not isinstance(self.total_reward, (int, float)) or not math.isfinite(self.total_reward):
-            raise ValueError(f"total_reward must be a number, got {self.total_reward!r}")
-        if not isinstance(self.terminated, bool):
-            raise ValueError(f"terminated must be true or false, got {self.terminated!r}")
         spec = task_spec(self.task)
         plays_test_designs = spec.dynamic and self.mode == "eval"
-        if plays_test_designs:
-            _require_int("test_design", self.test_design, 0, NUM_TEST_DESIGNS - 1)
-        elif self.test_design is not None:
+        if plays_test_designs and self.test_design is None:
+            raise ValueError(f"test_design must be an int in 0..{NUM_TEST_DESIGNS - 1}: a dynamic task's eval-mode "
+                             "record plays a test design")
+        if not plays_test_designs and self.test_design is not None:
             raise ValueError(f"test_design must be null: only dynamic tasks in eval mode play test designs, got {self.test_design!r}")
         shape = (1, PLAN_SIZE_1D) if spec.dim == 1 else (PLAN_SIZE_2D, PLAN_SIZE_2D)
         try:
@@ -103,15 +84,6 @@ class EpisodeRecord:
             design = np.zeros(0)
         if design.shape != shape or not np.issubdtype(design.dtype, np.integer):
             raise ValueError(f"design must be {shape[0]} x {shape[1]} ints for {self.task}, got shape {design.shape}")
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _require_int(name: str, value: Any, low: int, high: int) -> None:
-    if not _is_int(value) or not low <= value <= high:
-        raise ValueError(f"{name} must be an int in {low}..{high}, got {value!r}")
 
 
 def append_record(path: str | os.PathLike, record: EpisodeRecord) -> Path:
@@ -141,7 +113,7 @@ def load_records(path: str | os.PathLike) -> list[EpisodeRecord]:
             continue
         try:
             records.append(EpisodeRecord.from_dict(json.loads(line)))
-        except (ValueError, TypeError) as error:
+        except ValueError as error:
             raise ValueError(f"{path}:{number}: not a valid human record ({error})") from error
     return records
 

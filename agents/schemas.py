@@ -1,0 +1,93 @@
+"""The schemas of the files a run directory and the table keep, checked with `snac_jax.schema`.
+
+Each file has one schema, defined here once, and every place that reads the file reads it through
+`load` (or `read_config`'s use of `config_json`), so a damaged or hand-edited file fails with one
+line naming the file and the field, whoever reads it:
+
+- `config.json`: the fields of the run's config class (`agents.config.option`: type and bounds),
+  checked from the same declarations that validate a config made in code;
+- `run.json`: the options of `snac train` kept for a resume (`agents.cli.RUN_OPTIONS`);
+- `cell.json`: what `snac table` keeps beside them (`agents.table.plan.Cell.record`);
+- `eval.json`: the protocol's results, one row per training seed (`snac_jax.evaluation.TaskResult`),
+  every IoU in [0, 1]; `bench/results/handcrafted.json` has the same rows.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from snac_jax.paper import PAPER_TASKS
+from snac_jax.schema import (Anything, Bool, Int, ListOf, MapOf, Mismatch, Nullable, Number, Object, Spec, Str,
+                             load_json, mismatch)
+from snac_jax.tasks import MAX_SEED, TASKS
+
+
+class _Declared(Spec):
+    """A config field, checked by its declaration (`agents.config.FieldSpec`), in its words."""
+
+    def __init__(self, spec):
+        self.spec = spec
+
+    def describe(self) -> str:
+        return "a string" if self.spec.kind is str else self.spec.describe()
+
+    def check(self, value: Any, field: str) -> None:
+        if self.spec.kind is str and not (isinstance(value, str) or (self.spec.optional and value is None)):
+            raise mismatch(field, self.describe(), value)
+        try:
+            self.spec.check(value)
+        except ValueError:
+            raise mismatch(field, self.describe(), value) from None
+
+
+class _ConfigJson(Spec):
+    """config.json: `algorithm` names the config class, whose declared fields the rest must match
+    (a field left out takes the class default, as runs of older versions do)."""
+
+    def describe(self) -> str:
+        return "an object"
+
+    def check(self, value: Any, field: str) -> None:
+        from agents.config import field_specs
+        from agents.registry import ALGORITHMS, config_class
+
+        Object({"algorithm": Str(ALGORITHMS)}, {"task": Anything()}).check(
+            {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field)
+        specs = field_specs(config_class(value["algorithm"]))
+        fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
+        unknown = sorted(set(value) - set(fields) - {"algorithm"})
+        if unknown:
+            raise Mismatch(f"unknown {value['algorithm']} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+        Object({"algorithm": Str(ALGORITHMS)}, fields).check(value, field)
+
+
+CONFIG_JSON = _ConfigJson()
+
+RUN_JSON = Object({}, {"eval_episodes": Nullable(Int(1)), "no_eval": Bool()})
+
+PROTOCOL = Object({"static_episodes": Int(1), "episodes_per_test_design": Int(1)})
+
+CELL_JSON = Object(
+    {
+        "preset": Str(), "algorithm": Str(), "column": Str(PAPER_TASKS), "task": Str(TASKS),
+        "budget": Object({"env_steps": Int(1), "requested": Int(1), "source": Str(), "capped": Bool()}),
+        "eval_seed": Int(0, MAX_SEED), "protocol": PROTOCOL,
+    },
+    {"variant": Str(), "paper_variant": Str(), "switches": Str(), "settings": MapOf(Anything()), "adopted_from": Str()},
+)
+
+IOU = Number(0.0, 1.0)
+STRATUM = Object({"mean": IOU, "min": IOU, "std": Number(0.0), "episodes": Int(1)})
+EVAL_ROW = Object({
+    "task": Str(), "mean": IOU, "min": IOU, "std": Number(0.0), "ci95": ListOf(Number(), length=2),
+    "episodes": Int(1), "mean_length": Number(0.0), "mean_bricks_used": Number(0.0), "mean_return": Number(),
+    "per_design": MapOf(STRATUM), "seed": Int(0, MAX_SEED), "wall_s": Number(0.0),
+})
+EVAL_JSON = MapOf(EVAL_ROW, min_items=1)
+
+
+def load(path: str | Path, schema: Spec) -> Any:
+    """The JSON file at `path`, checked against `schema` (`SchemaError`, a `ValueError`, names
+    the file and the field)."""
+    return load_json(path, schema)

@@ -1,0 +1,117 @@
+"""The files of `snac table`'s cells: reading them back (each against its schema in
+`agents.schemas`, then against each other) and what a runner may touch in a runs directory.
+
+A cell directory (`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`) holds one run of `agents.driver`
+with `cell.json` beside it. A runner deletes nothing and starts no run over files it did not
+make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
+short before its first checkpoint (which it trains again from the start), or it is refused,
+named, before anything runs. The report (`agents.table.raw`) reads finished cells with
+`read_cell`, which refuses a damaged one naming the file and the field instead of leaving it out.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+from agents import checkpoint, schemas
+from snac_jax.designs import NUM_TEST_DESIGNS
+from snac_jax.evaluation import REPORT_EVAL_SEED
+from snac_jax.tasks import task_spec
+
+CELL_FILE = "cell.json"
+EVAL_FILE = "eval.json"
+RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
+"""What a cell's run leaves before its first checkpoint (`agents.driver`), besides its lock."""
+
+
+def expected_episodes(task: str, protocol: dict[str, int]) -> int:
+    if task_spec(task).dynamic:
+        return protocol["episodes_per_test_design"] * NUM_TEST_DESIGNS
+    return protocol["static_episodes"]
+
+
+def eval_problem(results: dict, seeds: int, episodes: int | None, seed: int) -> str | None:
+    """Why a schema-checked eval.json is not a finished result of the cell (one row per training
+    seed, scored with the evaluation key `seed` over `episodes` episodes each), or None."""
+    if len(results) != seeds:
+        return f"holds {len(results)} result(s), the run has seeds {seeds}"
+    for name, row in results.items():
+        if row["seed"] != seed:
+            return f"['{name}'].seed is {row['seed']}, the cell is scored with evaluation key {seed}"
+        if episodes is not None and row["episodes"] != episodes:
+            return f"['{name}'].episodes is {row['episodes']}, the cell's protocol has {episodes}"
+    return None
+
+
+def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int = REPORT_EVAL_SEED) -> bool:
+    """Whether eval.json holds a finished result of the run (`eval_problem`); a missing, damaged
+    or foreign one is not (the runner evaluates the run again)."""
+    try:
+        results = schemas.load(path, schemas.EVAL_JSON)
+    except (OSError, ValueError):
+        return False
+    return eval_problem(results, seeds, episodes, seed) is None
+
+
+def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) -> bool:
+    """For a cell without a checkpoint: False where its directory is absent or empty (a free lock
+    aside), True where it holds only what this cell's start left before its first checkpoint
+    (config.json with the cell's settings, a metrics.jsonl without records, a checkpoints/ folder
+    with none in it), which the run trains again from the start. Anything else is a `ValueError`
+    naming the directory: the table never deletes or overwrites files it did not make."""
+    if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
+        raise ValueError(f"{directory} is not a directory (a link or a file), where a cell of the table goes; "
+                         "choose another --runs-dir")
+    try:
+        checkpoint.check_new_run_directory(directory)
+        return False
+    except ValueError as error:
+        if "is not empty" not in str(error):
+            raise
+    checkpoint.check_lock_file(directory)
+    entries = sorted(p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE)
+    ours = set(entries) <= RESTARTABLE and checkpoint.CONFIG_FILE in entries
+    try:
+        ours = ours and same_settings(checkpoint.read_config(directory))
+    except ValueError:
+        ours = False
+    if ours and checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE):
+        raise ValueError(f"{directory} holds a start of this cell whose {checkpoint.METRICS_FILE} records chunks that "
+                         "no checkpoint kept; the table deletes nothing it did not make: remove that directory to "
+                         "train the cell from the start")
+    if not ours:
+        shown = ", ".join(entries[:6]) + (", ..." if len(entries) > 6 else "")
+        raise ValueError(f"{directory} holds files that no start of this cell left there ({shown}) and no checkpoint; "
+                         "the table deletes nothing it did not make: move that directory away, or choose another "
+                         "--runs-dir")
+    return True
+
+
+def read_cell(directory: Path) -> dict[str, Any]:
+    """A finished cell's files, each checked against its schema and against the others, as the
+    report reads them: {"config", "eval", "cell", "metrics"} ("metrics": its curve, empty where
+    not kept). `ValueError` naming the file and the field of the first problem."""
+    config = checkpoint.read_config(directory)
+    cell_path, eval_path = directory / CELL_FILE, directory / EVAL_FILE
+    if not cell_path.is_file():
+        raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
+    cell = schemas.load(cell_path, schemas.CELL_JSON)
+    results = schemas.load(eval_path, schemas.EVAL_JSON)
+    for name, value in (("algorithm", config.algorithm), ("task", config.task)):
+        if cell[name] != value:
+            raise ValueError(f"{cell_path}: {name} is {cell[name]!r}, its {checkpoint.CONFIG_FILE} has {value!r}")
+    arm = [k for k in ("variant", "paper_variant", "switches") if k in cell]
+    if arm and len(arm) != 3:
+        missing = sorted({"variant", "paper_variant", "switches"} - set(arm))
+        raise ValueError(f"{cell_path}: an arm's cell needs variant, paper_variant and switches; {missing} missing")
+    name = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
+    if directory.name != name or directory.parent.name != cell["algorithm"]:
+        raise ValueError(f"{cell_path}: its algorithm and task ({cell['algorithm']}/{name}) are not its directory's "
+                         f"({directory.parent.name}/{directory.name})")
+    problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
+    if problem is not None:
+        raise ValueError(f"{eval_path}: {problem} (from {cell_path} and {checkpoint.CONFIG_FILE}); evaluate the cell "
+                         "again with `snac table` or move it away")
+    return {"config": config.to_json(), "eval": results, "cell": cell,
+            "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)}

@@ -1,0 +1,316 @@
+"""`snac table` never loses or fakes a result: a second process on a runs directory in use is
+refused, a runner deletes and overwrites nothing it did not make, a cell named twice runs once, and
+`--report` refuses damaged cells, impossible scores and links instead of publishing or following
+them (and writes nothing with `--dry-run`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from agents import checkpoint
+from agents.table.presets import load_presets
+from tests.table_cells import write_cell
+
+PRESETS = load_presets()
+ROOT = Path(__file__).resolve().parents[1]
+ONE_CELL = ["--preset", "smoke", "--algorithms", "ppo", "--tasks", "1d-static-sin", "--no-progress"]
+
+
+def _run_cli(argv: list[str]) -> int:
+    from agents.table import cli
+
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["table", *argv])
+    return args.func(args)
+
+
+def _main(argv: list[str], capsys) -> tuple[int, str]:
+    """`snac table ARGV` as the command line runs it: exit status and stderr."""
+    from snac_jax.cli import main
+
+    code = main(["table", *argv])
+    return code, capsys.readouterr().err
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Fail any test that reaches training: these cases must be refused or skipped before it."""
+    import agents.driver as driver
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("trained")
+
+    monkeypatch.setattr(driver, "train", refuse)
+
+
+class _Holder:
+    """Another process holding `directory/.lock`, as a running `snac table` or `snac train` does."""
+
+    def __init__(self, directory: Path):
+        directory.mkdir(parents=True, exist_ok=True)
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
+             "f.truncate(0); f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)",
+             str(directory / checkpoint.LOCK_FILE)], stdout=subprocess.PIPE, text=True)
+        assert self.process.stdout.readline().strip() == "locked"
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.process.kill()
+        self.process.wait()
+
+
+# --- two runners, one runs directory -------------------------------------------------------------
+
+
+def test_a_second_table_run_is_refused_before_it_touches_a_cell(tmp_path, no_training):
+    """The first process holds the preset's folder (and its cell, in its first chunk): the second
+    is refused in one line, and the first's cell (config, metrics, lock) is left as it was."""
+    from agents.config import save_config
+    from agents.table.plan import make_plan
+
+    runs = tmp_path / "runs"
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    cell.directory.mkdir(parents=True)
+    save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
+    (cell.directory / checkpoint.METRICS_FILE).write_text("")
+    with _Holder(cell.directory):
+        before = _tree(cell.directory)
+        with _Holder(runs / "smoke"):
+            with pytest.raises(ValueError, match=r"smoke is in use by process 4242: one run directory takes one process"):
+                _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
+        # The preset's folder free, the cell still held (a `snac train --resume` on it, say).
+        with pytest.raises(ValueError, match=r"1d-static-sin is in use by process 4242"):
+            _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
+        assert _tree(cell.directory) == before
+
+
+@pytest.mark.slow  # one smoke cell trained and evaluated in a subprocess (~1 min on a loaded 2-core CPU)
+def test_two_table_processes_the_second_refused_the_first_finishes_a_clean_cell(tmp_path):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    argv = [sys.executable, "-m", "snac_jax.cli", "table", *ONE_CELL, "--runs-dir", str(tmp_path / "runs")]
+    first = subprocess.Popen(argv, env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(600):  # until the first holds the preset's folder
+            try:
+                checkpoint.check_lock_file(tmp_path / "runs" / "smoke")
+            except ValueError:
+                break
+            time.sleep(0.1)
+        second = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        out, err = first.communicate(timeout=900)
+    finally:
+        first.kill()
+    assert second.returncode == 2 and "Traceback" not in second.stderr
+    assert second.stderr.strip().splitlines()[-1].startswith("snac table: error: ") and "is in use by process" in second.stderr
+    assert first.returncode == 0, err[-2000:]
+    cell = tmp_path / "runs" / "smoke" / "ppo" / "1d-static-sin"
+    assert [r["chunk"] for r in checkpoint.read_metrics_lines(cell / checkpoint.METRICS_FILE)] == [0, 1, 2, 3]
+    assert len(json.loads((cell / "eval.json").read_text())) == 2
+
+
+# --- a runner deletes nothing it did not make -----------------------------------------------------
+
+
+def test_a_cell_directory_holding_another_runs_files_is_refused_not_deleted(tmp_path, no_training):
+    """`--runs-dir bench/results/table` has the layout of a runs directory, with finished cells'
+    files and no checkpoints: the plan refuses such a cell, naming it, before anything runs."""
+    from agents.table import run as table_run
+    from agents.table.plan import make_plan
+
+    runs = tmp_path / "runs"
+    shutil.copytree(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic", runs / "paper" / "ppo" / "1d-dynamic")
+    mine = runs / "smoke" / "ppo" / "1d-static-sin"
+    mine.mkdir(parents=True)
+    (mine / "config.json").write_text('{"mine": true}\n')
+    before = _tree(runs)
+    for preset, task in (("paper", "1d-dynamic"), ("smoke", "1d-static-sin")):
+        with pytest.raises(ValueError, match=rf"{task} holds files that no start of this cell left there \(.*config.json"
+                                             r".*\) and no checkpoint; the table deletes nothing it did not make: move"):
+            cells = make_plan(PRESETS[preset], ["ppo"], [task], None, runs, rates={})
+            table_run.run_cells(cells, progress=False)
+    with pytest.raises(ValueError, match="deletes nothing it did not make"):
+        _run_cli(["--preset", "paper", "--algorithms", "ppo", "--tasks", "1d-dynamic", "--runs-dir", str(runs)])
+    assert _tree(runs) == before
+
+
+def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path, monkeypatch):
+    """What a start of this very cell leaves before its first checkpoint (its config.json, an
+    empty metrics.jsonl, a free lock) is resumed from the start, not deleted; a free lock alone
+    leaves the directory new."""
+    import agents.driver as driver
+    from agents.config import save_config
+    from agents.table import run as table_run
+    from agents.table.plan import make_plan
+
+    runs = tmp_path / "runs"
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    cell.directory.mkdir(parents=True)
+    (cell.directory / checkpoint.LOCK_FILE).write_text("process 999999\n")  # its holder is gone
+    assert make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})[0].status == "new"
+    save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
+    (cell.directory / checkpoint.METRICS_FILE).write_text("")
+    calls = []
+
+    def spy(config, out_dir, **kwargs):
+        calls.append(kwargs["resume"])
+        raise KeyboardInterrupt  # stop there: what matters is how it was called
+
+    monkeypatch.setattr(driver, "train", spy)
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    with pytest.raises(KeyboardInterrupt):
+        table_run.run_cells([cell], progress=False)
+    assert calls == [True] and (cell.directory / checkpoint.CONFIG_FILE).is_file()
+    # Cut after a chunk's metrics line but before its checkpoint: named, left for the user to remove.
+    (cell.directory / checkpoint.METRICS_FILE).write_text('{"chunk": 0, "env_steps": 512, "wall_s": 1.0}\n')
+    with pytest.raises(ValueError, match="records chunks that no checkpoint kept; the table deletes nothing"):
+        make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+
+
+def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained_again(tmp_path, no_training,
+                                                                                       monkeypatch, capsys):
+    from agents.config import save_config
+    from agents.table import run as table_run
+    from agents.table.plan import make_plan
+
+    runs = tmp_path / "runs"
+    cells = make_plan(PRESETS["smoke"], ["ppo", "ppo"], ["1d-static-sin"], None, runs, rates={})
+    assert len(cells) == 1
+    assert _run_cli([*ONE_CELL[:3], "ppo", *ONE_CELL[3:], "--runs-dir", str(runs), "--dry-run"]) == 0
+    assert "1 cells," in capsys.readouterr().out
+    # The cell finished (by another process) after this plan was made: it is skipped, not trained.
+    [stale] = cells
+    write_cell(stale.directory)
+    save_config(stale.config, stale.directory / checkpoint.CONFIG_FILE)
+    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 3 if Path(directory) == stale.directory else None)
+    before = _tree(stale.directory)
+    assert stale.status == "new" and table_run.run_cells([stale], progress=False) == 1
+    after = _tree(stale.directory)
+    assert stale.status == "done" and after.pop(checkpoint.LOCK_FILE).startswith(b"process ") and after == before
+
+
+# --- the report -----------------------------------------------------------------------------------
+
+
+def _report(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A runs directory with one finished smoke cell, and an empty results folder."""
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    cell = runs / "smoke" / "ppo" / "1d-static-sin"
+    write_cell(cell)
+    results.mkdir()
+    return runs, results, cell
+
+
+def test_report_refuses_an_impossible_iou_naming_the_file_and_the_field(tmp_path, capsys):
+    runs, results, cell = _report(tmp_path)
+    evaluation = json.loads((cell / "eval.json").read_text())
+    evaluation["1d-static-sin (seed 0)"].update(mean=7.5, min=-3.0)
+    (cell / "eval.json").write_text(json.dumps(evaluation))
+    code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert f"{cell / 'eval.json'}: ['1d-static-sin (seed 0)'].mean must be a finite number in [0, 1], got 7.5" in err
+    assert not any(results.iterdir())  # nothing published
+
+
+@pytest.mark.parametrize("name, damage, message", [
+    ("eval.json", lambda text: text[: len(text) // 2], r"eval.json is not valid JSON"),
+    ("eval.json", lambda text: "garbage", r"eval.json is not valid JSON"),
+    ("eval.json", lambda text: text.replace('"mean": 0.5', '"mean": NaN'),
+     r"eval.json: \['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan"),
+    ("eval.json", lambda text: text.replace('"mean": 0.5', '"max": 0.5'), r"eval.json: unknown field\(s\) \['max'\] in"),
+    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": "2"'), r"config.json: seeds must be an int >= 1, got '2'"),
+    ("config.json", lambda text: "{}", r"config.json: algorithm is missing"),
+    ("cell.json", lambda text: "[]", r"cell.json must hold a JSON object, got list"),
+    ("cell.json", lambda text: text.replace('"protocol"', '"protocols"'), r"cell.json: unknown field\(s\) \['protocols'\]"),
+    ("cell.json", lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "protocol"}),
+     r"cell.json: protocol is missing"),
+    ("cell.json", lambda text: text.replace('"task": "1d-static-sin"', '"task": "1d-static-sine"'),
+     r"cell.json: unknown task '1d-static-sine'; allowed: 1d-static-sin"),
+    ("cell.json", lambda text: text.replace('"static_episodes": 2', '"static_episodes": 3'),
+     r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3"),
+    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": 3'), r"eval.json: holds 2 result\(s\), the run has seeds 3"),
+])
+def test_report_refuses_a_damaged_cell_naming_the_file_and_the_field(tmp_path, capsys, name, damage, message):
+    runs, results, cell = _report(tmp_path)
+    (cell / name).write_text(damage((cell / name).read_text()))
+    code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("snac table: error: ") and str(cell) in err and re.search(message, err), err
+    assert not any(results.iterdir())
+    # The same cell already copied into the results is refused there too.
+    shutil.copytree(cell, results / "table" / "smoke" / "ppo" / "1d-static-sin")
+    shutil.rmtree(runs / "smoke")
+    code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
+    assert code == 2 and str(results / "table") in err and re.search(message, err), err
+
+
+def test_report_dry_run_checks_everything_and_writes_nothing(tmp_path, capsys):
+    runs, results, cell = _report(tmp_path)
+    shutil.copytree(ROOT / "bench" / "results" / "table" / "paper", results / "table" / "paper")
+    before = _tree(results)
+    assert _run_cli(["--preset", "smoke", "--report", "--dry-run", "--runs-dir", str(runs), "--results-dir", str(results)]) == 0
+    out = capsys.readouterr().out
+    assert f"would copy {cell} to {results / 'table' / 'smoke' / 'ppo' / '1d-static-sin'}" in out
+    assert f"would write {results / 'table.md'}" in out and f"would write {results / 'table-paper.png'}" in out
+    assert _tree(results) == before and sorted(p.name for p in results.iterdir()) == ["table"]
+    assert _run_cli(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)]) == 0
+    assert (results / "table" / "smoke" / "ppo" / "1d-static-sin" / "eval.json").is_file()
+
+
+def test_report_needs_a_runs_directory_that_exists(tmp_path, capsys, monkeypatch):
+    results = tmp_path / "results"
+    (tmp_path / "file").write_text("x")
+    for runs, phrase in ((tmp_path / "nowhere", "does not exist"), (tmp_path / "file", "is a file")):
+        code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
+        assert code == 2 and err.strip() == f"snac table: error: --runs-dir {runs} {phrase}" + (
+            ", not a directory of runs" if phrase == "is a file" else "") + "; give the directory `snac table` trained in"
+    assert not results.exists()
+    # The default runs directory may be absent: the report is rebuilt from the results alone.
+    monkeypatch.chdir(tmp_path)
+    code, err = _main(["--preset", "smoke", "--report", "--results-dir", str(results)], capsys)
+    assert code == 0 and "no runs under runs/table (the default --runs-dir)" in err and (results / "table.md").is_file()
+
+
+def test_report_writes_through_no_link_in_the_results_and_keeps_a_readme_link(tmp_path, capsys):
+    from agents.table.readme import BEGIN, END
+
+    runs, results, _ = _report(tmp_path)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (results / "table" / "smoke").mkdir(parents=True)
+    (results / "table" / "smoke" / "ppo").symlink_to(outside, target_is_directory=True)
+    argv = ["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)]
+    code, err = _main(argv, capsys)
+    assert code == 2 and f"{results / 'table' / 'smoke' / 'ppo'} is a symbolic link inside {results}" in err
+    assert not any(outside.iterdir())
+    (results / "table" / "smoke" / "ppo").unlink()
+    (outside / "table.md").write_text("someone else's\n")
+    (results / "table.md").symlink_to(outside / "table.md")
+    code, err = _main(argv, capsys)
+    assert code == 2 and "table.md is a symbolic link" in err and (outside / "table.md").read_text() == "someone else's\n"
+    (results / "table.md").unlink()
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{BEGIN}\nstale\n{END}\n")
+    link = tmp_path / "link.md"
+    link.symlink_to(readme)
+    code, err = _main([*argv, "--readme", str(link)], capsys)
+    assert code == 2 and f"--readme {link} is a symbolic link; give the file it points to ({readme})" in err
+    assert link.is_symlink() and "stale" in readme.read_text() and not (results / "table.md").exists()
+    assert _main([*argv, "--readme", str(readme)], capsys)[0] == 0 and "stale" not in readme.read_text()
