@@ -14,8 +14,8 @@ environment's privileged state (SPEC §12, training only):
 Each is on when its coefficient is above 0 (`AuxiliaryOptions`); its head then exists and its loss
 is added to the learner's. The heads read the memory, never feed the policy: the greedy policy's
 action is the same function of its observations whatever the heads hold, and it never sees the
-privileged state. `agents.privileged` adds them to PPO; `DRQNAux` and `PQNAux` here add them to
-DRQN and to PQN-RNN.
+privileged state. `agents.privileged` adds them to PPO, `DRQNAux` here to DRQN, and
+`agents.pqn_aux` to PQN-RNN.
 
 `stride_curriculum` anneals the stride noise from none (every move one cell, the paper's
 "-uncertainty") to the task's distribution over a share of the run, through `EnvParams`, which the
@@ -39,7 +39,6 @@ from agents.drqn import DRQN, DRQNConfig
 from agents.inputs import ObsLayout
 from agents.networks import mlp_head
 from agents.offpolicy import Step
-from agents.pqn import PQN, PQNConfig, Transition
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams
 
@@ -247,10 +246,17 @@ class DRQNAux(StrideCurriculum, DRQN):
                              position=privileged.position.astype(jnp.int8), built=built)
         return env_state, obs, reward, done, info, step, after
 
-    def auxiliary_losses(self, loss, info, sown, batch: AuxiliaryStep, weights) -> tuple[jax.Array, dict]:
+    def loss(self, params, target_params, batch: AuxiliaryStep, obs, rewards, mask):
+        """DQN's loss plus the auxiliary losses on the LSTM outputs of the learning steps."""
+        frames, resets = self.replayed_frames(batch, obs)
+        carry = self.burned_in_carry(params, frames, resets)
+        (_, q), sown = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :],
+                                          mutable="intermediates")
+        loss, info = self.td_loss(q, target_params, frames, resets, batch, rewards, mask)
         if not self.auxiliary.coefs:
             return loss, info
         c, length = self.config.context, self.config.sequence_length
+        weights = mask[c : c + length]
         outputs = jax.tree.map(lambda x: x[:length], sown["intermediates"]["auxiliary"][0])
         cells, valid = move_targets(batch.position, batch.action, batch.reset, jnp.asarray(self.auxiliary.is_move))
         steps = slice(c, c + length)  # the learning steps: output 0 is batch row c
@@ -258,53 +264,3 @@ class DRQNAux(StrideCurriculum, DRQN):
         losses = self.auxiliary.losses(outputs, batch.position[steps].astype(jnp.int32), built, cells[steps],
                                        valid[steps], weights)
         return add_losses(loss, info, losses)
-
-
-# --- PQN-RNN with the auxiliary losses ------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
-    """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
-    state. It trains with PQN's tuned settings per task (`tuned_as`), so a comparison with PQN-RNN
-    (`pqn --recurrent`; plain `pqn` is feed-forward on the tasks its tuned file leaves out) is of
-    the losses alone. The position loss's default weight is a hundredth of the other learners',
-    as PQN's TD loss is about that much smaller (rewards scaled by 0.01): at their weight the
-    position loss takes over the shared GRU (the pilots behind this are on bench/results/pqn.md)."""
-
-    algorithm: ClassVar[str] = "pqn-aux"
-    paper_method: ClassVar[str] = "pqn"
-    tuned_as: ClassVar[str] = "pqn"
-
-    recurrent: bool = option(True, "GRU Q-network (PQN-RNN); the heads read its state, so it must stay on")
-    position_coef: float = option(5e-4, "weight of the loss predicting the true plan position from the GRU state "
-                                  "(0: off)", low=0)
-
-    def check(self) -> None:
-        super().check()
-        if not self.recurrent:
-            raise ValueError(f"{self.algorithm} needs recurrent=True: its auxiliary heads read the GRU's state "
-                             "(use pqn for a feed-forward PQN)")
-
-
-class PQNAux(StrideCurriculum, PQN):
-    """PQN-RNN whose rollout also records the true position (and the built plan, with the map
-    loss) where each observation was made, and whose loss adds the auxiliary losses on the GRU
-    outputs of every rollout step, as `agents.privileged.PrivilegedPPO` does for PPO."""
-
-    def __init__(self, config: PQNAuxConfig):
-        super().__init__(config)
-        self.auxiliary = Auxiliary.from_config(config)
-        self.network = self.network.clone(auxiliary_heads=self.auxiliary.heads(config.hidden_size))
-
-    def _auxiliary_targets(self, env_state, env_params) -> dict | None:
-        if not self.auxiliary.coefs:
-            return None
-        privileged = jax.vmap(self.env.privileged, in_axes=(0, None))(env_state, env_params)
-        return {"position": privileged.position,
-                "built": privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None}
-
-    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
-        targets = batch.auxiliary or {}  # None where every weight is 0 (nothing recorded, nothing added)
-        return add_rollout_losses(self.auxiliary, loss, info, sown, targets.get("position"), targets.get("built"),
-                                  batch.action, batch.reset)

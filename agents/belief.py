@@ -46,9 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.auxiliary import AuxiliaryHeads, PQNAux, PQNAuxConfig, move_directions
+from agents.auxiliary import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losses, move_directions
+from agents.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
 from agents.config import option
-from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
@@ -160,12 +162,12 @@ class MoveHead(nn.Module):
         return mlp_head(seen, self.hidden_size, MAX_STRIDE + 1, 1.0)
 
 
-class BeliefQNetwork(LayerNormQNetwork):
+class BeliefQNetwork(AuxiliaryQNetwork):
     """PQN-RNN's network whose Q head also reads the design expected around the believed
     position and that minus the window, through one hidden LayerNorm layer.
 
     `auxiliary_heads` (on the GRU state) hold the position head where the belief is learned; their
-    outputs, and the filter's move head, are sown for the losses as in `LayerNormQNetwork`.
+    outputs, and the filter's move head, are sown for the losses as in `AuxiliaryQNetwork`.
     `moves` (per action its row and column direction, drops 0; `move_directions`) given turns the
     filter on, None reads the belief off the position head; the filter's belief rides in the
     carry after the GRU's state. `fixed_design` is a static task's design (nested
@@ -245,9 +247,11 @@ class BeliefQNetwork(LayerNormQNetwork):
 
 
 @dataclasses.dataclass(frozen=True)
-class PQNBeliefConfig(PQNAuxConfig):
+class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     """PQN-RNN acting on a position belief (see the module docstring), trained with PQN's tuned
-    settings per task (`tuned_as`) and the loss its belief learns from."""
+    settings per task (`tuned_as`), its own entries (`agents/tuned/pqn-belief.toml`) and the
+    losses its belief learns from. Its settings come from PQN's defaults, the auxiliary losses'
+    options (`AuxiliaryOptions`), the fields below, then the two tuned files."""
 
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
@@ -266,6 +270,7 @@ class PQNBeliefConfig(PQNAuxConfig):
 
     def check(self) -> None:
         super().check()
+        require_recurrent(self)
         if self.belief_filter and not self.move_coef:
             raise ValueError("pqn-belief with belief_filter needs move_coef > 0: the move loss trains the filter's "
                              "move head")
@@ -322,12 +327,16 @@ class PQNBelief(PQNAux):
             view_radius=config.view_radius, design_encoder=config.design_encoder,
         )
 
-    def _auxiliary_losses(self, loss, info, sown, batch) -> tuple[jax.Array, dict]:
-        """The auxiliary losses, and as a metric (no gradient) how well the belief the Q head read
-        knew the true position: its cross-entropy, in the position loss's units."""
-        loss, info = super()._auxiliary_losses(loss, info, sown, batch)
+    def _loss(self, params, carry0, batch: AuxiliaryTransition, targets):
+        """PQN-aux's loss, and as a metric (no gradient) how well the belief the Q head read knew
+        the true position: its cross-entropy, in the position loss's units."""
+        (_, q), sown = self.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
+        loss, info = td_loss(q, batch.action, targets)
+        recorded = batch.auxiliary
+        loss, info = add_rollout_losses(self.auxiliary, loss, info, sown, recorded["position"], recorded.get("built"),
+                                        batch.action, batch.reset)
         p_row, p_col = sown["intermediates"]["belief"][0]
-        return loss, {**info, "belief_nll": belief_cross_entropy(p_row, p_col, batch.auxiliary["position"])}
+        return loss, {**info, "belief_nll": belief_cross_entropy(p_row, p_col, recorded["position"])}
 
     def _fixed_design(self) -> tuple:
         """A static task's design as nested tuples (a hashable module field)."""

@@ -61,6 +61,7 @@ def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, 
 
 def add_parser(subparsers) -> None:
     from agents.registry import ALGORITHMS, config_class
+    from agents.trackers import TRACKERS
 
     parser = subparsers.add_parser("train", help="train an agent end-to-end on device, then evaluate it")
     algorithms = parser.add_subparsers(dest="algorithm", required=True)
@@ -70,13 +71,16 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)")
         sub.add_argument("--resume", type=Path, default=None, metavar="DIR",
                          help="continue the run in DIR as its config.json describes (only --eval-episodes, --[no-]eval, "
-                              "--no-progress and --devices may be given; the first two default to the run's own)")
+                              "--no-progress, --log and --devices may be given; the first two default to the run's own)")
         sub.add_argument("--eval-episodes", type=positive_int, default=None,
                          help="episodes per design for the final evaluation (default: the paper's protocol)")
         sub.add_argument("--eval", dest="no_eval", action="store_false", default=None,
                          help="run the final evaluation (the default; on --resume, even if the run was started without)")
         sub.add_argument("--no-eval", dest="no_eval", action="store_true", help="skip the final evaluation")
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
+        sub.add_argument("--log", choices=tuple(TRACKERS), default=None,
+                         help="also send each chunk's metrics (as in metrics.jsonl) to TensorBoard (DIR/tensorboard/) "
+                              "or wandb (the [wandb] extra; WANDB_MODE=offline keeps it on disk)")
         sub.add_argument("--sweep", action="append", default=None, metavar="NAME=V1,V2",
                          help="train every value (the grid of all --sweep options, x --seeds) in one compiled program; "
                               "each arm's config, metrics and evaluation under DIR/arms/<i>/; float settings only")
@@ -181,7 +185,7 @@ def interruption_message(algorithm: str, out_dir: Path | None) -> str:
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from agents import checkpoint, sweep
+    from agents import checkpoint, sweep, trackers
     from agents.driver import read_metrics, train
     from agents.plotting import plot_curve
     from agents.registry import build_algorithm
@@ -190,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
 
     resume = args.resume is not None
     given = {"eval_episodes": args.eval_episodes, "no_eval": args.no_eval}
+    trackers.check(args.log)  # before any work
     if resume:
         fixed = _options_fixed_by_the_run(args)
         if fixed:
@@ -234,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
     writer = jax.process_index() == 0  # across processes, process 0 writes the run directory
     with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
         algorithm, state = train(config, out_dir, resume=resume, progress=not args.no_progress, mesh=mesh,
-                                 run_options=None if resume else options, swept=swept)
+                                 run_options=None if resume else options, swept=swept, log=args.log)
         if not writer:
             return 0
         if resume:

@@ -1,7 +1,7 @@
 """DQN: acting epsilon-greedily into a replay buffer on device and learning from sampled windows,
 in one jitted loop (`agents.offpolicy` holds the loop, the buffer and the sampling). DRQN
 (`agents.drqn`), DRQN + hindsight (`agents.hindsight`) and Rainbow (`agents.rainbow`) extend the
-`DQN` class here through its hooks.
+`DQN` class here by overriding its steps.
 
 The Q-network reads a stack of the last `frame_stack` inputs and, with DRQN, runs an LSTM whose
 burn-in steps only warm its state (their output carry is cut from the gradient). Targets are
@@ -119,26 +119,20 @@ class DQN(ReplayLearner):
 
     # --- learning ----------------------------------------------------------------------------------
 
-    def sequence_q(self, params, frames: jax.Array, resets: jax.Array, sown: bool = False):
-        """Q-values `(T - burn_in, S, A)` of a sampled window from a zero LSTM state; the burn-in
-        only warms the state (its carry is cut from the gradient). With `sown`, `(q, what the
-        network sowed along them)` (auxiliary heads, `agents.auxiliary`)."""
+    def burned_in_carry(self, params, frames: jax.Array, resets: jax.Array) -> jax.Array:
+        """The LSTM state after a sampled window's burn-in steps, from a zero state and cut from
+        the gradient (the burn-in only warms the state)."""
         carry = self.network.initial_carry(frames.shape[1])
         if self.burn_in:
             carry, _ = self.network.apply(params, carry, frames[: self.burn_in], resets[: self.burn_in])
             carry = jax.lax.stop_gradient(carry)
-        if sown:
-            (_, q), intermediates = self.network.apply(
-                params, carry, frames[self.burn_in :], resets[self.burn_in :], mutable="intermediates"
-            )
-            return q, intermediates
+        return carry
+
+    def sequence_q(self, params, frames: jax.Array, resets: jax.Array) -> jax.Array:
+        """Q-values `(T - burn_in, S, A)` of a sampled window after its burn-in."""
+        carry = self.burned_in_carry(params, frames, resets)
         _, q = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :])
         return q
-
-    def auxiliary_losses(self, loss, info, sown, batch: Step, weights) -> tuple[jax.Array, dict]:
-        """Losses on what the network sowed along the learning steps (auxiliary heads), added to
-        `loss` and reported in `info`: none in DQN (`agents.auxiliary.DRQNAux` adds them)."""
-        return loss, info
 
     def replayed_frames(self, batch: Step, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         """`(frames, resets)` the network reads along a sampled window, from the row after the
@@ -148,10 +142,15 @@ class DQN(ReplayLearner):
         return stack_frames(inputs, batch.reset[p:], k), batch.reset[p + k - 1 :]
 
     def loss(self, params, target_params, batch: Step, obs, rewards, mask):
+        frames, resets = self.replayed_frames(batch, obs)
+        q = self.sequence_q(params, frames, resets)  # (length + n, S, A), index 0 = batch index c
+        return self.td_loss(q, target_params, frames, resets, batch, rewards, mask)
+
+    def td_loss(self, q, target_params, frames, resets, batch: Step, rewards, mask) -> tuple[jax.Array, dict]:
+        """The masked Huber loss of the online Q-values `q` of a window against its n-step
+        double-Q targets from the target network."""
         cfg = self.config
         length, c = cfg.sequence_length, cfg.context
-        frames, resets = self.replayed_frames(batch, obs)
-        q, sown = self.sequence_q(params, frames, resets, sown=True)  # (length + n, S, A), index 0 = batch index c
         q_target = jax.lax.stop_gradient(self.sequence_q(target_params, frames, resets))
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target
         next_action = jnp.argmax(greedy_from, axis=-1)
@@ -165,4 +164,4 @@ class DQN(ReplayLearner):
         errors = optax.huber_loss(q_taken, jax.lax.stop_gradient(targets), delta=cfg.huber_delta)
         loss = (errors * weights).sum() / jnp.maximum(weights.sum(), 1.0)
         info = {"loss": loss, "q_mean": (q_taken * weights).sum() / jnp.maximum(weights.sum(), 1.0)}
-        return self.auxiliary_losses(loss, info, sown, batch, weights)
+        return loss, info

@@ -39,7 +39,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from agents import checkpoint
 from agents.config import TrainConfig, save_config
-from agents import sweep
+from agents import sweep, trackers
 from agents.registry import build_algorithm
 from agents.sweep import Sweep
 from agents.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
@@ -255,6 +255,7 @@ def train(
     mesh=None,
     run_options: dict | None = None,
     swept: Sweep | None = None,
+    log: str | None = None,
 ) -> tuple[Any, Any]:
     """Train `config` into `out_dir` (or continue the run there with `resume=True`).
 
@@ -265,9 +266,11 @@ def train(
     call (`checkpoint.lock_run`). `stop_after_chunks` ends early after that many chunks of this
     call (the tests' stand-in for a killed run). Across processes (`jax.distributed`), process 0
     checks, locks and writes the run directory; the others only train and checkpoint with it.
+    `log` (`agents.trackers.TRACKERS`) also sends each chunk's metrics to TensorBoard or wandb.
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0
+    trackers.check(log)
     if resume:
         checkpoint.read_config(out_dir)  # a clear error before anything is created
     else:
@@ -280,11 +283,11 @@ def train(
             swept = sweep.load(out_dir)
         elif writer:
             _start_run(config, out_dir, run_options, swept)
-        return _train(config, out_dir, resume, progress, stop_after_chunks, mesh, writer, swept)
+        return _train(config, out_dir, resume, progress, stop_after_chunks, mesh, writer, swept, log)
 
 
 def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, stop_after_chunks, mesh, writer: bool,
-           swept: Sweep | None = None):
+           swept: Sweep | None = None, log: str | None = None):
     metrics_path = out_dir / checkpoint.METRICS_FILE
     algorithm = build_algorithm(config)
     mesh = training_mesh(num_envs=config.num_envs) if mesh is None else mesh
@@ -320,6 +323,8 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
     wall = history[-1]["wall_s"] if history else 0.0
     bar = _progress_bar(total_steps * runs, done_steps * runs, config, progress and writer)
     warned = list(history[-1].get("diverged") or []) if history else []  # said once per change
+    tracker = trackers.open_tracker(log if writer else None, out_dir, config, config.seeds,
+                                    1 if swept is None else swept.num_arms, start_step=done_steps)
     try:
         for index in range(done_chunks, len(sizes)):
             if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
@@ -353,6 +358,8 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
                     with metrics_path.open("a") as f:
                         f.write(metrics_line(record))
                 checkpoint.save_state(out_dir, index, state)
+            if tracker is not None:
+                tracker.log(record)
             if swept is not None and writer:
                 history.append(record)
                 _write_arm_metrics(out_dir, swept, config.seeds, history)
@@ -364,6 +371,8 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
             bar.set_postfix(postfix)
     finally:
         bar.close()
+        if tracker is not None:
+            tracker.close()
     return algorithm, state
 
 

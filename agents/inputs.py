@@ -15,8 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from snac_jax.env import SNACEnv
-from snac_jax.observation import ObservationLayout
+from snac_jax.observation import LANDMARK_VALUE, ObservationLayout
 from snac_jax.state import EnvParams
+from snac_jax.transition import PADDING
+
+_LOWEST_CELL = int(min(LANDMARK_VALUE, PADDING))  # the lowest value a window cell holds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,8 +118,9 @@ class ObsLayout:
 
     @property
     def num_height_classes(self) -> int:
-        """Landmark (-2), padding (-1), heights 0..tallest, and one class for anything taller."""
-        return int(self.height_scale) + 4
+        """One class per value from the lowest a window cell holds (a landmark, `LANDMARK_VALUE`;
+        padding, `PADDING`) through heights 0..tallest, and one for anything taller."""
+        return int(self.height_scale) - _LOWEST_CELL + 2
 
     def height_classes(self, cells: jax.Array) -> jax.Array:
         """One-hot `(..., n, num_height_classes)` of raw cell values.
@@ -126,7 +130,7 @@ class ObsLayout:
         makes "is it exactly 20?" one weight, and a trained PPO policy without it missed its
         columns by ~4 bricks even at the start cell, whose position it knows.
         """
-        index = jnp.clip(cells.astype(jnp.int32) + 2, 0, self.num_height_classes - 1)
+        index = jnp.clip(cells.astype(jnp.int32) - _LOWEST_CELL, 0, self.num_height_classes - 1)
         return jax.nn.one_hot(index, self.num_height_classes, dtype=jnp.float32)
 
     def split(self, obs: jax.Array) -> dict[str, jax.Array]:

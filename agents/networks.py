@@ -41,9 +41,9 @@ class StridedConv(nn.Module):
     as one matrix product over the input's 3x3 patches (cut out by strided slices).
 
     Why: inside the learners' update loops (`lax.scan` over epochs and minibatches) XLA's CPU
-    convolution and its gradient ran about ten times slower than the same call outside a loop,
-    which made every learner about a hundred times slower on the dynamic 2D and 3D tasks than on
-    the static ones (bench/results/ppo.md). A matrix product has no such slow path."""
+    convolution and its gradient take a slow path that the same call outside a loop does not,
+    and the dynamic 2D and 3D tasks, whose design goes through the encoder, paid for it on every
+    step (the timings are on bench/results/ppo.md). A matrix product has no such slow path."""
 
     features: int
     kernel: int = 3
@@ -179,13 +179,8 @@ class ActorCritic(RecurrentCoreNetwork):
     """Policy logits and value from the observation, with an optional GRU core."""
 
     @nn.compact
-    def __call__(
-        self, carry: jax.Array, obs: jax.Array, resets: jax.Array, privileged=None
-    ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`.
-
-        `privileged` is ignored: this critic reads what the actor reads (the asymmetric one of
-        `agents.privileged` reads it)."""
+    def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """`carry (B, C)`, `obs (T, B, O)`, `resets (T, B)` -> `(carry, logits (T, B, A), value (T, B))`."""
         x = ObservationEncoder(self.layout, self.hidden_size)(obs)
         if self.rnn_size:
             carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
@@ -203,18 +198,11 @@ class LayerNormQNetwork(RecurrentCoreNetwork):
     stability).
     """
 
-    # Heads on the core's features for auxiliary losses (`agents.auxiliary`), sown into
-    # "intermediates" as `QNetwork`'s are: computed on every call, but only an apply with
-    # mutable="intermediates" (the training loss) keeps them.
-    auxiliary_heads: nn.Module | None = None
-
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = ObservationEncoder(self.layout, self.hidden_size, layer_norm=True)(obs)
         if self.rnn_size:
             carry, x = ScannedRNN(self.rnn_size, "gru")(carry, (x, resets))
-        if self.auxiliary_heads is not None:
-            self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(x)
 
 

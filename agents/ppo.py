@@ -15,6 +15,9 @@ the clipped-objective updates are one pure function of a key, vmappable over see
 
 Truncated episodes bootstrap from the value of `info["final_observation"]` (the last observation
 of the episode, before the auto-reset), computed with the hidden state that saw the episode.
+
+The module forks alone: besides `snac_jax` it reads only the library modules `agents.config`,
+`agents.inputs`, `agents.networks` and `agents.targets`.
 """
 
 from __future__ import annotations
@@ -37,15 +40,18 @@ from snac_jax.policy import Policy
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(TrainConfig):
-    """PPO with the clipped objective, GAE, and an optional recurrent (GRU) core."""
+    """PPO with the clipped objective, GAE, and an optional recurrent (GRU) core. The defaults
+    are the settings tuned on 1d-static-sin (`agents/tuned/ppo.toml` overrides them per task)."""
 
     algorithm: ClassVar[str] = "ppo"
     paper_method: ClassVar[str] = "ppo"
 
-    recurrent: bool = option(False, "GRU actor-critic instead of a feed-forward one")
+    recurrent: bool = option(True, "GRU actor-critic instead of a feed-forward one")
+    total_steps: int = option(30_000_000, "env steps per seed", low=1)
+    num_envs: int = option(1024, "parallel worlds per seed (split over devices)", low=1)
     rollout_steps: int = option(64, "steps per world between updates", low=1)
-    update_epochs: int = option(4, "passes over each rollout", low=1)
-    num_minibatches: int = option(4, "minibatches per pass; they split the worlds (whole sequences for the GRU)", low=1)
+    update_epochs: int = option(2, "passes over each rollout", low=1)
+    num_minibatches: int = option(2, "minibatches per pass; they split the worlds (whole sequences for the GRU)", low=1)
     learning_rate: float = option(1e-3, "Adam step size", low=0, low_open=True)
     anneal_lr: bool = option(True, "decay the learning rate linearly to 0 over the run")
     gamma: float = option(0.99, "discount", low=0, high=1)
@@ -58,8 +64,8 @@ class PPOConfig(TrainConfig):
     vf_coef: float = option(0.5, "value loss weight", low=0)
     max_grad_norm: float = option(0.5, "global gradient norm clip", low=0, low_open=True)
     hidden_size: int = option(64, "width of the encoder and the heads", low=1)
-    rnn_size: int = option(64, "GRU units (recurrent only)", low=1)
-    reward_scale: float = option(0.1, "rewards are multiplied by this for learning (not for reporting)",
+    rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
+    reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
                                  low=0, low_open=True)
 
     def check(self) -> None:
@@ -103,10 +109,6 @@ class Transition(NamedTuple):
     done: jax.Array
     final_obs: jax.Array  # the episode's last observation where `done`
     carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
-    # What a subclass's critic and training losses read beside `obs` (None in PPO): the
-    # privileged state where `obs` was observed, and where the episode ended (`done`).
-    privileged: Any = None
-    final_privileged: Any = None
 
 
 class PPO:
@@ -139,23 +141,6 @@ class PPO:
         end = config.ent_coef if config.ent_coef_end is None else config.ent_coef_end
         self.ent_coef = optax.linear_schedule(config.ent_coef, end, max(1, config.num_updates - 1))
 
-    # --- hooks: where a subclass adds training-only signals (`agents.privileged`) -----------------
-
-    def _step(self, keys: jax.Array, env_state, action: jax.Array, env_params):
-        """Every world's auto-resetting step: `(obs, env_state, reward, terminated, truncated, info)`."""
-        return jax.vmap(self.env.step, in_axes=(0, 0, 0, None))(keys, env_state, action, env_params)
-
-    def _privileged(self, env_state, env_params) -> Any:
-        """What the network reads beside the observation for training, per world: nothing in PPO
-        (its critic reads what the actor reads). A subclass returns the environment's privileged
-        state, and its `_step` adds the ended episodes' last one as `info["final_privileged"]`."""
-        return None
-
-    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
-        """Losses on what the network sowed into "intermediates" (auxiliary heads), added to
-        `loss` and reported in `info`: none in PPO."""
-        return loss, info
-
     # --- pure functions -------------------------------------------------------------------------
 
     def init(self, key: jax.Array) -> RunnerState:
@@ -167,9 +152,7 @@ class PPO:
             env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
             reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
         )
-        net_obs = self._network_obs(worlds)
-        privileged = jax.tree.map(lambda x: x[None, :1], self._privileged(env_state, self.env_params))
-        params = self.network.init(key_params, carry[:1], net_obs[None, :1], jnp.ones((1, 1), bool), privileged)
+        params = self.network.init(key_params, carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool))
         return RunnerState(
             params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
         )
@@ -179,18 +162,16 @@ class PPO:
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         n = self.config.num_envs
+        step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))  # every world's auto-resetting step
 
         def env_step(carry, _):
             worlds, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
             net_obs = self._network_obs(worlds)
-            privileged = self._privileged(worlds.env_state, env_params)
-            new_carry, logits, value = self.network.apply(
-                state.params, worlds.carry, net_obs[None], worlds.reset[None], _one_step(privileged)
-            )
+            new_carry, logits, value = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
-            obs, env_state, reward, terminated, truncated, info = self._step(
+            obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )
             done = terminated | truncated
@@ -199,7 +180,6 @@ class PPO:
             transition = Transition(
                 obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
                 reward=reward, terminated=terminated, done=done, final_obs=final_obs, carry_after=new_carry,
-                privileged=privileged, final_privileged=info.get("final_privileged"),
             )
             stats = {
                 "episodes": done.sum(),
@@ -219,11 +199,11 @@ class PPO:
         return state.replace(worlds=worlds, key=key), batch, stats
 
     def _advantages(self, params, batch: Transition, worlds: Worlds, env_params) -> tuple[jax.Array, jax.Array]:
+        """GAE advantages and value targets `(T, B)` of a rollout; `worlds` is where it stopped.
+        A truncated episode bootstraps from its final observation's value (a termination
+        bootstraps nothing)."""
         cfg = self.config
-        privileged = _one_step(self._privileged(worlds.env_state, env_params))
-        _, _, last_value = self.network.apply(
-            params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None], privileged
-        )
+        _, _, last_value = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
         following = jnp.concatenate([batch.value[1:], last_value], axis=0)
         next_values = jnp.where(batch.done, self._final_values(params, batch), following)
         return gae(
@@ -232,38 +212,18 @@ class PPO:
         )
 
     def _final_values(self, params, batch: Transition) -> jax.Array:
-        """`(T, B)` values of the final observations where an episode was truncated (0 elsewhere:
-        a termination bootstraps nothing), each from the carry that saw its episode (and the
-        privileged state it ended in, for a subclass's critic)."""
+        """`(T, B)` values of the final observations where an episode was truncated (0 elsewhere),
+        each from the carry that saw its episode."""
 
-        def score(carry, final):
-            obs, privileged = final
-            resets = jnp.zeros((1, obs.shape[0]), bool)
-            _, _, value = self.network.apply(params, carry, obs[None], resets, _one_step(privileged))
+        def score(carry, obs):
+            _, _, value = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
             return value[0]
 
-        final = (batch.final_obs, batch.final_privileged)
-        return truncation_values(score, batch.done & ~batch.terminated, final, batch.carry_after)
+        return truncation_values(score, batch.done & ~batch.terminated, batch.final_obs, batch.carry_after)
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
-        cfg = self.config
-        (_, logits, value), sown = self.network.apply(
-            params, carry0, batch.obs, batch.reset, batch.privileged, mutable="intermediates"
-        )
-        pi = distrax.Categorical(logits=logits)
-        log_prob = pi.log_prob(batch.action)
-        clipped_value = batch.value + jnp.clip(value - batch.value, -cfg.clip_eps, cfg.clip_eps)
-        value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (clipped_value - targets) ** 2).mean()
-        ratio = jnp.exp(log_prob - batch.log_prob)
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-        actor_loss = -jnp.minimum(
-            ratio * advantages, jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps) * advantages
-        ).mean()
-        entropy = pi.entropy().mean()
-        total = actor_loss + cfg.vf_coef * value_loss - ent_coef * entropy
-        approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
-        info = {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, "approx_kl": approx_kl}
-        return self._auxiliary_losses(total, info, sown, batch)
+        _, logits, value = self.network.apply(params, carry0, batch.obs, batch.reset)
+        return clipped_objective(logits, value, batch, advantages, targets, ent_coef, self.config)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
@@ -271,7 +231,7 @@ class PPO:
         state, batch, stats = self.rollout(state, env_params)
         # The final observations are only needed for the bootstrap values.
         advantages, targets = self._advantages(state.params, batch, state.worlds, env_params)
-        batch = batch._replace(final_obs=None, carry_after=None, final_privileged=None)
+        batch = batch._replace(final_obs=None, carry_after=None)
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         ent_coef = self.ent_coef(state.update)
         m = cfg.num_minibatches
@@ -332,9 +292,23 @@ class PPO:
         return Policy(init, act, params, f"{self.config.algorithm}-{kind}")
 
 
-def _one_step(tree: Any) -> Any:
-    """A per-world pytree `(B, ...)` as one time step `(1, B, ...)`."""
-    return jax.tree.map(lambda x: x[None], tree)
+def clipped_objective(logits, value, batch: Transition, advantages, targets, ent_coef, cfg: PPOConfig):
+    """PPO's loss on a minibatch `(T, B)`: the clipped surrogate, the clipped value loss and the
+    entropy bonus; returns `(loss, info)`."""
+    pi = distrax.Categorical(logits=logits)
+    log_prob = pi.log_prob(batch.action)
+    clipped_value = batch.value + jnp.clip(value - batch.value, -cfg.clip_eps, cfg.clip_eps)
+    value_loss = 0.5 * jnp.maximum((value - targets) ** 2, (clipped_value - targets) ** 2).mean()
+    ratio = jnp.exp(log_prob - batch.log_prob)
+    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    actor_loss = -jnp.minimum(
+        ratio * advantages, jnp.clip(ratio, 1 - cfg.clip_eps, 1 + cfg.clip_eps) * advantages
+    ).mean()
+    entropy = pi.entropy().mean()
+    total = actor_loss + cfg.vf_coef * value_loss - ent_coef * entropy
+    approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
+    info = {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, "approx_kl": approx_kl}
+    return total, info
 
 
 def make_train(config: PPOConfig):

@@ -1,15 +1,16 @@
 """PQN and PQN-RNN (Gallici et al. 2024, "Simplifying Deep Temporal Difference Learning"): Q-learning
 with neither replay buffer nor target network, made stable by LayerNorm in the Q-network and
-made fast by many vectorised worlds, trained end-to-end inside `jit` like `agents.ppo`.
+made fast by many vectorised worlds, trained end-to-end inside `jit`, PureJaxRL-style.
 
 One update: every world acts epsilon-greedily for `rollout_steps` steps (epsilon decays linearly),
 the rollout's Q(lambda) returns are computed (`agents.targets.q_lambda`), then `update_epochs`
 passes over `num_minibatches` minibatches of worlds regress Q(s, a) on them, as PPO's epochs do.
-The recurrent variant (`recurrent=True`) has a GRU core and learns on each world's whole
+PQN-RNN (`recurrent=True`, the default) has a GRU core and learns on each world's whole
 rollout from the carry it had at the rollout's start, as recurrent PPO does.
 
 `PQN(config)`'s methods are pure and plug into the shared driver (`agents.driver`): `init`,
 `rollout`, `update`, `train_chunk` and `policy` (the greedy policy the evaluator runs).
+`make_train(config)` returns the whole run as a pure `train(key)`.
 
 The targets bootstrap from the Q-values the rollout itself computed: the parameters do not change
 during a rollout, and the GRU's state at each step is the one a pass over the sequence from the
@@ -19,6 +20,9 @@ carry that saw the episode; a terminated one bootstraps nothing. With `time_limi
 limit ends the return as a termination does: the observation holds the step count, so the limit is
 part of the task, and the bootstrap reads a state (the count at the limit) no update trains on.
 DRQN and Rainbow treat the limit so.
+
+The module forks alone: besides `snac_jax` it reads only the library modules `agents.config`,
+`agents.inputs`, `agents.networks` and `agents.targets`.
 """
 
 from __future__ import annotations
@@ -29,28 +33,31 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
+from flax import struct
 
 from agents.config import TrainConfig, option
 from agents.inputs import ObsLayout
 from agents.networks import LayerNormQNetwork
-from agents.ppo import RunnerState, Worlds
 from agents.targets import q_lambda, truncation_values
 from snac_jax.policy import Policy
 
 
 @dataclasses.dataclass(frozen=True)
 class PQNConfig(TrainConfig):
-    """PQN: epsilon-greedy Q(lambda) over parallel worlds, LayerNorm Q-network, optional GRU."""
+    """PQN: epsilon-greedy Q(lambda) over parallel worlds, LayerNorm Q-network, optional GRU. The
+    defaults are the settings tuned on 1d-static-sin (`agents/tuned/pqn.toml` overrides them per
+    task)."""
 
     algorithm: ClassVar[str] = "pqn"
     paper_method: ClassVar[str] = "pqn"  # the paper has no PQN row: its columns stay empty
 
-    recurrent: bool = option(False, "GRU Q-network (PQN-RNN) instead of a feed-forward one")
-    num_envs: int = option(1024, "parallel worlds per seed (split over devices)", low=1)
+    recurrent: bool = option(True, "GRU Q-network (PQN-RNN) instead of a feed-forward one")
+    total_steps: int = option(10_000_000, "env steps per seed", low=1)
+    num_envs: int = option(64, "parallel worlds per seed (split over devices)", low=1)
     rollout_steps: int = option(64, "steps per world between updates", low=1)
     update_epochs: int = option(2, "passes over each rollout", low=1)
     num_minibatches: int = option(4, "minibatches per pass; they split the worlds (whole sequences for the GRU)", low=1)
-    learning_rate: float = option(3e-4, "RAdam step size", low=0, low_open=True)
+    learning_rate: float = option(3e-3, "RAdam step size", low=0, low_open=True)
     anneal_lr: bool = option(True, "decay the learning rate linearly to 0 over the run")
     gamma: float = option(0.99, "discount", low=0, high=1)
     q_lambda: float = option(0.8, "lambda of the Q(lambda) returns (0: one-step Q-learning targets)", low=0, high=1)
@@ -64,7 +71,7 @@ class PQNConfig(TrainConfig):
                                  low=0, low_open=True)
     time_limit_ends: bool = option(False, "the step limit ends the return (no bootstrap from the final observation), "
                                    "as a termination does: the observation holds the step count")
-    stagger_starts: bool = option(False, "start each world a random number (up to an episode) of random steps in, "
+    stagger_starts: bool = option(True, "start each world a random number (up to an episode) of random steps in, "
                                   "so that the worlds' rollouts hold different parts of their episodes")
 
     def check(self) -> None:
@@ -73,6 +80,28 @@ class PQNConfig(TrainConfig):
                 f"num_envs ({self.num_envs}) must be a multiple of num_minibatches ({self.num_minibatches}): "
                 "minibatches split the worlds"
             )
+
+
+@struct.dataclass
+class Worlds:
+    """Everything with one entry per parallel world (the axis the driver shards over devices)."""
+
+    env_state: Any
+    obs: jax.Array  # (B, O), the environment's observation the next action sees
+    previous_obs: jax.Array  # (B, O), the observation before it (ignored where `reset`)
+    last_action: jax.Array  # (B,) int32, the action that led to `obs` (ignored where `reset`)
+    reset: jax.Array  # (B,) bool, True where `obs` starts an episode (resets the GRU carry)
+    carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
+    episode_return: jax.Array  # (B,) return of the running episode so far
+
+
+@struct.dataclass
+class RunnerState:
+    params: Any
+    opt_state: Any
+    worlds: Worlds
+    key: jax.Array
+    update: jax.Array  # int32, updates done
 
 
 class Transition(NamedTuple):
@@ -85,7 +114,6 @@ class Transition(NamedTuple):
     truncated: jax.Array
     final_obs: jax.Array  # the episode's last observation where it ended
     carry_after: jax.Array  # carry after seeing `obs`: scores `final_obs` for truncation bootstrap
-    auxiliary: Any = None  # the auxiliary losses' targets where `obs` was observed (`_auxiliary_targets`)
 
 
 class PQN:
@@ -110,17 +138,6 @@ class PQN:
         self.epsilon = optax.linear_schedule(
             config.eps_start, config.eps_end, max(1, int(config.exploration_fraction * config.num_updates))
         )
-
-    # --- hooks of the learners built on PQN (`agents.auxiliary.PQNAux`) --------------------------
-
-    def _auxiliary_targets(self, env_state, env_params) -> Any:
-        """What the auxiliary losses learn from, per world, recorded with each step: nothing in PQN."""
-        return None
-
-    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
-        """Losses on what the network sowed into "intermediates" (auxiliary heads), added to
-        `loss` and reported in `info`: none in PQN."""
-        return loss, info
 
     # --- pure functions -------------------------------------------------------------------------
 
@@ -188,7 +205,6 @@ class PQN:
             transition = Transition(
                 obs=net_obs, reset=worlds.reset, action=action, value=q[0].max(-1), reward=reward,
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
-                auxiliary=self._auxiliary_targets(worlds.env_state, env_params),
             )
             stats = {
                 "episodes": done.sum(),
@@ -226,10 +242,8 @@ class PQN:
                         cfg.gamma, cfg.q_lambda)
 
     def _loss(self, params, carry0, batch: Transition, targets):
-        (_, q), sown = self.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
-        q_taken = jnp.take_along_axis(q, batch.action[..., None].astype(jnp.int32), axis=-1)[..., 0]
-        loss = 0.5 * jnp.mean((q_taken - targets) ** 2)
-        return self._auxiliary_losses(loss, {"loss": loss, "q_mean": q_taken.mean()}, sown, batch)
+        _, q = self.network.apply(params, carry0, batch.obs, batch.reset)
+        return td_loss(q, batch.action, targets)
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg, m = self.config, self.config.num_minibatches
@@ -287,3 +301,20 @@ class PQN:
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
         return Policy(init=init, act=act, params=params, name=f"{self.config.algorithm}-{kind}")
+
+
+def td_loss(q: jax.Array, action: jax.Array, targets: jax.Array) -> tuple[jax.Array, dict]:
+    """Half the mean squared error of Q(s, a) `(T, B)` of the taken actions against the targets."""
+    q_taken = jnp.take_along_axis(q, action[..., None].astype(jnp.int32), axis=-1)[..., 0]
+    loss = 0.5 * jnp.mean((q_taken - targets) ** 2)
+    return loss, {"loss": loss, "q_mean": q_taken.mean()}
+
+
+def make_train(config: PQNConfig):
+    """The whole run as a pure function of a key: `jax.jit(jax.vmap(make_train(c)))(keys)`."""
+    pqn = PQN(config)
+
+    def train(key: jax.Array) -> tuple[RunnerState, dict[str, jax.Array]]:
+        return pqn.train_chunk(pqn.init(key), pqn.env_params, pqn.config.num_updates)
+
+    return train

@@ -16,16 +16,19 @@ and what is left to build (the design minus the built plan), each flattened, and
 (`PrivilegedEncoder`). With `privileged_critic=False` and every auxiliary weight
 0 this is PPO, update for update.
 
-Everything else is PPO's (`agents.ppo`), through its hooks: `_privileged` records the privileged
-state of every step, `_step` the ended episodes' last one (the truncation bootstrap values it),
-and `_auxiliary_losses` adds the heads' losses.
+The learner is PPO (`agents.ppo`) with the steps the critic changes written out here: the
+rollout also records the privileged state of every step and, through `step_keeping_final_state`,
+the one each ended episode ended in (the truncation bootstrap values it); the advantages score
+both with the critic; the loss adds the heads' losses to PPO's (`clipped_objective`). The update,
+its minibatches and the greedy policy are PPO's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
+import distrax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -35,7 +38,8 @@ from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_
 from agents.config import option
 from agents.inputs import ObsLayout
 from agents.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.ppo import PPO, PPOConfig, Transition
+from agents.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective
+from agents.targets import gae, truncation_values
 from snac_jax.state import PrivilegedState
 
 
@@ -59,7 +63,7 @@ class PrivilegedEncoder(nn.Module):
     stuck flag, through one dense layer.
 
     Why flat maps rather than the design encoder's strided convolutions: the critic runs on every
-    step the learner trains on, and two convolutional encoders made training several times slower
+    step the learner trains on, and two convolutional encoders cost more than the rest of training
     on the 2D and 3D plans (`bench/results/beyond.md`); one matrix product over the 400 cells of
     each map keeps every cell's exact height at a fraction of the cost."""
 
@@ -107,6 +111,28 @@ class AsymmetricActorCritic(ActorCritic):
         return carry, logits, value
 
 
+class PrivilegedTransition(NamedTuple):
+    """PPO's `Transition` with the privileged state the critic reads: `privileged` where `obs` was
+    observed, and in `final_obs` beside the episode's last observation the state it ended in."""
+
+    obs: jax.Array
+    reset: jax.Array
+    action: jax.Array
+    log_prob: jax.Array
+    value: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    done: jax.Array
+    final_obs: tuple[jax.Array, PrivilegedState]
+    carry_after: jax.Array
+    privileged: PrivilegedState
+
+
+def _one_step(tree: Any) -> Any:
+    """A per-world pytree `(B, ...)` as one time step `(1, B, ...)`."""
+    return jax.tree.map(lambda x: x[None], tree)
+
+
 class PrivilegedPPO(StrideCurriculum, PPO):
     def __init__(self, config: PrivilegedPPOConfig):
         super().__init__(config)
@@ -117,18 +143,102 @@ class PrivilegedPPO(StrideCurriculum, PPO):
             privileged_critic=config.privileged_critic, auxiliary_heads=self.auxiliary.heads(config.hidden_size),
         )
 
-    def _privileged(self, env_state, env_params) -> PrivilegedState:
+    def privileged_state(self, env_state, env_params) -> PrivilegedState:
         return jax.vmap(self.env.privileged, in_axes=(0, None))(env_state, env_params)
 
-    def _step(self, keys: jax.Array, env_state, action: jax.Array, env_params):
-        """PPO's step, and in `info["final_privileged"]` the privileged state each world reached
-        before any auto-reset."""
-        *outputs, info, stepped = jax.vmap(self.env.step_keeping_final_state, in_axes=(0, 0, 0, None))(
-            keys, env_state, action, env_params
+    def init(self, key: jax.Array) -> RunnerState:
+        """PPO's, with the critic's parameters made from one world's privileged state."""
+        n = self.config.num_envs
+        key, key_params, key_reset = jax.random.split(key, 3)
+        carry = self.network.initial_carry(n)
+        obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
+        worlds = Worlds(
+            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
+            reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
         )
-        return (*outputs, {**info, "final_privileged": self._privileged(stepped, env_params)})
+        privileged = jax.tree.map(lambda x: x[None, :1], self.privileged_state(env_state, self.env_params))
+        params = self.network.init(key_params, carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool),
+                                   privileged)
+        return RunnerState(
+            params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
+        )
 
-    def _auxiliary_losses(self, loss, info, sown, batch: Transition) -> tuple[jax.Array, dict]:
+    def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, PrivilegedTransition, dict]:
+        """PPO's rollout; the critic reads each step's privileged state, and each ended episode's
+        last one (before the auto-reset) is kept for its truncation bootstrap."""
+        n = self.config.num_envs
+        step = jax.vmap(self.env.step_keeping_final_state, in_axes=(0, 0, 0, None))
+
+        def env_step(carry, _):
+            worlds, key = carry
+            key, key_act, key_step = jax.random.split(key, 3)
+            net_obs = self._network_obs(worlds)
+            privileged = self.privileged_state(worlds.env_state, env_params)
+            new_carry, logits, value = self.network.apply(
+                state.params, worlds.carry, net_obs[None], worlds.reset[None], _one_step(privileged)
+            )
+            pi = distrax.Categorical(logits=logits[0])
+            action = pi.sample(seed=key_act)
+            obs, env_state, reward, terminated, truncated, info, stepped = step(
+                jax.random.split(key_step, n), worlds.env_state, action, env_params
+            )
+            done = terminated | truncated
+            episode_return = worlds.episode_return + reward
+            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
+            transition = PrivilegedTransition(
+                obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
+                reward=reward, terminated=terminated, done=done,
+                final_obs=(final_obs, self.privileged_state(stepped, env_params)), carry_after=new_carry,
+                privileged=privileged,
+            )
+            stats = {
+                "episodes": done.sum(),
+                "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
+                "return_sum": jnp.where(done, episode_return, 0.0).sum(),
+            }
+            worlds = Worlds(
+                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32), reset=done,
+                carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
+            )
+            return (worlds, key), (transition, stats)
+
+        (worlds, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        )
+        return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
+
+    def _advantages(self, params, batch: PrivilegedTransition, worlds: Worlds, env_params):
+        """PPO's advantages, every value from the critic that reads the privileged state."""
+        cfg = self.config
+        privileged = _one_step(self.privileged_state(worlds.env_state, env_params))
+        _, _, last_value = self.network.apply(
+            params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None], privileged
+        )
+        following = jnp.concatenate([batch.value[1:], last_value], axis=0)
+        next_values = jnp.where(batch.done, self._final_values(params, batch), following)
+        return gae(
+            batch.reward * cfg.reward_scale, batch.value, next_values,
+            batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
+        )
+
+    def _final_values(self, params, batch: PrivilegedTransition) -> jax.Array:
+        """PPO's truncation bootstrap values, the critic reading the privileged state each
+        episode ended in."""
+
+        def score(carry, final):
+            obs, privileged = final
+            resets = jnp.zeros((1, obs.shape[0]), bool)
+            _, _, value = self.network.apply(params, carry, obs[None], resets, _one_step(privileged))
+            return value[0]
+
+        return truncation_values(score, batch.done & ~batch.terminated, batch.final_obs, batch.carry_after)
+
+    def _loss(self, params, carry0, batch: PrivilegedTransition, advantages, targets, ent_coef):
+        """PPO's loss, the critic reading the privileged state, plus the auxiliary heads' losses."""
+        (_, logits, value), sown = self.network.apply(
+            params, carry0, batch.obs, batch.reset, batch.privileged, mutable="intermediates"
+        )
+        loss, info = clipped_objective(logits, value, batch, advantages, targets, ent_coef, self.config)
         privileged = batch.privileged
         return add_rollout_losses(self.auxiliary, loss, info, sown, privileged.position, privileged.built,
                                   batch.action, batch.reset)

@@ -31,20 +31,20 @@ class Entry:
 
 
 ALGORITHMS: dict[str, Entry] = {
-    "ppo": Entry("agents.ppo", "PPOConfig", "PPO", "PPO (feed-forward, or recurrent with --recurrent)"),
+    "ppo": Entry("agents.ppo", "PPOConfig", "PPO", "PPO, with or without a GRU core (--[no-]recurrent)"),
     "dqn": Entry("agents.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"),
     "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
     "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
     "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
-                 "network (PQN-RNN with --recurrent)"),
+                 "network (PQN-RNN or feed-forward: --[no-]recurrent)"),
     "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
     "rainbow": Entry("agents.rainbow", "RainbowConfig", "Rainbow",
                      "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
     "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
     "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
-    "pqn-aux": Entry("agents.auxiliary", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
+    "pqn-aux": Entry("agents.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
     "pqn-belief": Entry("agents.belief", "PQNBeliefConfig", "PQNBelief",
                         "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)"),
 }

@@ -9,7 +9,9 @@ line naming the file and the field, whoever reads it:
 - `run.json`: the options of `snac train` kept for a resume (`agents.cli.RUN_OPTIONS`);
 - `cell.json`: what `snac table` keeps beside them (`agents.table.plan.Cell.record`);
 - `eval.json`: the protocol's results, one row per training seed (`snac_jax.evaluation.TaskResult`),
-  every IoU in [0, 1]; `bench/results/handcrafted.json` has the same rows.
+  every IoU in [0, 1]; `bench/results/handcrafted.json` has the same rows;
+- a table cell's raw copy (`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`): the
+  three above and the curve, one file, each part checked with its file's schema.
 """
 
 from __future__ import annotations
@@ -58,13 +60,18 @@ class _ConfigJson(Spec):
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
-            raise Mismatch(f"unknown {value['algorithm']} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+            where = f" in {field}" if field else ""
+            raise Mismatch(f"unknown {value['algorithm']} option(s) {unknown}{where}; "
+                           f"allowed: {', '.join(sorted(fields))}")
         Object({"algorithm": Str(ALGORITHMS)}, fields).check(value, field)
 
 
 CONFIG_JSON = _ConfigJson()
 
 RUN_JSON = Object({}, {"eval_episodes": Nullable(Int(1)), "no_eval": Bool()})
+
+SWEEP_JSON = Object({"names": ListOf(Str()), "arms": ListOf(ListOf(Number()))})
+"""A sweep's grid (`agents.sweep`): the swept settings' names and one list of values per arm."""
 
 PROTOCOL = Object({"static_episodes": Int(1), "episodes_per_test_design": Int(1)})
 
@@ -85,6 +92,34 @@ EVAL_ROW = Object({
     "per_design": MapOf(STRATUM), "seed": Int(0, MAX_SEED), "wall_s": Number(0.0),
 })
 EVAL_JSON = MapOf(EVAL_ROW, min_items=1)
+
+
+class _MetricsRecord(Object):
+    """One line of a run's metrics.jsonl: an object with its chunk number (the rest is what the
+    learner logs; the report reads `env_steps`, `wall_s` and `iou`). An `Object`, so that a list
+    of them names the record and field that is wrong."""
+
+    def __init__(self):
+        super().__init__({})
+
+    def describe(self) -> str:
+        return "a metrics record (an object with an int chunk >= 0)"
+
+    def plural(self) -> str:
+        return "metrics records"
+
+    def check(self, value: Any, field: str) -> None:
+        if not isinstance(value, dict):
+            raise mismatch(field, self.describe(), value)
+        Int(0).check(value.get("chunk"), f"{field}.chunk")
+        for name in ("env_steps", "wall_s"):
+            if name in value:
+                Number(0.0).check(value[name], f"{field}.{name}")
+
+
+RAW_CELL_JSON = Object({"cell": CELL_JSON, "config": CONFIG_JSON, "eval": EVAL_JSON, "curve": ListOf(_MetricsRecord())})
+"""A table cell's raw copy under bench/results/table/ (`agents.table.files.read_raw`): its cell.json,
+config.json and eval.json, and its metrics.jsonl's records as `curve` (empty where not kept)."""
 
 
 def load(path: str | Path, schema: Spec) -> Any:

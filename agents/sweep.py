@@ -153,14 +153,12 @@ def save(sweep: Sweep, out_dir: Path) -> None:
 
 def load(out_dir: Path) -> Sweep | None:
     """The sweep of the run in `out_dir`, or None for a run of one arm."""
+    from agents import schemas
+
     path = out_dir / SWEEP_FILE
     if not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path}: unreadable ({error})") from None
-    return Sweep.from_json(data, path)
+    return Sweep.from_json(schemas.load(path, schemas.SWEEP_JSON), path)
 
 
 def arm_dir(out_dir: Path, arm: int) -> Path:

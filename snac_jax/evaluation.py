@@ -1,8 +1,10 @@
 """The evaluation protocol (SPEC §8): every agent in the project is scored by `evaluate_task`.
 
-- Static task: `static_episodes` (500) episodes on its design. The paper's `1d-static` is the
-  three shapes, 500 episodes each: mean of the three means, minimum over all 1500.
-- Dynamic task: its ten fixed test designs x `episodes_per_test_design` (200) episodes.
+- Static task: `static_episodes` (default `STATIC_EPISODES`, the paper's) episodes on its
+  design. The paper's `1d-static` is the three shapes, that many episodes each: mean of the
+  three means, minimum over all of them.
+- Dynamic task: its ten fixed test designs x `episodes_per_test_design` (default
+  `EPISODES_PER_TEST_DESIGN`, the paper's) episodes.
 - Every episode runs to its own end (brick budget, stuck, or the step limit), never auto-reset;
   the policy acts as given (a learned agent passes its greedy policy).
 
@@ -39,7 +41,9 @@ from snac_jax.state import EnvParams
 from snac_jax.tasks import MAX_SEED, TASKS, make, make_params, task_spec, test_design_names
 
 STATIC_EPISODES = 500
+"""Episodes per static task in the protocol (SPEC §8): the one place the count is stated."""
 EPISODES_PER_TEST_DESIGN = 200
+"""Episodes per test design of a dynamic task in the protocol (SPEC §8)."""
 Z_95 = 1.959963984540054
 
 TUNING_EVAL_SEED = 0

@@ -21,7 +21,9 @@ PAPER_TASKS: tuple[str, ...] = (
     "3d-dynamic-dense",
     "3d-dynamic-sparse",
 )
-"""The columns of the paper's table; `1d-static` stands for the three 1D shapes."""
+"""The columns of the paper's table; `1d-static` stands for the three 1D shapes. The one list of
+them: `data/paper_results.json` holds the numbers per column, each column one of these
+(`load_paper_results` checks it)."""
 
 PAPER_GROUPS = {"1d-static": ("1d-static-sin", "1d-static-gauss", "1d-static-step")}
 """Paper columns that stand for several environment tasks."""
@@ -51,6 +53,12 @@ def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
         raise ValueError(f"{path or 'paper_results.json'}: not valid JSON ({error})") from error
     if not isinstance(results, dict) or not isinstance(results.get("methods"), dict):
         raise ValueError(f"{path or 'paper_results.json'}: expected an object with a 'methods' table")
+    for method, row in results["methods"].items():
+        unknown = sorted(set(row) - set(PAPER_TASKS)) if isinstance(row, dict) else None
+        if unknown is None or unknown:
+            raise ValueError(f"{path or 'paper_results.json'}: methods.{method} must map the paper's columns "
+                             f"({', '.join(PAPER_TASKS)}) to {{avg, min}}"
+                             + (f"; unknown column(s) {unknown}" if unknown else ""))
     return results
 
 

@@ -16,16 +16,60 @@ from __future__ import annotations
 
 import functools
 import importlib
+import re
+from importlib import metadata
 from importlib.metadata import entry_points
 from typing import Any, Callable
 
 COMMANDS = "snac_jax.commands"
 CHECKPOINT_LOADERS = "snac_jax.checkpoint_loaders"
+DISTRIBUTION = "snac-jax"
+# Import names that differ from their distribution's name (the rest match once normalised).
+_DISTRIBUTION_OF = {"PIL": "pillow", "orbax": "orbax-checkpoint"}
+
+
+def commands() -> dict[str, str]:
+    """Subcommand name -> the module that provides it, for every installed extension, not
+    imported yet: a module whose dependencies are missing must not stop the other commands."""
+    return {ep.name: ep.value for ep in entry_points(group=COMMANDS)}
 
 
 def command_modules() -> dict[str, Any]:
     """Subcommand name -> its module, for every installed extension."""
-    return {ep.name: importlib.import_module(ep.value) for ep in entry_points(group=COMMANDS)}
+    return {name: importlib.import_module(module) for name, module in commands().items()}
+
+
+def _normalise(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def extra_for(module: str) -> str | None:
+    """The extra of this package (pyproject.toml's optional-dependencies, as the installed
+    metadata records them) whose requirements bring the top-level module `module`; None where no
+    extra does, or the package is not installed. Why: the environment installs without the
+    learners' and the game's dependencies, and a command that needs one says which extra to add."""
+    wanted = _normalise(_DISTRIBUTION_OF.get(module, module))
+    try:
+        requirements = metadata.requires(DISTRIBUTION) or []
+    except metadata.PackageNotFoundError:
+        return None
+    extras = []
+    for requirement in requirements:
+        name = re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", requirement)
+        extra = re.search(r"extra\s*==\s*['\"]([^'\"]+)['\"]", requirement)
+        if name and extra and _normalise(name.group(1)) == wanted:
+            extras.append(extra.group(1))
+    # `dev` holds every extra: name the one a user would add for this command.
+    return next((e for e in extras if e != "dev"), extras[0] if extras else None)
+
+
+def missing_extra_message(error: ModuleNotFoundError) -> str | None:
+    """One line naming the extra to install for the module `error` could not find, or None
+    where no extra of this package provides it (then the error is a bug, not a missing extra)."""
+    extra = extra_for((error.name or "").partition(".")[0])
+    if extra is None:
+        return None
+    return f'this needs the [{extra}] extra: pip install "{DISTRIBUTION}[{extra}]"'
 
 
 def checkpoint_loader() -> Callable:
@@ -33,7 +77,7 @@ def checkpoint_loader() -> Callable:
     loaders = list(entry_points(group=CHECKPOINT_LOADERS))
     if not loaders:
         raise ValueError(f"no package provides a checkpoint loader (entry point group {CHECKPOINT_LOADERS!r}); "
-                         "install the project with `pip install -e .`, which includes the agents")
+                         f'install the project with its learners: pip install "{DISTRIBUTION}[train]"')
     return loaders[0].load()
 
 

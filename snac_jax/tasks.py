@@ -31,22 +31,25 @@ class TaskSpec:
         return 2 if self.dim == 1 else 3
 
 
-_MAX_STEPS = {1: 750, 2: 600, 3: 1300}
+STEP_LIMITS: dict[tuple[int, bool], int] = {
+    (1, False): 750, (1, True): 750, (2, False): 600, (2, True): 600, (3, False): 1300, (3, True): 1000,
+}
+"""The step limit (truncation) of a task by (dimension, dynamic) (SPEC §1): every other place
+reads it from here (`task_spec(task).max_steps`)."""
+
 _SPECS: dict[str, TaskSpec] = {
-    **{
-        f"1d-static-{s}": TaskSpec(dim=1, dynamic=False, design=f"1d-static-{s}", max_steps=750)
-        for s in ("sin", "gauss", "step")
-    },
-    "1d-dynamic": TaskSpec(dim=1, dynamic=True, design="sine", max_steps=750),
+    **{f"1d-static-{s}": TaskSpec(dim=1, dynamic=False, design=f"1d-static-{s}", max_steps=STEP_LIMITS[1, False])
+       for s in ("sin", "gauss", "step")},
+    "1d-dynamic": TaskSpec(dim=1, dynamic=True, design="sine", max_steps=STEP_LIMITS[1, True]),
 }
 for _dim in (2, 3):
     for _density in ("dense", "sparse"):
         _SPECS[f"{_dim}d-static-{_density}"] = TaskSpec(
-            dim=_dim, dynamic=False, design=f"{_dim}d-static-{_density}", max_steps=_MAX_STEPS[_dim]
+            dim=_dim, dynamic=False, design=f"{_dim}d-static-{_density}", max_steps=STEP_LIMITS[_dim, False]
         )
     for _density in ("dense", "sparse"):
         _SPECS[f"{_dim}d-dynamic-{_density}"] = TaskSpec(
-            dim=_dim, dynamic=True, design=_density, max_steps=600 if _dim == 2 else 1000
+            dim=_dim, dynamic=True, design=_density, max_steps=STEP_LIMITS[_dim, True]
         )
 
 TASKS: tuple[str, ...] = tuple(_SPECS)
@@ -235,8 +238,11 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     return SNACEnv(config, params), params
 
 
-def make_params(design_stack: np.ndarray, dim: int, stride_probs=DEFAULT_STRIDE_PROBS, max_steps: int = 600) -> EnvParams:
-    """`EnvParams` whose resets draw from `design_stack` (K, *plan_shape)."""
+def make_params(design_stack: np.ndarray, dim: int, stride_probs=DEFAULT_STRIDE_PROBS,
+                max_steps: int = MAX_INT32) -> EnvParams:
+    """`EnvParams` whose resets draw from `design_stack` (K, *plan_shape). `make` passes the
+    task's step limit; a caller that only wants the design fields (a swapped design stack) may
+    leave `max_steps` out."""
     design_stack = np.asarray(design_stack, dtype=np.int16)
     return EnvParams(
         designs=jnp.asarray(design_stack),

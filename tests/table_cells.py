@@ -42,3 +42,29 @@ def write_cell(directory, *, algorithm: str = "ppo", task: str = "1d-static-sin"
         (directory / name).write_text(json.dumps(content, indent=2) + "\n")
     (directory / "metrics.jsonl").write_text(json.dumps({"chunk": 0, "env_steps": 2048, "wall_s": 3.0}) + "\n")
     return files
+
+
+def raw_copy_text(directory) -> str:
+    """The raw copy the report would write of the cell in `directory`, spliced from its files'
+    texts as they are (damaged or not): {"cell", "config", "eval", "curve"}."""
+    from pathlib import Path
+
+    directory = Path(directory)
+    parts = [f'"{key}": ' + (directory / name).read_text().strip()
+             for key, name in (("cell", "cell.json"), ("config", "config.json"), ("eval", "eval.json"))]
+    metrics = directory / "metrics.jsonl"
+    lines = [line for line in metrics.read_text().splitlines() if line.strip()] if metrics.is_file() else []
+    return "{" + ", ".join(parts) + ', "curve": [' + ", ".join(lines) + "]}\n"
+
+
+def unpack_raw(path, directory) -> None:
+    """A raw copy (`bench/results/table/.../<cell>.json`) written back as a cell directory's files
+    (config.json, cell.json, eval.json, metrics.jsonl), as a runs directory holds them."""
+    import json
+    from pathlib import Path
+
+    record, directory = json.loads(Path(path).read_text()), Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for key, name in (("cell", "cell.json"), ("config", "config.json"), ("eval", "eval.json")):
+        (directory / name).write_text(json.dumps(record[key], indent=2) + "\n")
+    (directory / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in record["curve"]))

@@ -77,7 +77,7 @@ def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask()
     target = jnp.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
                         [[5.0, 2.0, 0.0], [7.0, 7.0, 7.0]]])
     agent.replayed_frames = lambda batch, obs: (None, None)
-    agent.sequence_q = lambda params, frames, resets, sown=False: (params, {}) if sown else params
+    agent.sequence_q = lambda params, frames, resets: params
 
     rows = c + 2
     column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))

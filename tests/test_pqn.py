@@ -334,3 +334,16 @@ def test_cli_trains_pqn_with_two_seeds_and_evaluates_each_without_a_paper_row(tm
     assert saved["algorithm"] == "pqn" and saved["recurrent"] is recurrent and saved["seeds"] == 2
     assert "paper row: pqn" in result.stdout
     check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)
+
+
+def test_make_train_is_one_jittable_function_vmappable_over_seeds():
+    """`make_train(config)` gives the whole run as `train(key)`, as PPO's does: jitted and
+    vmapped over two seeds, every update runs, and the seeds train apart."""
+    from agents.pqn import make_train
+
+    config = make_config("pqn", "1d-static-sin", **dict(TINY, recurrent=True, max_steps=20))
+    state, metrics = jax.jit(jax.vmap(make_train(config)))(jax.random.split(jax.random.key(0), 2))
+    assert metrics["loss"].shape == (2, config.num_updates) == (2, 2)
+    assert np.all(np.isfinite(metrics["loss"])) and np.asarray(state.update).tolist() == [2, 2]
+    first = jax.tree.leaves(state.params)[0]
+    assert not np.allclose(first[0], first[1])

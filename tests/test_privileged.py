@@ -265,7 +265,7 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 # --- configuration --------------------------------------------------------------------------------------
 
 
-# pqn-aux and pqn-belief are PQN-RNN (`pqn --recurrent`), which plain pqn is not on the tasks its tuned file leaves out
+# pqn-aux and pqn-belief are PQN-RNN (`pqn --recurrent`), which plain pqn is not on every task (agents/tuned/pqn.toml)
 VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux", "pqn", {"recurrent": True}),
             ("pqn-belief", "pqn", {"recurrent": True})]
 

@@ -92,11 +92,12 @@ def test_run_json_schema(tmp_path):
 
 
 def test_cell_json_and_eval_json_schemas_read_every_committed_cell(tmp_path):
-    committed = sorted((ROOT / "bench" / "results" / "table").glob("*/*/*/cell.json"))
+    committed = sorted((ROOT / "bench" / "results" / "table").glob("*/*/*.json"))
     assert len(committed) > 50
-    for path in committed:
-        schemas.load(path, schemas.CELL_JSON)
-        schemas.load(path.with_name("eval.json"), schemas.EVAL_JSON)
+    for path in committed:  # one file per cell: each part against its own file's schema
+        record = schemas.load(path, schemas.RAW_CELL_JSON)
+        schema.check(record["cell"], schemas.CELL_JSON, path)
+        schema.check(record["eval"], schemas.EVAL_JSON, path)
     schemas.load(ROOT / "bench" / "results" / "handcrafted.json", schemas.EVAL_JSON)
     cell = tmp_path / "cell"
     write_cell(cell)
@@ -109,6 +110,35 @@ def test_cell_json_and_eval_json_schemas_read_every_committed_cell(tmp_path):
              schemas.EVAL_JSON, "eval.json: ['1d-static-sin (seed 1)'].per_design.t0.mean must be a finite number in [0, 1]")
     (cell / "eval.json").write_text("{}")
     _refused(cell / "eval.json", schemas.EVAL_JSON, "eval.json: it must have at least 1 entries, got 0")
+
+
+def test_a_cells_raw_copy_is_checked_part_by_part_naming_the_part_and_the_field(tmp_path):
+    from agents.table.files import read_cell, read_raw
+    from agents.table.raw import raw_text
+
+    cell = tmp_path / "runs" / "ppo" / "1d-static-sin"
+    write_cell(cell)
+    copy = tmp_path / "results" / "ppo" / "1d-static-sin.json"
+    copy.parent.mkdir(parents=True)
+    copy.write_text(raw_text(read_cell(cell)))
+    assert read_raw(copy)["eval"] == json.loads((cell / "eval.json").read_text())
+    _refused(_edit(copy, lambda d: d["cell"]["budget"].update(capped="no")), schemas.RAW_CELL_JSON,
+             "1d-static-sin.json: cell.budget.capped must be true or false, got 'no'")
+    copy.write_text(raw_text(read_cell(cell)))
+    _refused(_edit(copy, lambda d: d["curve"].append({"chunk": 1, "wall_s": -1.0})), schemas.RAW_CELL_JSON,
+             "1d-static-sin.json: curve[1].wall_s must be a finite number >= 0")
+    copy.write_text(raw_text(read_cell(cell)))
+    _refused(_edit(copy, lambda d: d["curve"].append({"iou": 0.5})), schemas.RAW_CELL_JSON,
+             "1d-static-sin.json: curve[1].chunk must be an int >= 0, got None")
+    copy.write_text(raw_text(read_cell(cell)))
+    _refused(_edit(copy, lambda d: d.pop("eval")), schemas.RAW_CELL_JSON, "1d-static-sin.json: eval is missing")
+    # A copy under another cell's name is refused, naming both.
+    copy.write_text(raw_text(read_cell(cell)))
+    elsewhere = copy.with_name("1d-static-gauss.json")
+    copy.rename(elsewhere)
+    with pytest.raises(ValueError, match=r"gauss.json: cell: its algorithm and task \(ppo/1d-static-sin\) are not where it "
+                                         r"stands \(ppo/1d-static-gauss\)"):
+        read_raw(elsewhere)
 
 
 def test_human_record_schema_names_the_line_and_the_field(tmp_path):

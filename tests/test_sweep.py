@@ -130,3 +130,15 @@ def test_a_sweep_runs_policies_load_by_run_index_with_their_arms_settings(sweep_
     checkpoint_policy(env, base / "sweep", seed_index=3)  # arm 1, seed 1
     with pytest.raises(ValueError, match=r"must be in 0\.\.3 .*a sweep: arm a, seed s is index a \* 2 \+ s"):
         checkpoint_policy(env, base / "sweep", seed_index=4)
+
+
+def test_a_damaged_sweep_json_is_refused_naming_the_file_and_the_field(tmp_path):
+    from agents import sweep
+
+    (tmp_path / "sweep.json").write_text('{"names": ["learning_rate"], "arms": [[0.001], ["fast"]]}')
+    with pytest.raises(ValueError, match=r"sweep\.json: arms\[1\] must be finite numbers, got 'fast'") as caught:
+        sweep.load(tmp_path)
+    assert "\n" not in str(caught.value)
+    (tmp_path / "sweep.json").write_text('{"names": ["learning_rate"], "arms": [[0.001, 0.9]]}')
+    with pytest.raises(ValueError, match="not a sweep"):
+        sweep.load(tmp_path)

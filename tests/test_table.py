@@ -468,8 +468,14 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     table = json.loads(paths["json"].read_text())["smoke"]
     assert table["learners"] == {"ppo": {}}  # 1d-static-step is missing: no column is complete
     copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
-    assert copied == [f"table/smoke/ppo/{t}/{f}" for t in ("1d-static-gauss", "1d-static-sin")
-                      for f in ("cell.json", "config.json", "eval.json", "metrics.jsonl")]
+    assert copied == [f"table/smoke/ppo/{t}.json" for t in ("1d-static-gauss", "1d-static-sin")]
+    from agents import checkpoint
+    for task, source in (("1d-static-sin", cells[0].directory), ("1d-static-gauss", cells[1].directory)):
+        record = json.loads((results / "table" / "smoke" / "ppo" / f"{task}.json").read_text())
+        assert list(record) == ["cell", "config", "eval", "curve"]  # the whole record in one file
+        assert record["eval"] == json.loads((source / "eval.json").read_text())
+        assert record["config"] == json.loads((source / "config.json").read_text())
+        assert record["curve"] == checkpoint.read_metrics_lines(source / "metrics.jsonl")
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
     # An ablation whose base arm has the settings of the finished sin cell adopts that run: no training.

@@ -19,7 +19,7 @@ import pytest
 
 from agents import checkpoint
 from agents.table.presets import load_presets
-from tests.table_cells import write_cell
+from tests.table_cells import raw_copy_text, unpack_raw, write_cell
 
 PRESETS = load_presets()
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,13 +130,13 @@ def test_two_table_processes_the_second_refused_the_first_finishes_a_clean_cell(
 
 
 def test_a_cell_directory_holding_another_runs_files_is_refused_not_deleted(tmp_path, no_training):
-    """`--runs-dir bench/results/table` has the layout of a runs directory, with finished cells'
-    files and no checkpoints: the plan refuses such a cell, naming it, before anything runs."""
+    """A committed cell's files written back as a runs directory's (a finished cell's files and no
+    checkpoints): the plan refuses such a cell, naming it, before anything runs."""
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 
     runs = tmp_path / "runs"
-    shutil.copytree(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic", runs / "paper" / "ppo" / "1d-dynamic")
+    unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic.json", runs / "paper" / "ppo" / "1d-dynamic")
     mine = runs / "smoke" / "ppo" / "1d-static-sin"
     mine.mkdir(parents=True)
     (mine / "config.json").write_text('{"mine": true}\n')
@@ -229,36 +229,45 @@ def test_report_refuses_an_impossible_iou_naming_the_file_and_the_field(tmp_path
     assert not any(results.iterdir())  # nothing published
 
 
-@pytest.mark.parametrize("name, damage, message", [
-    ("eval.json", lambda text: text[: len(text) // 2], r"eval.json is not valid JSON"),
-    ("eval.json", lambda text: "garbage", r"eval.json is not valid JSON"),
+@pytest.mark.parametrize("name, damage, message, raw_message", [
+    ("eval.json", lambda text: text[: len(text) // 2], r"eval.json is not valid JSON", r"sin.json is not valid JSON"),
+    ("eval.json", lambda text: "garbage", r"eval.json is not valid JSON", r"sin.json is not valid JSON"),
     ("eval.json", lambda text: text.replace('"mean": 0.5', '"mean": NaN'),
-     r"eval.json: \['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan"),
-    ("eval.json", lambda text: text.replace('"mean": 0.5', '"max": 0.5'), r"eval.json: unknown field\(s\) \['max'\] in"),
-    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": "2"'), r"config.json: seeds must be an int >= 1, got '2'"),
-    ("config.json", lambda text: "{}", r"config.json: algorithm is missing"),
-    ("cell.json", lambda text: "[]", r"cell.json must hold a JSON object, got list"),
-    ("cell.json", lambda text: text.replace('"protocol"', '"protocols"'), r"cell.json: unknown field\(s\) \['protocols'\]"),
+     r"eval.json: \['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan",
+     r"sin.json: eval\['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan"),
+    ("eval.json", lambda text: text.replace('"mean": 0.5', '"max": 0.5'), r"eval.json: unknown field\(s\) \['max'\] in",
+     r"sin.json: unknown field\(s\) \['max'\] in eval\['1d-static-sin \(seed 0\)'\]"),
+    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": "2"'), r"config.json: seeds must be an int >= 1, got '2'",
+     r"sin.json: config.seeds must be an int >= 1, got '2'"),
+    ("config.json", lambda text: "{}", r"config.json: algorithm is missing", r"sin.json: config.algorithm is missing"),
+    ("cell.json", lambda text: "[]", r"cell.json must hold a JSON object, got list", r"sin.json: cell must be an object, got list"),
+    ("cell.json", lambda text: text.replace('"protocol"', '"protocols"'), r"cell.json: unknown field\(s\) \['protocols'\]",
+     r"sin.json: unknown field\(s\) \['protocols'\] in cell"),
     ("cell.json", lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "protocol"}),
-     r"cell.json: protocol is missing"),
+     r"cell.json: protocol is missing", r"sin.json: cell.protocol is missing"),
     ("cell.json", lambda text: text.replace('"task": "1d-static-sin"', '"task": "1d-static-sine"'),
-     r"cell.json: unknown task '1d-static-sine'; allowed: 1d-static-sin"),
+     r"cell.json: unknown task '1d-static-sine'; allowed: 1d-static-sin", r"sin.json: unknown cell.task '1d-static-sine'"),
     ("cell.json", lambda text: text.replace('"static_episodes": 2', '"static_episodes": 3'),
-     r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3"),
-    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": 3'), r"eval.json: holds 2 result\(s\), the run has seeds 3"),
+     r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
+     r"sin.json: eval: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3"),
+    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": 3'), r"eval.json: holds 2 result\(s\), the run has seeds 3",
+     r"sin.json: eval: holds 2 result\(s\), the run has seeds 3"),
 ])
-def test_report_refuses_a_damaged_cell_naming_the_file_and_the_field(tmp_path, capsys, name, damage, message):
+def test_report_refuses_a_damaged_cell_naming_the_file_and_the_field(tmp_path, capsys, name, damage, message,
+                                                                    raw_message):
     runs, results, cell = _report(tmp_path)
     (cell / name).write_text(damage((cell / name).read_text()))
     code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert err.startswith("snac table: error: ") and str(cell) in err and re.search(message, err), err
     assert not any(results.iterdir())
-    # The same cell already copied into the results is refused there too.
-    shutil.copytree(cell, results / "table" / "smoke" / "ppo" / "1d-static-sin")
+    # The same cell already copied into the results (one file) is refused there too, naming the part.
+    copy = results / "table" / "smoke" / "ppo" / "1d-static-sin.json"
+    copy.parent.mkdir(parents=True)
+    copy.write_text(raw_copy_text(cell))
     shutil.rmtree(runs / "smoke")
     code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
-    assert code == 2 and str(results / "table") in err and re.search(message, err), err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(copy) in err and re.search(raw_message, err), err
 
 
 def test_report_dry_run_checks_everything_and_writes_nothing(tmp_path, capsys):
@@ -267,11 +276,11 @@ def test_report_dry_run_checks_everything_and_writes_nothing(tmp_path, capsys):
     before = _tree(results)
     assert _run_cli(["--preset", "smoke", "--report", "--dry-run", "--runs-dir", str(runs), "--results-dir", str(results)]) == 0
     out = capsys.readouterr().out
-    assert f"would copy {cell} to {results / 'table' / 'smoke' / 'ppo' / '1d-static-sin'}" in out
+    assert f"would copy {cell} to {results / 'table' / 'smoke' / 'ppo' / '1d-static-sin.json'}" in out
     assert f"would write {results / 'table.md'}" in out and f"would write {results / 'table-paper.png'}" in out
     assert _tree(results) == before and sorted(p.name for p in results.iterdir()) == ["table"]
     assert _run_cli(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)]) == 0
-    assert (results / "table" / "smoke" / "ppo" / "1d-static-sin" / "eval.json").is_file()
+    assert (results / "table" / "smoke" / "ppo" / "1d-static-sin.json").is_file()
 
 
 def test_report_needs_a_runs_directory_that_exists(tmp_path, capsys, monkeypatch):
@@ -314,3 +323,21 @@ def test_report_writes_through_no_link_in_the_results_and_keeps_a_readme_link(tm
     assert code == 2 and f"--readme {link} is a symbolic link; give the file it points to ({readme})" in err
     assert link.is_symlink() and "stale" in readme.read_text() and not (results / "table.md").exists()
     assert _main([*argv, "--readme", str(readme)], capsys)[0] == 0 and "stale" not in readme.read_text()
+
+
+def test_report_reads_every_entry_of_the_results_table_or_refuses_it(tmp_path, capsys):
+    """Each cell is one raw file; a cell's directory or any other entry under a learner's folder
+    is refused, named, rather than left out of the table. A curve with a chunk in which no
+    episode ended (NaN in an older metrics.jsonl) is copied as strict JSON, null."""
+    runs, results, cell = _report(tmp_path)
+    with (cell / "metrics.jsonl").open("a") as f:
+        f.write('{"chunk": 1, "env_steps": 4096, "wall_s": 6.0, "iou": [NaN, 0.5]}\n')
+    argv = ["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)]
+    assert _main(argv, capsys)[0] == 0
+    copy = results / "table" / "smoke" / "ppo" / "1d-static-sin.json"
+    assert json.loads(copy.read_text())["curve"][1]["iou"] == [None, 0.5] and "NaN" not in copy.read_text()
+    for stray in (copy.with_name("1d-static-gauss"), copy.with_name("notes.md")):
+        stray.mkdir() if stray.suffix == "" else stray.write_text("x")
+        code, err = _main(argv, capsys)
+        assert code == 2 and f"{stray} is not a cell's raw copy" in err, err
+        shutil.rmtree(stray) if stray.is_dir() else stray.unlink()

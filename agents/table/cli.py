@@ -61,7 +61,7 @@ def add_parser(subparsers) -> None:
                         help="print the plan with estimated wall times and stop; with --report, check every cell and "
                              "print what would be copied and written, writing nothing")
     parser.add_argument("--report", action="store_true",
-                        help="copy the finished cells' JSON files under RESULTS_DIR/table/<preset>/ and write "
+                        help="copy each finished cell into one JSON file under RESULTS_DIR/table/<preset>/ and write "
                              "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
                              "(no training)")
     parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,

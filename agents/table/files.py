@@ -6,7 +6,8 @@ with `cell.json` beside it. A runner deletes nothing and starts no run over file
 make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
 short before its first checkpoint (which it trains again from the start), or it is refused,
 named, before anything runs. The report (`agents.table.raw`) reads finished cells with
-`read_cell`, which refuses a damaged one naming the file and the field instead of leaving it out.
+`read_cell`, and their one-file copies under `bench/results/table/` with `read_raw`; both refuse a
+damaged cell naming the file and the field instead of leaving it out.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from snac_jax.tasks import task_spec
 
 CELL_FILE = "cell.json"
 EVAL_FILE = "eval.json"
+RAW_SUFFIX = ".json"
+"""A raw copy's file name is its cell's directory name with this suffix (`read_raw`)."""
 RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
 """What a cell's run leaves before its first checkpoint (`agents.driver`), besides its lock."""
 
@@ -88,30 +91,59 @@ def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) ->
     return True
 
 
+def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, cell_where: str, eval_where: str,
+               config_where: str) -> None:
+    """The checks between a cell's parts, each already read against its schema: `cell` and the
+    config name the same algorithm and task, an arm's cell names its arm whole, the cell stands
+    where its algorithm and name say (`name`, `algorithm`: its directory's or file's), and
+    `results` is a finished result of it (`eval_problem`). `*_where`: how an error names each part."""
+    for key, value in (("algorithm", config.algorithm), ("task", config.task)):
+        if cell[key] != value:
+            raise ValueError(f"{cell_where}: {key} is {cell[key]!r}, its {config_where} has {value!r}")
+    arm = [k for k in ("variant", "paper_variant", "switches") if k in cell]
+    if arm and len(arm) != 3:
+        missing = sorted({"variant", "paper_variant", "switches"} - set(arm))
+        raise ValueError(f"{cell_where}: an arm's cell needs variant, paper_variant and switches; {missing} missing")
+    own = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
+    if name != own or algorithm != cell["algorithm"]:
+        raise ValueError(f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands "
+                         f"({algorithm}/{name})")
+    problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
+    if problem is not None:
+        raise ValueError(f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell "
+                         "again with `snac table` or move it away")
+
+
 def read_cell(directory: Path) -> dict[str, Any]:
-    """A finished cell's files, each checked against its schema and against the others, as the
-    report reads them: {"config", "eval", "cell", "metrics"} ("metrics": its curve, empty where
-    not kept). `ValueError` naming the file and the field of the first problem."""
+    """A finished cell's files in a runs directory, each checked against its schema and against
+    the others (`check_cell`): {"config" (as written), "eval", "cell", "metrics"} ("metrics": its
+    curve, empty where not kept). `ValueError` naming the file and the field of the first problem."""
     config = checkpoint.read_config(directory)
     cell_path, eval_path = directory / CELL_FILE, directory / EVAL_FILE
     if not cell_path.is_file():
         raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
     cell = schemas.load(cell_path, schemas.CELL_JSON)
     results = schemas.load(eval_path, schemas.EVAL_JSON)
-    for name, value in (("algorithm", config.algorithm), ("task", config.task)):
-        if cell[name] != value:
-            raise ValueError(f"{cell_path}: {name} is {cell[name]!r}, its {checkpoint.CONFIG_FILE} has {value!r}")
-    arm = [k for k in ("variant", "paper_variant", "switches") if k in cell]
-    if arm and len(arm) != 3:
-        missing = sorted({"variant", "paper_variant", "switches"} - set(arm))
-        raise ValueError(f"{cell_path}: an arm's cell needs variant, paper_variant and switches; {missing} missing")
-    name = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
-    if directory.name != name or directory.parent.name != cell["algorithm"]:
-        raise ValueError(f"{cell_path}: its algorithm and task ({cell['algorithm']}/{name}) are not its directory's "
-                         f"({directory.parent.name}/{directory.name})")
-    problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
-    if problem is not None:
-        raise ValueError(f"{eval_path}: {problem} (from {cell_path} and {checkpoint.CONFIG_FILE}); evaluate the cell "
-                         "again with `snac table` or move it away")
-    return {"config": config.to_json(), "eval": results, "cell": cell,
-            "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)}
+    check_cell(config, cell, results, name=directory.name, algorithm=directory.parent.name, cell_where=str(cell_path),
+               eval_where=str(eval_path), config_where=checkpoint.CONFIG_FILE)
+    return {"config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON), "eval": results,
+            "cell": cell, "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)}
+
+
+def read_raw(path: Path) -> dict[str, Any]:
+    """A cell's raw copy under `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, one
+    file holding {"cell", "config", "eval", "curve"} (`schemas.RAW_CELL_JSON`: each part against the
+    schema of the file it was copied from), checked as `read_cell` checks a cell's files. Returns
+    {"config" (the config class's full settings), "eval", "cell", "metrics" (the curve)};
+    `ValueError` naming the file and the field (`eval['<seed>'].mean`) of the first problem."""
+    from agents.registry import config_from_json
+
+    record = schemas.load(path, schemas.RAW_CELL_JSON)
+    try:
+        config = config_from_json(record["config"])
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: config: {error}") from error
+    check_cell(config, record["cell"], record["eval"], name=path.name.removesuffix(RAW_SUFFIX),
+               algorithm=path.parent.name, cell_where=f"{path}: cell", eval_where=f"{path}: eval",
+               config_where="config")
+    return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}

@@ -75,17 +75,20 @@ class Preset:
 
 
 def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
+    tables = tomllib.loads(Path(path).read_text())
     presets = {}
-    for name, table in tomllib.loads(Path(path).read_text()).items():
+    for name, table in tables.items():
         unknown = sorted(set(table) - _PRESET_KEYS)
         if unknown:
             raise ValueError(f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}")
         limit = table.get("wall_limit_minutes")
-        for algorithm, budget in table.get("budgets", {}).items():
+        table = {**table, "budgets": {algorithm: _same_as(path, tables, name, algorithm, budget)
+                                      for algorithm, budget in table.get("budgets", {}).items()}}
+        for algorithm, budget in table["budgets"].items():
             if set(budget) - {"env_steps", "episodes", "source", "wall_limit_minutes"} or (
                     "env_steps" in budget and "episodes" in budget):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source), "
-                                 "and may give its own wall_limit_minutes")
+                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source) "
+                                 "or same_as, and may give its own wall_limit_minutes")
             own_limit = budget.get("wall_limit_minutes")
             if own_limit is not None and (isinstance(own_limit, bool) or not isinstance(own_limit, (int, float))
                                           or own_limit <= 0):
@@ -119,6 +122,26 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
                              f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}")
     return presets
+
+
+def _same_as(path, tables: dict, preset: str, algorithm: str, budget: dict) -> dict:
+    """`budget` with `same_as = "PRESET.ALGORITHM"` replaced by that entry's env steps or
+    episodes and source. Why: a budget another preset reuses (the paper's, for an ablation) is
+    stated once, where it comes from."""
+    if "same_as" not in budget:
+        return budget
+    reference = budget["same_as"]
+    other, _, learner = str(reference).partition(".")
+    target = tables.get(other, {}).get("budgets", {}).get(learner) if isinstance(tables.get(other), dict) else None
+    if (set(budget) - {"same_as", "wall_limit_minutes"} or not isinstance(target, dict) or "same_as" in target
+            or not {"env_steps", "episodes"} & set(target)):
+        raise ValueError(f"{path}: [{preset}.budgets] {algorithm}'s same_as must name, as PRESET.ALGORITHM, another "
+                         f"entry that gives env_steps or episodes itself (and may come with wall_limit_minutes alone), "
+                         f"got {reference!r}")
+    whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
+    own = {k: v for k, v in budget.items() if k == "wall_limit_minutes"}
+    return {**{k: v for k, v in target.items() if k in ("env_steps", "episodes")},
+            "source": f"{whose}, {target['source']}" if "source" in target else whose, **own}
 
 
 def _variant(path, preset: str, name: str, table: dict) -> Variant:

@@ -1,29 +1,44 @@
-"""The raw results of `snac table`: each finished cell's small JSON files (`config.json`,
-`eval.json`, `cell.json`, and its learning curve `metrics.jsonl`; never checkpoints), copied from
-the runs directory to `bench/results/table/<preset>/<algorithm>/<cell>/` and read back from there,
-so that every table, curve and training wall time can be rebuilt from the repository. Cells copied
-before the curves were kept have no `metrics.jsonl`; their wall times are on the learners' pages.
+"""The raw results of `snac table`: each finished cell of a runs directory (its `config.json`,
+`eval.json`, `cell.json` and learning curve `metrics.jsonl`; never checkpoints) copied into one
+JSON file, `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, holding
+{"cell", "config", "eval", "curve"} (`schemas.RAW_CELL_JSON`), and read back from there, so that
+every table, curve and training wall time can be rebuilt from the repository with one file per
+cell. A cell whose curve was not kept has an empty `curve`.
 
-Every cell is read back whole and checked (`agents.table.files.read_cell`) before anything is
-written: a damaged cell stops the report with its file and field named, and no file is written
-through a symbolic link inside the results folder."""
+Every cell is read back whole and checked (`agents.table.files.read_cell`, `read_raw`) before
+anything is written: a damaged cell stops the report with its file and field named, and no file
+is written through a symbolic link inside the results folder."""
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 from typing import Any
 
-from agents import checkpoint
-from agents.table.files import CELL_FILE, EVAL_FILE, read_cell
-from snac_jax.atomic import atomic_write
-
-RAW_FILES = (checkpoint.CONFIG_FILE, EVAL_FILE, CELL_FILE)
-OPTIONAL_RAW_FILES = (checkpoint.METRICS_FILE,)
+from agents.table.files import EVAL_FILE, RAW_SUFFIX, read_cell, read_raw
+from snac_jax.atomic import atomic_write_text
 
 
-def raw_cells(root: Path) -> list[Path]:
-    """The cell directories under a preset's folder that hold an eval.json (finished, or damaged)."""
+def run_cells_in(root: Path) -> list[Path]:
+    """The cell directories under a runs directory's preset folder that hold an eval.json
+    (finished, or damaged)."""
     return sorted(p.parent for p in root.glob(f"*/*/{EVAL_FILE}"))
+
+
+def raw_files(root: Path) -> list[Path]:
+    """The raw copies under a preset's folder of the results (`<algorithm>/<cell>.json`). Anything
+    else there (a cell's directory, another file) is a `ValueError` naming it: the report leaves
+    no cell out unread. Names starting with a dot (an interrupted atomic write's) are skipped."""
+    found = []
+    for entry in sorted(root.glob("*/*")) if root.is_dir() else []:
+        if entry.name.startswith("."):
+            continue
+        if entry.is_symlink() or not entry.is_file() or entry.suffix != RAW_SUFFIX:
+            raise ValueError(f"{entry} is not a cell's raw copy (a file <task>[.<arm>]{RAW_SUFFIX}); "
+                             "move it out of the results")
+        found.append(entry)
+    return found
 
 
 def refuse_links(root: Path, path: Path) -> None:
@@ -37,10 +52,31 @@ def refuse_links(root: Path, path: Path) -> None:
                              "replace it with the file or folder itself")
 
 
-def copies(runs_dir: str | Path | None, results_dir: str | Path,
-           preset: str) -> list[tuple[Path, Path, tuple[str, ...]]]:
-    """What `collect` copies: (cell directory, destination, file names) of every finished cell of
-    `preset` under `runs_dir` (None: no runs, nothing), each read back whole first
+def _finite(value: Any) -> Any:
+    """`value` with every float that is not finite as None: a curve is strict JSON, as
+    `agents.driver` writes metrics.jsonl (a chunk in which no episode ended has a null mean)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value
+
+
+def raw_text(files: dict) -> str:
+    """A cell's raw copy as written: {"cell", "config", "eval", "curve"} indented, each curve
+    record on one line, strict JSON (`_finite`)."""
+    parts = [f'  "{name}": ' + json.dumps(files[name], indent=2, allow_nan=False).replace("\n", "\n  ")
+             for name in ("cell", "config", "eval")]
+    curve = ",\n".join("    " + json.dumps(_finite(r), allow_nan=False) for r in files["metrics"])
+    parts.append('  "curve": ' + (f"[\n{curve}\n  ]" if curve else "[]"))
+    return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
+def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[tuple[Path, Path, str]]:
+    """What `collect` copies: (cell directory, destination file, its text) of every finished cell
+    of `preset` under `runs_dir` (None: no runs, nothing), each read back whole first
     (`files.read_cell`: a damaged cell is a `ValueError` naming the file and field, never left
     out), and every destination checked to hold no link."""
     if runs_dir is None:
@@ -54,40 +90,36 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path,
         raise ValueError(f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}; give the "
                          "directory `snac table` trained in")
     planned = []
-    for directory in raw_cells(source):
-        read_cell(directory)
-        names = RAW_FILES + tuple(n for n in OPTIONAL_RAW_FILES if (directory / n).is_file())
-        destination = target / directory.relative_to(source)
-        for name in names:
-            refuse_links(results_dir, destination / name)
-        planned.append((directory, destination, names))
+    for directory in run_cells_in(source):
+        text = raw_text(read_cell(directory))
+        destination = (target / directory.relative_to(source)).with_name(directory.name + RAW_SUFFIX)
+        refuse_links(results_dir, destination)
+        planned.append((directory, destination, text))
     return planned
 
 
 def collect(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[Path]:
-    """Copy every finished cell's JSON files under `results_dir/table/<preset>/` (each file
-    atomically; every cell is checked before the first is copied); returns the cells copied."""
-    copied = []
-    for directory, destination, names in copies(runs_dir, results_dir, preset):
-        for name in names:
-            data = (directory / name).read_bytes()
-            atomic_write(destination / name, lambda f, data=data: f.write(data))
-        copied.append(destination)
-    return copied
+    """Write every finished cell's raw copy under `results_dir/table/<preset>/` (each file
+    atomically; every cell is checked before the first is written); returns the files written."""
+    written = []
+    for _, destination, text in copies(runs_dir, results_dir, preset):
+        atomic_write_text(destination, text)
+        written.append(destination)
+    return written
 
 
 def load_raw(results_dir: str | Path, preset: str) -> dict[str, dict[str, dict]]:
-    """algorithm -> cell (its directory's name: the task, and an ablation's arm) -> {"config", "eval",
-    "cell", "metrics"} of the copied cells ("metrics": the curve's records, empty where not copied).
-    A damaged copy is a `ValueError` naming the file and the field."""
+    """algorithm -> cell (the task, and an ablation's arm) -> {"config", "eval", "cell", "metrics"}
+    of the raw copies ("metrics": the curve's records, empty where not kept). A damaged copy is a
+    `ValueError` naming the file and the field."""
     raw: dict[str, dict[str, dict]] = {}
     plain = []
-    for directory in raw_cells(Path(results_dir) / "table" / preset):
-        files = raw.setdefault(directory.parent.name, {})[directory.name] = read_cell(directory)
+    for path in raw_files(Path(results_dir) / "table" / preset):
+        files = raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(path)
         if "variant" not in files["cell"]:
-            plain.append(directory)
+            plain.append(path)
     if plain and len(plain) < sum(map(len, raw.values())):
-        raise ValueError(f"{plain[0] / CELL_FILE}: no variant, beside cells of an ablation's arms in the same preset")
+        raise ValueError(f"{plain[0]}: cell: no variant, beside cells of an ablation's arms in the same preset")
     return raw
 
 

@@ -14,20 +14,42 @@ from snac_jax import plugins
 
 # One module per subcommand; each defines `add_parser(subparsers)`.
 COMMAND_MODULES = ("rollout", "render", "eval", "play")
-# CPU devices a subcommand gets without `--devices` (others: one per core). Training: the
-# learner's minibatch shuffles become cross-device copies, and 1 device measured faster than 2
-# (bench/results/ppo.md).
+# CPU devices a subcommand gets without `--devices` (others: one per core). Training takes one:
+# across devices the learner's minibatch shuffles become cross-device copies (bench/results/ppo.md).
 CPU_DEVICES_BY_COMMAND = {"train": 1, "table": 1}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="snac", description="SNAC mobile-construction benchmark in JAX")
-    subparsers = parser.add_subparsers(dest="command", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(f"snac_jax.cli.{name}").add_parser(subparsers)
-    for module in plugins.command_modules().values():
-        module.add_parser(subparsers)
-    return parser
+    """The parser of every subcommand. An extension's command whose dependencies are not
+    installed (its extra is missing) is still listed, and running it says which extra to add."""
+    missing: dict[str, str] = {}
+    while True:
+        parser = argparse.ArgumentParser(prog="snac", description="SNAC mobile-construction benchmark in JAX")
+        subparsers = parser.add_subparsers(dest="command", required=True)
+        for name in COMMAND_MODULES:
+            importlib.import_module(f"snac_jax.cli.{name}").add_parser(subparsers)
+        for name, module in plugins.commands().items():
+            if name in missing:
+                _add_missing_extra_parser(subparsers, name, missing[name])
+                continue
+            try:
+                importlib.import_module(module).add_parser(subparsers)
+            except ModuleNotFoundError as error:
+                if (message := plugins.missing_extra_message(error)) is None:
+                    raise
+                missing[name] = message
+                break  # build again from scratch: the failed command may be half-registered
+        else:
+            return parser
+
+
+def _add_missing_extra_parser(subparsers, name: str, message: str) -> None:
+    """`snac NAME ...` that only says, in one line, which extra it needs (exit status 2)."""
+    def refuse(args) -> int:
+        raise ValueError(message)
+
+    sub = subparsers.add_parser(name, add_help=False, help=message)
+    sub.set_defaults(func=refuse, takes_any_arguments=True)
 
 
 def use_cpu_devices_from(argv: list[str]) -> None:
@@ -79,8 +101,9 @@ def join_processes_from(argv: list[str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one subcommand. Bad input (`ValueError`) and files that cannot be read or written
-    (`OSError`) end with one line, `snac CMD: error: ...`, and exit status 2; Ctrl-C with one
+    """Run one subcommand. Bad input (`ValueError`), files that cannot be read or written
+    (`OSError`) and a missing extra (`pip install "snac-jax[EXTRA]"`) end with one line,
+    `snac CMD: error: ...`, and exit status 2; Ctrl-C with one
     line, `snac CMD: interrupted` (a subcommand may say more and return 130 itself), and exit
     status 130; anything else is a bug and keeps its traceback (as does every error with
     `SNAC_TRACEBACK=1`)."""
@@ -97,12 +120,21 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str]) -> int:
     use_cpu_devices_from(argv)
     join_processes_from(argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown and not getattr(args, "takes_any_arguments", False):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return args.func(args)
-    except (ValueError, OSError) as error:
+    except (ValueError, OSError, ModuleNotFoundError) as error:
         if os.environ.get("SNAC_TRACEBACK"):
             raise
+        if isinstance(error, ModuleNotFoundError):
+            # A dependency of an extra the command needs (say pygame for `snac play`); any
+            # other missing module is a bug and keeps its traceback.
+            if (message := plugins.missing_extra_message(error)) is None:
+                raise
+            error = ValueError(message)
         command = " ".join(part for part in (args.command, getattr(args, "algorithm", None)) if part)
         print(f"snac {command}: error: {_describe(error)}", file=sys.stderr)
         return 2

@@ -7,8 +7,9 @@ even for the 3D voxel view, which is an isometric painter's-algorithm projection
 
 Modules: `draw` (the palette, pixel primitives, text), `snapshot` (a state copied to numpy),
 `world` (`render`: the state's views), `isometric` (the 3D voxel view), `agent_view`
-(`render_observation`: what the agent sees), `files` (PNG and GIF). Everything a caller needs
-is importable from `snac_jax.rendering` itself.
+(`render_observation`: what the agent sees), `files` (PNG and GIF), `robots` (`render_robots`:
+a world of several robots, SPEC §13, each robot in its `ROBOT_COLOURS` colour). Everything a
+caller needs is importable from `snac_jax.rendering` itself.
 
 Views (`render`):
 
@@ -56,6 +57,7 @@ from snac_jax.rendering.draw import (
     draw_text,
 )
 from snac_jax.rendering.files import save_gif, save_png
+from snac_jax.rendering.robots import ROBOT_COLOURS, render_robots
 from snac_jax.rendering.world import (
     DEFAULT_CELL,
     HEADROOM_1D,
@@ -84,6 +86,7 @@ __all__ = [
     "PADDING_COLOUR",
     "PARTIAL",
     "ROBOT",
+    "ROBOT_COLOURS",
     "WINDOW",
     "WRONG",
     "WorldLayout",
@@ -92,6 +95,7 @@ __all__ = [
     "draw_text",
     "render",
     "render_observation",
+    "render_robots",
     "save_gif",
     "save_png",
     "world_layout",
