@@ -53,6 +53,8 @@ class EnvConfig:
     reward_scheme: str  # one of REWARD_SCHEMES
     gps: bool  # append the true plan position to the observation
     num_landmarks: int  # 0 = no landmarks
+    landmark_action: int = 0  # K landmarks the placement action may place per episode; 0 = no such action (SPEC §14)
+    design_change: tuple[int, int] | None = None  # (a, b): the design changes at a step in a..b (SPEC §15)
 
     @property
     def plan_shape(self) -> tuple[int, int]:
@@ -85,7 +87,16 @@ class EnvConfig:
 
     @property
     def num_actions(self) -> int:
-        return len(self.actions)
+        """The moves and drops of `actions`, then the landmark placement when it is switched on.
+
+        `actions` stays the table of moves and drops only, so everything that reads directions
+        from it (the handcrafted policy, the human game's keys) is unchanged by the switch."""
+        return len(self.actions) + (1 if self.landmark_action else 0)
+
+    @property
+    def place_landmark_action(self) -> int | None:
+        """The index of the landmark placement (SPEC §14): right after the table's actions."""
+        return len(self.actions) if self.landmark_action else None
 
     @property
     def grid_dtype(self) -> np.dtype:

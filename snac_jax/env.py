@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from snac_jax import batched_step, metrics, observation, threefry
+from snac_jax import batched_step, design_change, landmark_action, metrics, observation, threefry
 from snac_jax.config import MAX_STRIDE, EnvConfig
 from snac_jax.state import EnvParams, EnvState, PrivilegedState
 from snac_jax.transition import PADDING, is_stuck, transition
@@ -176,6 +176,11 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         landmarks = None
         if self.config.num_landmarks:
             landmarks = self._place_landmarks(key, design)
+        switched = {}  # SPEC §14-15: fields only the two switches add
+        if self.config.landmark_action:
+            switched.update(landmark_action.reset_fields(self.config, landmarks))
+        if self.config.design_change is not None:
+            switched.update(design_change.reset_fields(self.config, key, params, design_index))
         state = EnvState(
             grid=jnp.asarray(self._empty_grid()),
             position=jnp.zeros(2, dtype=jnp.int32),
@@ -186,7 +191,7 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
             overlap=jnp.zeros((), jnp.int32),
             union=params.design_volume[design_index],
             landmarks=landmarks,
-        )
+        ).replace(**switched)
         return self.get_obs(state, params), state
 
     def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
@@ -352,14 +357,17 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         if params is None:
             params = self.default_params
         config, layout = self.config, self.observation_layout
-        floor = observation.LANDMARK_VALUE if config.num_landmarks else float(PADDING)
+        marks = config.num_landmarks or config.landmark_action
+        floor = observation.LANDMARK_VALUE if marks else float(PADDING)
         window_low = np.full(layout.window_shape, floor, np.float32)
-        window_low[config.pad] = observation.LANDMARK_VALUE if config.num_landmarks else 0.0
+        window_low[config.pad] = observation.LANDMARK_VALUE if marks else 0.0
         low = np.zeros(layout.size, np.float32)
         low[layout.window] = window_low.reshape(-1)
 
         steps = jnp.asarray(params.max_steps_in_episode).astype(jnp.float32)
         bricks = jnp.minimum(jnp.max(params.design_max_bricks).astype(jnp.float32), steps)
+        if config.design_change is not None:
+            bricks = steps  # a change tops the budget up (SPEC §15): only the step limit bounds N_b
         high = jnp.zeros(layout.size, jnp.float32)
         high = high.at[layout.window].set(1.0 if config.binary_grid else bricks)
         high = high.at[layout.bricks_used].set(bricks)

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from snac_jax import designs, devices, episodes, memory, metrics
+from snac_jax import design_change, designs, devices, episodes, memory, metrics
 from snac_jax.env import SNACEnv, check_range
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
 from snac_jax.policy import Policy, call_act
@@ -94,6 +94,8 @@ def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, de
     def run(key, design_index):
         key_reset, key_init, key_run = jax.random.split(key, 3)
         obs, state = env.reset_to_design(key_reset, env_params, design_index)
+        if env.config.design_change is not None:  # the protocol's fixed schedule (SPEC §15)
+            state = design_change.schedule(env.config, env_params, state, design_index)
         first = episodes.start(obs, state, (key_run, init(key_init, state.design), jnp.zeros((), jnp.int32)))
         final = episodes.run_to_end(env, env_params, decide, first)
         return Episodes(

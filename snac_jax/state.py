@@ -22,7 +22,13 @@ class EnvState:
     time: jax.Array  # int32, N_s (gymnax's name: `is_truncated` reads it)
     overlap: jax.Array  # int32, sum of min(G, D)
     union: jax.Array  # int32, sum of max(G, D)
-    landmarks: jax.Array | None = None  # bool padded mask, only with the landmarks switch
+    landmarks: jax.Array | None = None  # bool padded mask, with the landmarks or landmark_action switch
+    # SPEC §14, only with the landmark_action switch: placements left this episode.
+    landmarks_left: jax.Array | None = None  # int32
+    # SPEC §15, only with the design_change switch: the step whose end brings the next design.
+    change_step: jax.Array | None = None  # int32
+    next_design: jax.Array | None = None  # int16 plan-shaped, the design in force from change_step on
+    next_max_bricks: jax.Array | None = None  # int32, the next design's own brick budget
 
 
 @struct.dataclass

@@ -13,7 +13,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from snac_jax import designs, memory
+from snac_jax import design_change, designs, landmark_action, memory
 from snac_jax.config import PLAN_SIZE_1D, PLAN_SIZE_2D, REWARD_SCHEMES, EnvConfig
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams
@@ -69,11 +69,13 @@ OVERRIDES = {
     "test_design": "int 0..9: pin a dynamic task to one of its ten test designs",
     "design_bank_size": f"int >= 1, training designs drawn at make time (dynamic tasks; default {DEFAULT_DESIGN_BANK_SIZE})",
     "design_seed": "int in 0..2**32-1, the seed of the design bank (dynamic tasks; default 0)",
+    "landmark_action": "int K in 0..400: an extra action places up to K landmarks an episode (2D/3D; 0 = off)",
+    "design_change": "(a, b), 1 <= a <= b < max_steps: the design changes at a step drawn from a..b (dynamic tasks)",
 }
 
-SWITCHES = ("gps", "stride_probs", "obstacles", "landmarks", "reward_scheme")
-"""The overrides a training run may carry as text (`parse_switches`): the paper's ablation switches
-and the reward scheme. The step limit and the design bank are not among them: a training config
+SWITCHES = ("gps", "stride_probs", "obstacles", "landmarks", "reward_scheme", "landmark_action", "design_change")
+"""The overrides a training run may carry as text (`parse_switches`): the paper's ablation switches,
+the reward scheme and the two extensions (SPEC §14-15). The step limit and the design bank are not among them: a training config
 has an option of its own for the step limit, and the bank is the task's."""
 
 
@@ -100,6 +102,11 @@ def parse_switches(text: str) -> dict[str, Any]:
 
 
 def _switch_value(key: str, value: str) -> Any:
+    if key == "design_change":  # steps, not probabilities: "100/300" is (100, 300)
+        try:
+            return tuple(int(v) for v in value.split("/"))
+        except ValueError:
+            raise ValueError(f"switch design_change={value!r}: two step numbers a/b expected, e.g. 100/300") from None
     if value.lower() in ("true", "false"):
         return value.lower() == "true"
     if "/" in value:
@@ -199,6 +206,10 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     if reward_scheme not in REWARD_SCHEMES:
         raise ValueError(f"reward_scheme must be one of {REWARD_SCHEMES}, got {reward_scheme!r}")
     max_steps = _require_int("max_steps", overrides.get("max_steps", spec.max_steps), 1, MAX_INT32)
+    landmark_placements = landmark_action.check(spec.dim, overrides.get("landmark_action", 0))
+    bank_size = overrides.get("design_bank_size", DEFAULT_DESIGN_BANK_SIZE)
+    change = design_change.check(spec.dynamic, overrides.get("design_change"), max_steps, "test_design" in overrides,
+                                 bank_size if isinstance(bank_size, int) else 2)
 
     for name in ("test_design", "design_bank_size", "design_seed"):
         if name in overrides and not spec.dynamic:
@@ -233,6 +244,8 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
         reward_scheme=reward_scheme,
         gps=gps,
         num_landmarks=landmarks,
+        landmark_action=landmark_placements,
+        design_change=change,
     )
     params = make_params(design_stack, spec.dim, stride_probs=stride_probs, max_steps=max_steps)
     return SNACEnv(config, params), params

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from snac_jax import design_change, landmark_action
 from snac_jax.config import MAX_STRIDE, MOVE_DIRECTIONS, EnvConfig
 from snac_jax.state import EnvState
 
@@ -75,7 +76,8 @@ def transition(
     Truncation by the step limit is not decided here: `state.time` counts the steps and the
     gymnax `step` compares it with `params.max_steps_in_episode`.
     """
-    table = jnp.asarray(np.asarray(config.actions, dtype=np.int32))
+    rows = config.actions + (((0, 0, 0),) if config.landmark_action else ())  # placement: a no-op move here
+    table = jnp.asarray(np.asarray(rows, dtype=np.int32))
     is_drop = table[action, 0] == 1
     direction = table[action, 1:]
     offset = jnp.asarray(config.pad)
@@ -133,5 +135,9 @@ def transition(
         overlap=overlap,
         union=union,
     )
+    if config.landmark_action:
+        new_state = landmark_action.place(config, new_state, action)
+    if config.design_change is not None:
+        new_state = design_change.apply(config, new_state)
     return new_state, reward.astype(jnp.float32), terminated
 

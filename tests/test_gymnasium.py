@@ -76,6 +76,14 @@ def test_make_passes_overrides_and_rejects_unknown_ones():
         gymnasium.make(ID_1D, not_an_override=1)
 
 
+def test_landmark_action_reaches_the_gymnasium_action_space():
+    env = gymnasium.make("SNAC/2d-static-sparse-v0", landmark_action=4)
+    assert env.action_space.n == 6  # four moves, the drop, the placement (SPEC §14)
+    env.reset(seed=0)
+    obs, *_ = env.step(5)
+    assert obs[24] == -2.0  # the window's centre: the robot's own cell holds the new landmark
+
+
 def rollout(env, seed, num_steps, action_seed=0):
     rng = np.random.default_rng(action_seed)
     observations = [env.reset(seed=seed)[0]]

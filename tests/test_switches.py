@@ -147,3 +147,62 @@ def test_bad_switch_text_is_refused(text, message):
 
     with pytest.raises(ValueError, match=message):
         parse_switches(text)
+
+
+# --- SPEC §14-15: the landmark action and design changes as overrides and as text ---------------
+
+
+@pytest.mark.parametrize("task,overrides,match", [
+    ("2d-static-sparse", {"landmark_action": -1}, "landmark_action must be an int in 0..400"),
+    ("2d-static-sparse", {"landmark_action": True}, "landmark_action must be an int in 0..400"),
+    ("2d-static-sparse", {"landmark_action": 2.0}, "landmark_action must be an int in 0..400"),
+    ("2d-static-sparse", {"landmark_action": 401}, "landmark_action must be an int in 0..400"),
+    ("1d-static-sin", {"landmark_action": 2}, "landmark_action needs a 2D or 3D task"),
+    ("2d-static-sparse", {"design_change": (100, 300)}, "design_change applies to dynamic tasks only"),
+    ("2d-dynamic-dense", {"design_change": (300, 100)}, r"1 <= a <= b < max_steps=600"),
+    ("2d-dynamic-dense", {"design_change": (0, 100)}, r"1 <= a <= b < max_steps=600"),
+    ("2d-dynamic-dense", {"design_change": (-5, 100)}, r"1 <= a <= b < max_steps=600"),
+    ("2d-dynamic-dense", {"design_change": (100, 600)}, r"1 <= a <= b < max_steps=600"),
+    ("2d-dynamic-dense", {"design_change": (10, 20), "max_steps": 15}, r"b < max_steps=15"),
+    ("2d-dynamic-dense", {"design_change": (1.5, 20)}, "design_change must be two ints"),
+    ("2d-dynamic-dense", {"design_change": 100}, "design_change must be two ints"),
+    ("2d-dynamic-dense", {"design_change": (1, 2, 3)}, "design_change must be two ints"),
+    ("2d-dynamic-dense", {"design_change": (1, 2), "test_design": 0}, "cannot be combined with test_design"),
+    ("2d-dynamic-dense", {"design_change": (1, 2), "design_bank_size": 1}, "at least 2 designs"),
+])
+def test_extension_switches_are_checked_at_make(task, overrides, match):
+    with pytest.raises(ValueError, match=match) as error:
+        make(task, **overrides)
+    assert "\n" not in str(error.value)
+
+
+def test_extension_switches_are_off_by_default_and_add_no_state():
+    env, params = make("2d-dynamic-dense", design_bank_size=4)
+    assert env.config.landmark_action == 0 and env.config.design_change is None
+    _, state = env.reset(jax.random.key(0), params)
+    assert state.landmarks is None and state.landmarks_left is None
+    assert state.change_step is None and state.next_design is None and state.next_max_bricks is None
+    assert env.num_actions == 5
+
+
+def test_parse_switches_reads_the_extensions():
+    from snac_jax.tasks import parse_switches
+
+    assert parse_switches("landmark_action=4,design_change=100/300") == {
+        "landmark_action": 4, "design_change": (100, 300)}
+    with pytest.raises(ValueError, match="two step numbers a/b"):
+        parse_switches("design_change=1.5/3")
+    env, _ = make("2d-dynamic-sparse", design_bank_size=4, **parse_switches("design_change=100/300,landmark_action=2"))
+    assert env.config.design_change == (100, 300) and env.num_actions == 6
+
+
+def test_a_training_config_carries_the_extensions_and_refuses_bad_ones_up_front():
+    from agents.registry import make_config
+
+    config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4")
+    env, _ = config.make_env()
+    assert env.num_actions == 6 and env.config.landmark_action == 4
+    with pytest.raises(ValueError, match="design_change applies to dynamic tasks only"):
+        make_config("ppo", "2d-static-sparse", switches="design_change=100/300")
+    with pytest.raises(ValueError, match=r"1 <= a <= b < max_steps=600, got \(300, 100\)"):
+        make_config("ppo", "2d-dynamic-sparse", switches="design_change=300/100")

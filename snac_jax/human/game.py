@@ -40,17 +40,23 @@ _LINE_HEIGHT = 20
 _MIN_WIDTH = 460
 
 
+LANDMARK_KEY = "l"
+"""The landmark placement (SPEC §14): a letter no move or drop uses (W/A/S/D drop in 3D)."""
+
+
 def key_bindings(config: EnvConfig) -> dict[str, int]:
     """Key name (pygame's `key.name`) -> action index, derived from the task's action table.
 
     Arrow keys move (up = row - d, as rows grow downward on screen); space drops on the own cell
     (1D, 2D); with the neighbour-drop action set (3D, or 2D with obstacles) W/A/S/D drop on the
-    neighbour above/left/below/right.
+    neighbour above/left/below/right; L places a landmark where `landmark_action` is on.
     """
     bindings = {}
     for action, (is_drop, d_row, d_col) in enumerate(config.actions):
         table = _DROP_KEYS if is_drop else _MOVE_KEYS
         bindings[table[(d_row, d_col)]] = action
+    if config.place_landmark_action is not None:
+        bindings[LANDMARK_KEY] = config.place_landmark_action
     return bindings
 
 
@@ -58,15 +64,17 @@ def key_legend(config: EnvConfig) -> str:
     """One line naming the keys of this task, shown on screen."""
     bindings = key_bindings(config)
     moves = "arrows: move" if config.dim > 1 else "left/right: move"
+    mark = f"   {LANDMARK_KEY.upper()}: landmark" if LANDMARK_KEY in bindings else ""
     if "space" in bindings:
-        return f"{moves}   space: drop   esc: quit"
+        return f"{moves}   space: drop{mark}   esc: quit"
     drops = " ".join(
         f"{key.upper()}={_DIRECTION_WORDS[(d_row, d_col)]}"
         for key, action in bindings.items()
+        if key != LANDMARK_KEY
         for is_drop, d_row, d_col in [config.actions[action]]
         if is_drop
     )
-    return f"{moves}   drop: {drops}   esc: quit"
+    return f"{moves}   drop: {drops}{mark}   esc: quit"
 
 
 class GameSession:
@@ -232,6 +240,7 @@ class GameSession:
         drop_labels = {
             (d_row, d_col): key.upper()
             for key, action in self.bindings.items()
+            if key != LANDMARK_KEY
             for is_drop, d_row, d_col in [self.config.actions[action]]
             if is_drop and (d_row, d_col) != (0, 0)
         }

@@ -61,6 +61,9 @@ def make(task_id: str, num_robots: int = 1, **switches: Any) -> "MultiSNACEnv":
     with `num_robots` robots. `switches` are `snac_jax.make`'s overrides (SPEC §9), checked there;
     the default params are `env.default_params`."""
     num_robots = check_num_robots(task_id, num_robots)
+    for name in ("landmark_action", "design_change"):
+        if name in switches:
+            raise ValueError(f"{name} is a single-robot switch (SPEC §14-15); snac_jax.multi.make does not take it")
     single, params = tasks.make(task_id, **switches)
     return MultiSNACEnv(single, num_robots, params)
 

@@ -39,6 +39,12 @@ Planning
     open in the reference), else the robot takes the first open move; a farther one is walked
     toward when that move is open, else the next candidate is tried; the prior move (or a
     random open one) is the fallback.
+
+The extensions (SPEC §14-15): with `design_change` the policy reads the design from each
+observation, so it re-plans on the design in force from the change on (the bricks already laid
+stay; it never removes any). With `landmark_action` it never places a landmark: its localiser
+needs walls, not marks. A landmark (-2) in its window is never a candidate, since a drop there
+would be spent for nothing.
 """
 
 from __future__ import annotations
@@ -246,7 +252,7 @@ def _plan_own_cell_drop(config: EnvConfig, state: HandcraftedState, window: jax.
     target = jax.random.categorical(key_target, jnp.where(distance == nearest, 0.0, -jnp.inf).reshape(-1))
     toward = _move_toward(d_row.reshape(-1)[target], d_col.reshape(-1)[target], jax.random.bernoulli(key_diagonal))
     random_move = jax.random.categorical(key_prior, jnp.log(prior))
-    drop = config.num_actions - 1
+    drop = len(config.actions) - 1  # the table's drop, not a landmark placement after it
     action = jnp.where(nearest == _FAR, random_move, jnp.where(nearest == 0, drop, toward))
     return action.astype(jnp.int32), prior
 
@@ -318,6 +324,11 @@ def _build(config: EnvConfig, variant: str) -> Policy:
 
     def act(params, state: HandcraftedState, obs: jax.Array, key: jax.Array):
         window = _window_from_obs(config, obs)
+        if config.design_change is not None:
+            # The design may change mid-episode (SPEC §15): re-plan on the one the observation shows.
+            (pr, pc) = config.pad
+            shown = observation_layout(config).design_cells(obs).astype(jnp.int32)
+            state = state.replace(design=jnp.pad(shown, ((pr, pr), (pc, pc))))
         if config.dim == 1:
             state = state.replace(estimate=_localise_1d(config, variant, state, window))
             action, preference = _plan_1d(config, variant, state, window)

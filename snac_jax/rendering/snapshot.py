@@ -26,6 +26,8 @@ class Snapshot:
     bricks_used: int
     max_bricks: int
     iou: float
+    change_step: int | None = None  # SPEC §15, with design_change only
+    landmarks_left: int | None = None  # SPEC §14, with landmark_action only
 
     @classmethod
     def of(cls, config: EnvConfig, state: EnvState) -> "Snapshot":
@@ -47,6 +49,8 @@ class Snapshot:
             bricks_used=int(state.bricks_used),
             max_bricks=int(state.max_bricks),
             iou=int(state.overlap) / max(union, 1),
+            change_step=None if state.change_step is None else int(state.change_step),
+            landmarks_left=None if state.landmarks_left is None else int(state.landmarks_left),
         )
 
     def padded_design(self, config: EnvConfig) -> np.ndarray:

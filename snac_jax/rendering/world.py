@@ -124,12 +124,17 @@ def world_layout(env, params: EnvParams | None = None, *, cell: int | None = Non
 
 
 def caption_lines(env_or_config, state: EnvState | Snapshot, reward: float | None = None) -> list[str]:
-    """The default caption: task, step, bricks used of the budget, IoU (and a reward if given)."""
+    """The default caption: task, step, bricks used of the budget, IoU (and a reward if given);
+    with the extensions, the landmarks left to place and the step the design changes at."""
     config = config_of(env_or_config)
     snap = state if isinstance(state, Snapshot) else Snapshot.of(config, state)
     text = f"{config.task_id}  step {snap.time}  bricks {snap.bricks_used}/{snap.max_bricks}  IoU {snap.iou:.3f}"
     if reward is not None:
         text += f"  reward {reward:+g}"
+    if snap.landmarks_left is not None:
+        text += f"  landmarks left {snap.landmarks_left}"
+    if snap.change_step is not None:  # the step the design changes at (SPEC §15)
+        text += f"  design {'changed' if snap.time >= snap.change_step else 'changes'} at step {snap.change_step}"
     return [text]
 
 
