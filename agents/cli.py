@@ -312,7 +312,7 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
 
     from agents.driver import divergence_note, read_metrics
     from snac_jax.atomic import atomic_write_json
-    from snac_jax.evaluation import TUNING_EVAL_SEED, evaluate_task
+    from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES, TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
 
     config = algorithm.config
@@ -325,8 +325,13 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     results = []
     for index in range(config.seeds):
         params = jax.tree.map(lambda x: x[index], state.params)
-        result = evaluate_task(config.task, algorithm.policy(params), **counts, **overrides,
-                               seed=TUNING_EVAL_SEED if seed is None else seed)
+        team = getattr(algorithm, "evaluate_team", None)  # a team of robots (agents.ippo) runs its own episodes
+        if team is not None:
+            protocol = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
+            result = team(params, **{**protocol, **counts}, seed=TUNING_EVAL_SEED if seed is None else seed)
+        else:
+            result = evaluate_task(config.task, algorithm.policy(params), **counts, **overrides,
+                                   seed=TUNING_EVAL_SEED if seed is None else seed)
         if config.seeds > 1:
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)

@@ -47,6 +47,7 @@ ALGORITHMS: dict[str, Entry] = {
     "pqn-aux": Entry("agents.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
     "pqn-belief": Entry("agents.belief", "PQNBeliefConfig", "PQNBelief",
                         "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)"),
+    "ippo": Entry("agents.ippo", "IPPOConfig", "IPPO", "IPPO: shared-parameter PPO for several robots (snac_jax.multi); --robots N"),
 }
 
 
