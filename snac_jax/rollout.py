@@ -66,7 +66,7 @@ def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
 
     def step(keys, states, actions, params):
-        return batched_step.step_batch(env, keys, states, actions, params, reset)
+        return env.step_batch(keys, states, actions, params, reset=reset)
 
     def body(carry, step_key):
         states, stats = carry
