@@ -94,6 +94,24 @@ class Worlds:
     carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,) return of the running episode so far
 
+    def after_step(self, env_state, obs, action: jax.Array, done: jax.Array, carry: jax.Array,
+                   episode_return: jax.Array) -> "Worlds":
+        """The worlds after one step: the new observation, this one as the previous, the action
+        taken, the carry after it, and the return restarted where the episode ended (`done`)."""
+        return Worlds(
+            env_state=env_state, obs=obs, previous_obs=self.obs, last_action=action.astype(jnp.int32), reset=done,
+            carry=carry, episode_return=jnp.where(done, 0.0, episode_return),
+        )
+
+
+def episode_stats(done: jax.Array, final_iou: jax.Array, episode_return: jax.Array) -> dict[str, jax.Array]:
+    """What the driver logs of the episodes that ended this step: how many, their IoU and return."""
+    return {
+        "episodes": done.sum(),
+        "iou_sum": jnp.where(done, final_iou, 0.0).sum(),
+        "return_sum": jnp.where(done, episode_return, 0.0).sum(),
+    }
+
 
 @struct.dataclass
 class RunnerState:
@@ -206,15 +224,8 @@ class PQN:
                 obs=net_obs, reset=worlds.reset, action=action, value=q[0].max(-1), reward=reward,
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
             )
-            stats = {
-                "episodes": done.sum(),
-                "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
-                "return_sum": jnp.where(done, episode_return, 0.0).sum(),
-            }
-            worlds = Worlds(
-                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32), reset=done,
-                carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
-            )
+            stats = episode_stats(done, info["final_iou"], episode_return)
+            worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
             return (worlds, key), (transition, stats)
 
         (worlds, key), (batch, stats) = jax.lax.scan(

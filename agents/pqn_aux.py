@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
 from agents.config import option
 from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
-from agents.pqn import PQN, PQNConfig, RunnerState, Worlds, td_loss
+from agents.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
 
 
 
@@ -129,15 +129,8 @@ class PQNAux(StrideCurriculum, PQN):
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
                 auxiliary=self.auxiliary_targets(worlds.env_state, env_params),
             )
-            stats = {
-                "episodes": done.sum(),
-                "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
-                "return_sum": jnp.where(done, episode_return, 0.0).sum(),
-            }
-            worlds = Worlds(
-                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32), reset=done,
-                carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
-            )
+            stats = episode_stats(done, info["final_iou"], episode_return)
+            worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
             return (worlds, key), (transition, stats)
 
         (worlds, key), (batch, stats) = jax.lax.scan(

@@ -38,7 +38,7 @@ from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_
 from agents.config import option
 from agents.inputs import ObsLayout
 from agents.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective
+from agents.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
 from agents.targets import gae, truncation_values
 from snac_jax.state import PrivilegedState
 
@@ -191,15 +191,8 @@ class PrivilegedPPO(StrideCurriculum, PPO):
                 final_obs=(final_obs, self.privileged_state(stepped, env_params)), carry_after=new_carry,
                 privileged=privileged,
             )
-            stats = {
-                "episodes": done.sum(),
-                "iou_sum": jnp.where(done, info["final_iou"], 0.0).sum(),
-                "return_sum": jnp.where(done, episode_return, 0.0).sum(),
-            }
-            worlds = Worlds(
-                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32), reset=done,
-                carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
-            )
+            stats = episode_stats(done, info["final_iou"], episode_return)
+            worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
             return (worlds, key), (transition, stats)
 
         (worlds, key), (batch, stats) = jax.lax.scan(
