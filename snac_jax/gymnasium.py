@@ -44,7 +44,7 @@ from gymnasium import spaces as gym_spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from snac_jax import batched_step, threefry
+from snac_jax import threefry
 from snac_jax.batched_step import resolve_reset
 from snac_jax.env import SNACEnv
 from snac_jax.state import EnvParams, EnvState
@@ -140,7 +140,7 @@ def _reset_batch(env: SNACEnv, num_envs: int, key: jax.Array, params: EnvParams)
 def _step_batch(env: SNACEnv, key: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams, reset: str):
     key, step_key = threefry.split(key, 2)
     keys = threefry.split(step_key, actions.shape[0])
-    obs, states, reward, terminated, truncated, info = batched_step.step_batch(env, keys, states, actions, params, reset)
+    obs, states, reward, terminated, truncated, info = env.step_batch(keys, states, actions, params, reset=reset)
     packed = _pack(obs, reward, terminated, truncated, info["final_iou"], info["stride"])
     return key, states, packed, info["final_observation"]
 
