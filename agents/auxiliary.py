@@ -123,10 +123,13 @@ class AuxiliaryHeads(nn.Module):
         return {name: mlp_head(features, self.hidden_size, sizes[name], 1.0) for name in self.heads}
 
 
-def move_directions(actions) -> np.ndarray:
-    """`(num_actions, 2)`: each action's (row, column) direction, (0, 0) for a drop: the axis and
-    sign a move can carry the robot along (`EnvConfig.actions` rows are (is_drop, d_row, d_col))."""
-    return np.asarray([(0, 0) if is_drop else (d_row, d_col) for is_drop, d_row, d_col in actions], np.int32)
+def move_directions(env_config) -> np.ndarray:
+    """`(num_actions, 2)`: each action's (row, column) direction, (0, 0) for a drop and for the
+    landmark placement (SPEC §14, the index after the table's): the axis and sign a move can carry
+    the robot along (`EnvConfig.actions` rows are (is_drop, d_row, d_col))."""
+    table = [(0, 0) if is_drop else (d_row, d_col) for is_drop, d_row, d_col in env_config.actions]
+    table += [(0, 0)] * (env_config.num_actions - len(table))
+    return np.asarray(table, np.int32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +150,7 @@ class Auxiliary:
         coefs = {"position": config.position_coef, "map": config.map_coef, "move": config.move_coef}
         return cls(
             coefs={name: coef for name, coef in coefs.items() if coef > 0}, plan_shape=layout.plan_shape,
-            height_scale=layout.height_scale, is_move=move_directions(env.config.actions).any(axis=-1),
+            height_scale=layout.height_scale, is_move=move_directions(env.config).any(axis=-1),
         )
 
     def heads(self, hidden_size: int) -> AuxiliaryHeads | None:

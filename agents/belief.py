@@ -318,7 +318,7 @@ class PQNBelief(PQNAux):
         base, heads = self.network, self.auxiliary.heads(config.hidden_size)
         moves = None
         if config.belief_filter:  # the move loss trains the filter's own head, not one on the GRU state
-            moves = tuple(map(tuple, move_directions(self.env.config.actions).tolist()))
+            moves = tuple(map(tuple, move_directions(self.env.config).tolist()))
             others = tuple(name for name in heads.heads if name != "move")
             heads = AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others) if others else None
         self.network = BeliefQNetwork(

@@ -24,15 +24,12 @@ and `agents.targets`.
 from __future__ import annotations
 
 import dataclasses
-import time
-import zlib
 from typing import Any, ClassVar, NamedTuple
 
 import distrax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax import struct
 
@@ -191,7 +188,7 @@ class IPPO:
         steps = config.num_updates * config.update_epochs * config.num_minibatches
         lr = optax.linear_schedule(config.learning_rate, 0.0, steps) if config.anneal_lr else config.learning_rate
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
-        self._team_episodes = None  # the evaluation's jitted episodes, built on first use
+        self._team = None  # the team policy's init and act, built once: the evaluation compiles once per learner
 
     # --- batches of robots ----------------------------------------------------------------------
 
@@ -364,29 +361,14 @@ class IPPO:
         return multi.MultiPolicy(init, act, params, f"ippo-{kind}-{n}-robots")
 
     def evaluate_team(self, params, *, static_episodes: int, episodes_per_test_design: int, seed: int):
-        """The protocol (SPEC §8) run by the team: a static task's episodes on its design, a
-        dynamic one's on its ten test designs, each to its end; the evaluator's `TaskResult`."""
-        from snac_jax.evaluation import TaskResult, test_design_params
-        from snac_jax.tasks import task_spec, test_design_names
-
-        task, start = self.config.task, time.perf_counter()
-        if task_spec(task).dynamic:
-            env_params, names = test_design_params(task, self.env_params), test_design_names(task)
-            design_indices = np.repeat(np.arange(len(names)), episodes_per_test_design)
-        else:
-            env_params, names = self.env_params, [task]
-            design_indices = np.zeros(static_episodes, np.int32)
-        if self._team_episodes is None:  # compiled once per learner, whatever the seed's parameters
-            env, team = self.team_env, self.policy(None)
-            self._team_episodes = jax.jit(lambda p, keys, indices, env_params: jax.vmap(
-                lambda k, i: multi.run_episode(env, team._replace(params=p), k, i, env_params))(keys, indices))
-        key = jax.random.fold_in(jax.random.key(seed), zlib.crc32(task.encode()))  # as the evaluator's stream
-        keys = jax.random.split(key, len(design_indices))
-        episodes = jax.device_get(self._team_episodes(params, keys, jnp.asarray(design_indices), env_params))
-        strata = {name: np.asarray(episodes.iou[design_indices == i], np.float64) for i, name in enumerate(names)}
-        return TaskResult.from_episodes(task=task, strata=strata, lengths=episodes.length,
-                                        bricks_used=episodes.bricks_used, returns=episodes.team_return,
-                                        seed=seed, wall_s=time.perf_counter() - start)
+        """The protocol (SPEC §8) run by the team, `snac_jax.multi.evaluate_team_task` (the one
+        `snac eval --robots` and `--checkpoint` run): the evaluator's `TaskResult`."""
+        if self._team is None:
+            self._team = self.policy(None)
+        team = self._team._replace(params=params)
+        return multi.evaluate_team_task(self.config.task, team, self.config.robots, static_episodes=static_episodes,
+                                        episodes_per_test_design=episodes_per_test_design, seed=seed,
+                                        **self.config.env_overrides).result
 
 
 def make_train(config: IPPOConfig):

@@ -68,10 +68,15 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
 def checkpoint_builder(directory: str | Path):
     """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
     of its algorithm, the make overrides it trained with)`. The 1D static shapes are scored on the
-    shape the run trained on; a run trained with switches or `max_steps` is scored with them."""
+    shape the run trained on; a run trained with switches or `max_steps` is scored with them. A
+    team run's overrides are `snac_jax.multi.make`'s, `num_robots` among them, and its builder,
+    given that team's env, returns the team's `MultiPolicy`."""
     config = read_config(directory)
 
     def builder(env, **options):
         return checkpoint_policy(env, directory, **options)
 
-    return builder, config.task, getattr(config, "paper_method", config.algorithm), config.env_overrides
+    overrides = config.env_overrides
+    if getattr(config, "robots", None) is not None:  # a team run (agents.ippo): snac_jax.multi.make's count
+        overrides = {**overrides, "num_robots": config.robots}
+    return builder, config.task, getattr(config, "paper_method", config.algorithm), overrides

@@ -23,8 +23,6 @@ context) and `multi_throughput.md` (the table).
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import sys
 import time
@@ -34,7 +32,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.dont_write_bytecode = True  # nothing but the results is written
 
-from snac_jax.atomic import atomic_write, check_writable  # noqa: E402  (light: does not start JAX)
+from bench.written import device_context, write_pair  # noqa: E402
+from snac_jax.atomic import check_writable  # noqa: E402  (light: does not start JAX)
 from snac_jax.cli.arguments import positive_int  # noqa: E402
 
 DEFAULT_TASKS = ("1d-static-sin", "2d-static-dense", "2d-dynamic-dense", "3d-static-dense")
@@ -166,14 +165,9 @@ def main(argv=None) -> int:
             rows.append({"task": task, "env": f"multi N={n}", "num_robots": n, **point})
             print(f"{task} N={n}: {point['env_steps_per_s']:,.0f} env-steps/s, {point['robot_steps_per_s']:,.0f} robot-steps/s",
                   flush=True)
-    device = jax.devices()[0]
-    context = {"machine": platform.processor() or platform.machine(), "backend": jax.default_backend(),
-               "device": getattr(device, "device_kind", str(device)), "jax": jax.__version__,
-               "num_envs": args.num_envs, "steps": args.steps, "repeats": args.repeats}
-    text = json.dumps({"context": context, "rows": rows}, indent=1) + "\n"
-    atomic_write(args.out / "multi_throughput.json", lambda f: f.write(text.encode()))
+    context = {**device_context(), "num_envs": args.num_envs, "steps": args.steps, "repeats": args.repeats}
     table = markdown(rows, context)
-    atomic_write(args.out / "multi_throughput.md", lambda f: f.write(table.encode()))
+    write_pair(args.out, "multi_throughput", {"context": context, "rows": rows}, table)
     print(table)
     return 0
 

@@ -311,8 +311,8 @@ HUMAN_RECORD = Object(
         "duration_s": Number(0.0),
         "started_at": Str(),
     },
-    optional={"player": Nullable(Str()), "version": Int(1)},
+    optional={"player": Nullable(Str()), "switches": Str(), "version": Int(1)},
 )
 """One line of a human record file (`snac_jax.human.records.EpisodeRecord`); the rules that tie
-fields together (lengths, the design's shape, which records play a test design) are the
-record's `validate`."""
+fields together (lengths, the design's shape, which records play a test design, the switch
+keys) are the record's `validate`. A record without `switches` was played without any."""

@@ -6,7 +6,6 @@ tests/test_privileged.py's, shared with the other learners of privileged signals
 
 from __future__ import annotations
 
-import inspect
 import json
 import os
 import subprocess
@@ -129,7 +128,7 @@ def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     position, step after step, through random episodes: moves clipped at the plan's edge, blocked
     by bricks (3D), drops, and the resets of auto-reset."""
     env, params = make(task, max_steps=40)
-    moves = jnp.asarray(np.concatenate([move_directions(env.config.actions), [(0, 0)]]), jnp.float32)
+    moves = jnp.asarray(np.concatenate([move_directions(env.config), [(0, 0)]]), jnp.float32)
     worlds, (rows, cols) = 16, env.config.plan_shape
     belief, ends = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols))), 0
     for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 120)):
@@ -178,9 +177,12 @@ def test_belief_cross_entropy_by_hand():
 
 
 def test_move_directions_of_each_dimension():
-    np.testing.assert_array_equal(move_directions(make("1d-static-sin")[0].config.actions), [(0, -1), (0, 1), (0, 0)])
-    np.testing.assert_array_equal(move_directions(make("3d-static-dense")[0].config.actions),
+    np.testing.assert_array_equal(move_directions(make("1d-static-sin")[0].config), [(0, -1), (0, 1), (0, 0)])
+    np.testing.assert_array_equal(move_directions(make("3d-static-dense")[0].config),
                                   [(0, -1), (0, 1), (1, 0), (-1, 0), (0, 0), (0, 0), (0, 0), (0, 0)])
+    # the landmark placement (SPEC §14) moves nobody: one more (0, 0) row, after the table's
+    with_placement = move_directions(make("2d-static-sparse", landmark_action=4)[0].config)
+    np.testing.assert_array_equal(with_placement, [*move_directions(make("2d-static-sparse")[0].config), (0, 0)])
 
 
 @pytest.mark.parametrize("task,dynamic", [("1d-dynamic", True), ("2d-static-sparse", False)])
@@ -212,7 +214,6 @@ def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observat
     assert np.isfinite(float(info["position_loss"])) and float(info["belief_nll"]) >= 0.0
 
     policy = agent.policy(state.params)
-    assert list(inspect.signature(policy.act).parameters) == ["params", "policy_state", "obs", "key"]
     policy_state = policy.init(jax.random.key(1), agent.env_params.designs[0])
     obs, _ = agent.env.reset(jax.random.key(2), agent.env_params)
     action, _ = policy.act(state.params, policy_state, obs, jax.random.key(3))

@@ -99,3 +99,92 @@ def test_a_policy_for_another_task_is_not_scored(capsys, monkeypatch):
     code = main(["eval", "--policy", "random", "--task", "1d-static-sin", "--episodes", "2"])
     err = capsys.readouterr().err
     assert code == 2 and "outside 0..2" in err and "not scored" in err
+
+
+# --- switches and teams ----------------------------------------------------------------------------
+
+
+def _protocol_fields(entry: dict) -> dict:
+    return {k: v for k, v in entry.items() if k != "wall_s"}
+
+
+def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
+    """`--switches stride_probs=1/0/0` scores the tasks `evaluate_task` scores with that override,
+    not the task as defined."""
+    from snac_jax.evaluation import evaluate_task
+    from snac_jax.policies.handcrafted import handcrafted_policy
+
+    out = tmp_path / "out.json"
+    argv = ["eval", "--policy", "handcrafted", "--task", "2d-static-sparse", "--episodes", "3", "--seed", "5"]
+    assert main([*argv, "--switches", "stride_probs=1/0/0", "--json", str(out)]) == 0
+    assert "with the switches {'stride_probs': (1.0, 0.0, 0.0)}" in capsys.readouterr().err
+    switched = json.loads(out.read_text())["2d-static-sparse"]
+    expected = evaluate_task("2d-static-sparse", handcrafted_policy, static_episodes=3, seed=5, stride_probs=(1, 0, 0))
+    assert _protocol_fields(switched) == _protocol_fields(expected.to_json())
+    plain = evaluate_task("2d-static-sparse", handcrafted_policy, static_episodes=3, seed=5)
+    assert _protocol_fields(switched) != _protocol_fields(plain.to_json())
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--policy", "handcrafted", "--switches", "foo=1"],
+         "unknown switch 'foo'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme"),
+        (["--policy", "handcrafted", "--task", "all", "--switches", "reward_scheme=nope"],
+         "reward_scheme must be one of ('height', 'binary'), got 'nope'"),
+        (["--policy", "handcrafted", "--task", "1d-static-sin", "--switches", "obstacles=true"], "obstacles"),
+        (["--checkpoint", "runs/none", "--switches", "gps=true"],
+         "--switches: a checkpoint is scored with its run's own switches and robots"),
+        (["--checkpoint", "runs/none", "--robots", "2"], "--robots: a checkpoint is scored with its run's own"),
+        (["--policy", "handcrafted", "--robots", "4", "--task", "all"],
+         "num_robots must be an int in 1..2 for 1d-static-sin (one per end of the row), got 4"),
+        (["--policy", "handcrafted", "--robots", "2", "--task", "2d-dynamic-dense", "--switches", "design_change=100/300"],
+         "design_change is a single-robot switch"),
+    ],
+)
+def test_bad_switches_and_robots_are_one_line_errors_before_anything_runs(argv, message, capsys, monkeypatch):
+    import snac_jax.evaluation
+    import snac_jax.multi.evaluation
+
+    monkeypatch.setattr(snac_jax.evaluation, "evaluate_task", lambda *a, **k: pytest.fail("evaluated first"))
+    monkeypatch.setattr(snac_jax.multi.evaluation, "evaluate_team_task", lambda *a, **k: pytest.fail("evaluated first"))
+    code = main(["eval", *argv, "--episodes", "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_team_of_one_is_the_single_robot(tmp_path, capsys):
+    """In 1D the handcrafted policy draws no randomness, and one robot is the single-robot env
+    (SPEC §13), so `--robots 1` scores the same episodes as the single robot. Two robots share
+    the same budget and step limit; an episode ends before the limit exactly when it is shorter."""
+    outs = {name: tmp_path / f"{name}.json" for name in ("single", "one", "two")}
+    argv = ["eval", "--policy", "handcrafted", "--task", "1d-static-sin", "--episodes", "3", "--seed", "7"]
+    assert main([*argv, "--json", str(outs["single"])]) == 0
+    assert main([*argv, "--robots", "1", "--json", str(outs["one"])]) == 0
+    assert main([*argv, "--robots", "2", "--json", str(outs["two"])]) == 0
+    assert "a team of 2 robot(s)" in capsys.readouterr().out
+    single, one, two = (json.loads(outs[name].read_text())["1d-static-sin"] for name in ("single", "one", "two"))
+    assert {k: v for k, v in _protocol_fields(one).items() if k not in ("robots", "max_steps", "finished_fraction")} \
+        == _protocol_fields(single)
+    assert one["robots"] == 1 and two["robots"] == 2 and one["max_steps"] == two["max_steps"] == 750
+    assert one["finished_fraction"] == 1.0 and one["mean_length"] < 750  # the single robot spends its budget
+    assert two["mean_bricks_used"] <= 600 and two["episodes"] == 3
+    assert (two["finished_fraction"] == 0.0) == (two["mean_length"] == 750)
+
+
+def test_a_team_checkpoint_is_scored_as_its_training_scored_it(tmp_path, capsys):
+    """`snac eval --checkpoint` of an ippo run: the team, its robots and step limit from the run,
+    the same numbers as the run's own evaluation (`evaluate_team`) on the same key."""
+    run = tmp_path / "run"
+    code = main(["train", "ippo", "--robots", "2", "--task", "1d-static-sin", "--total-steps", "32", "--chunks", "1",
+                 "--max-steps", "20", "--eval-episodes", "3", "--out", str(run), "--num-envs", "4",
+                 "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1", "--hidden-size", "8",
+                 "--rnn-size", "8", "--no-progress", "--devices", "1"])
+    assert code == 0, capsys.readouterr().err[-2000:]
+    out = tmp_path / "eval.json"
+    assert main(["eval", "--checkpoint", str(run), "--episodes", "3", "--json", str(out)]) == 0
+    assert "a team of 2 robot(s)" in capsys.readouterr().out
+    entry = json.loads(out.read_text())["1d-static-sin"]
+    trained = json.loads((run / "eval.json").read_text())["1d-static-sin"]
+    assert entry["robots"] == 2 and entry["max_steps"] == 20 and entry["mean_length"] <= 20
+    assert {k: entry[k] for k in trained if k != "wall_s"} == _protocol_fields(trained)

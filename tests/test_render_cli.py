@@ -65,3 +65,33 @@ def test_outputs_and_sizes_are_checked_before_the_episode(tmp_path, capsys, monk
         main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.gif"), "--cell", "3"])
     assert "must be an int >= 4" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
+    """`snac render --checkpoint` of an ippo run draws its robots in one world: robot 1's colour,
+    which no single-robot picture holds, is in every frame, and the frame count is the one
+    documented for the episode's length."""
+    from snac_jax.rendering.robots import ROBOT_COLOURS
+
+    run = tmp_path / "run"
+    code = main(["train", "ippo", "--robots", "2", "--task", "1d-static-sin", "--total-steps", "32", "--chunks", "1",
+                 "--max-steps", "20", "--eval-episodes", "1", "--out", str(run), "--num-envs", "4",
+                 "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1", "--hidden-size", "8",
+                 "--rnn-size", "8", "--no-progress", "--devices", "1"])
+    assert code == 0, capsys.readouterr().err[-2000:]
+    capsys.readouterr()
+    out = tmp_path / "team.gif"
+    rc = main(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(out), "--max-steps", "9",
+               "--every", "4", "--seed", "2"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    printed = capsys.readouterr().out
+    assert ", 2 robots, seed 2: " in printed
+    steps = int(re.search(r"(\d+) steps", printed).group(1))
+    assert 1 <= steps <= 9
+    frames = iio.imread(out, index=None)
+    assert frames.shape[0] == len(frame_indices(steps, 4))
+    second = np.all(frames == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1)
+    assert second.any(axis=(1, 2)).all()
+    single = tmp_path / "single.gif"
+    assert main(["render", "--task", "1d-static-sin", "--policy", "random", "--out", str(single), "--max-steps", "2"]) == 0
+    assert not np.all(iio.imread(single, index=None) == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1).any()

@@ -7,13 +7,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from agents.table import ablation, statistics
-from agents.table.plan import TRAIN_SEED, format_plan, make_plan
+from agents.table.plan import TRAIN_SEED, make_plan
+from agents.table.plan_format import format_plan
 from agents.table.presets import Variant, expand_tasks, load_presets
 from agents.table.report import build, markdown
 from tests.table_cells import cell_files as _files
@@ -525,3 +527,202 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
     # no per-column figure for an ablation, but each arm's learning curve, from the copied metrics
     assert paths["png:ablation-curves"] == results / "table-ablation-curves.png" and paths["png:ablation-curves"].stat().st_size
     assert "Learning curves of the arms: `table-ablation-curves.png`" in paths["md"].read_text()
+
+
+# --- a twin kept only in the record --------------------------------------------------------------
+
+
+def _write_record(results: Path, cell, means=(0.5, 0.7), episodes: int = 2, seed: int = REPORT_EVAL_SEED) -> Path:
+    """The raw copy the report would keep of `cell` finished (4 chunks, scored over `episodes`
+    episodes with evaluation key `seed`), written by hand: {"cell", "config", "eval", "curve"}."""
+    from agents.table.raw import raw_text
+
+    row = {"min": 0.1, "std": 0.1, "episodes": episodes, "mean_length": 40.0, "mean_bricks_used": 3.0,
+           "mean_return": 1.0, "per_design": {}, "seed": seed, "wall_s": 1.0}
+    evaluation = {f"{cell.task} (seed {i})": {"task": f"{cell.task} (seed {i})", "mean": m, **row,
+                                              "ci95": [m - 0.05, m + 0.05]} for i, m in enumerate(means)}
+    curve = [{"chunk": i, "env_steps": 512 * (i + 1), "wall_s": 2.0 * (i + 1), "iou": [0.1 * i, 0.2 * i],
+              "return": [1.0, None]} for i in range(4)]
+    path = results / "table" / cell.preset.name / cell.algorithm / f"{cell.task}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(raw_text({"cell": {**cell.record(), "eval_seed": seed}, "config": cell.config.to_json(), "eval": evaluation,
+                              "metrics": curve}))
+    return path
+
+
+def _abl(**changes):
+    """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
+    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
+            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
+    return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms, adopts="smoke", **changes)
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Fail a test that trains or evaluates: a cell copied from the record does neither."""
+    import agents.cli
+    import agents.driver
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("trained or evaluated")
+
+    monkeypatch.setattr(agents.driver, "train", refuse)
+    monkeypatch.setattr(agents.cli, "evaluate_run", refuse)
+
+
+def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(tmp_path, no_training, monkeypatch):
+    from agents import checkpoint
+    from agents.table import run as table_run
+    from agents.table.files import read_cell, read_raw
+    from agents.table.report import write_report
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    path = _write_record(results, source)
+    record = json.loads(path.read_text())
+    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={})[0].adopts_from is None  # runs only
+
+    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, results_dir=results)
+    assert (base.status, base.adopts_from, base.adopts_record, gps.adopts_from) == ("new", path, True, None)
+    printed = format_plan([base, gps], runs)
+    row = next(line for line in printed.splitlines() if "1d-static-sin.base" in line)
+    assert row.split()[4:] == ["adopt", "0", "min", "00", "s", "adopts", "the", "record", str(path) + ",", "finished",
+                               "with", "the", "same", "settings"]
+    assert "(1 new, 1 adopted, " in printed
+
+    moved, rename = [], Path.rename
+
+    def spy(entry, target):
+        moved.append(Path(target).name) if Path(target).parent == base.directory else None
+        return rename(entry, target)
+
+    monkeypatch.setattr(Path, "rename", spy)
+    assert table_run.run_cell(base, progress=False)
+    monkeypatch.setattr(Path, "rename", rename)
+    # Moved in cell.json first (a copy cut short is known as this cell's) and eval.json last (finished).
+    assert moved[0] == "cell.json" and moved[-1] == "eval.json" and len(moved) == 5
+    made = base.directory
+    assert sorted(p.name for p in made.iterdir() if p.name != checkpoint.LOCK_FILE) == [
+        "cell.json", "config.json", "curve.png", "eval.json", "metrics.jsonl"]  # no checkpoints
+    assert not (made.parent / ".adopting").exists() and (made / "curve.png").stat().st_size > 0
+    cell = json.loads((made / "cell.json").read_text())
+    assert (cell["preset"], cell["variant"], cell["adopted_from"], cell["adopted_record"]) == (
+        "abl", "base", "smoke/ppo/1d-static-sin", str(path))
+    assert json.loads((made / "eval.json").read_text()) == record["eval"]
+    assert json.loads((made / "config.json").read_text()) == source.config.to_json() == record["config"]
+    assert checkpoint.read_metrics_lines(made / "metrics.jsonl") == record["curve"]
+
+    # A later plan sees it done, with or without the record, and running it again touches nothing.
+    for results_dir in (results, None):
+        [again] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"],
+                            results_dir=results_dir)
+        assert (again.status, again.adopts_from, again.estimate_s) == ("done", None, 0.0)
+    before = {p.name: p.stat().st_mtime_ns for p in made.iterdir()}
+    assert table_run.run_cell(again, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in made.iterdir()} == before
+
+    # The report reads it as any finished cell and copies it, its record named.
+    assert read_cell(made)["eval"] == record["eval"]
+    write_report("abl", runs, results, reps=200)
+    copied = read_raw(results / "table" / "abl" / "ppo" / "1d-static-sin.base.json")
+    assert copied["cell"]["adopted_record"] == str(path) and copied["eval"] == record["eval"]
+    assert copied["metrics"] == record["curve"] and copied["config"] == record["config"]
+
+
+def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused(tmp_path, no_training):
+    from agents.table import run as table_run
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    path = _write_record(results, source)
+    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    assert table_run.run_cell(base, progress=False)
+    whole = {p.name: p.read_bytes() for p in base.directory.iterdir() if p.is_file()}
+    # Killed after cell.json (moved first) and config.json, before the curve and eval.json (moved last).
+    for name in ("eval.json", "curve.png", "metrics.jsonl"):
+        (base.directory / name).unlink()
+    with pytest.raises(ValueError, match=r"1d-static-sin.base holds a copy of .*1d-static-sin.json cut short"):
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"])  # the record not read
+    [cut] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    assert (cut.status, cut.adopts_from) == ("new", path)
+    assert table_run.run_cell(cut, progress=False)
+    assert {p.name: p.read_bytes() for p in cut.directory.iterdir() if p.is_file()}.keys() == whole.keys()
+    assert (cut.directory / "eval.json").read_bytes() == whole["eval.json"]
+    # This cell's own training start, cut before its first checkpoint, is trained, as `adopt` does.
+    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"],
+                        results_dir=results)
+    start.directory.mkdir(parents=True)
+    (start.directory / "config.json").write_text(json.dumps(start.config.to_json()))
+    (start.directory / "metrics.jsonl").write_text("")
+    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"],
+                        results_dir=results)
+    assert start.adopts_record
+    with pytest.raises(AssertionError, match="trained or evaluated"):
+        table_run.run_cell(start, progress=False)
+    # A directory without checkpoints whose cell.json names no record is refused as before.
+    cell = json.loads((cut.directory / "cell.json").read_text())
+    del cell["adopted_record"]
+    (cut.directory / "cell.json").write_text(json.dumps(cell))
+    with pytest.raises(ValueError, match="holds files that no start of this cell left there"):
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+
+
+def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
+    runs, results = tmp_path / "runs", tmp_path / "results"
+
+    def adopted(preset=None, **record):
+        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"],
+                           results_dir=results)
+        return base
+
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs, rates={})
+    _write_record(results, source, means=(0.5, 0.6, 0.7))
+    assert adopted().adopts_from is None  # 3 seeds there, 2 here
+    [source] = make_plan(dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None,
+                         runs, rates={})
+    _write_record(results, source, episodes=3)
+    assert adopted().adopts_from is None  # its protocol's 3 episodes, this cell's has 2
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    _write_record(results, source, seed=TUNING_EVAL_SEED)
+    assert adopted().adopts_from is None  # scored with the tuning key
+    path = _write_record(results, source)
+    assert adopted().adopts_from == path
+    # A budget alone differing: adopted only as a wall-capped one, taking the record's budget.
+    longer = _abl(settings={**PRESETS["smoke"].settings, "total_steps": 4096})
+    assert adopted(longer).adopts_from is None
+    capped = adopted(dataclasses.replace(longer, wall_limit_s=1e9))
+    assert (capped.adopts_from, capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (
+        path, 2048, 2048, True)
+    assert capped.record()["budget"]["requested"] == 4096
+
+
+@pytest.mark.parametrize("damage, field", [
+    (lambda text: text[:-20], "not valid JSON"),
+    (lambda text: text.replace('"mean": 0.5', '"mean": 1.5'), r"eval\['1d-static-sin \(seed 0\)'\].mean"),
+])
+def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, damage, field):
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    path = _write_record(results, source)
+    path.write_text(damage(path.read_text()))
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*" + field):
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    assert not runs.exists()
+
+
+def test_the_cli_finds_record_twins_under_results_dir(tmp_path, capsys):
+    """landmark-action's pqn-belief base arm is the beyond preset's cell: planned as adopted from
+    the record under --results-dir when --runs-dir keeps no run of it; its other arm trains."""
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs, rates={})
+    path = _write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
+    argv = ["--preset", "landmark-action", "--algorithms", "pqn-belief", "--tasks", "2d-static-sparse",
+            "--runs-dir", str(runs), "--dry-run"]
+    assert _run_cli([*argv, "--results-dir", str(results)]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if "2d-static-sparse.base" in line)
+    assert row.split()[:5] == ["pqn-belief", "2d-static-sparse.base", "20M", "3", "adopt"]
+    assert f"adopts the record {path}, finished" in row
+    assert "(1 new, 1 adopted, 0 partial, 0 done" in out
+    assert _run_cli([*argv, "--results-dir", str(tmp_path / "elsewhere")]) == 0
+    assert "adopt" not in capsys.readouterr().out and not runs.exists()

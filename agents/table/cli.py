@@ -65,7 +65,8 @@ def add_parser(subparsers) -> None:
                              "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
                              "(no training)")
     parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,
-                        help=f"where --report writes (default {DEFAULT_RESULTS_DIR})")
+                        help=f"where --report writes, and where a preset that adopts another finds that preset's "
+                             f"cells when RUNS_DIR keeps no run of them (default {DEFAULT_RESULTS_DIR})")
     parser.add_argument("--readme", type=Path, default=None, metavar="PATH",
                         help="with --report: also rewrite the generated learner table in the README at PATH "
                              "(between its marker lines; a symbolic link is refused: give the file it points to)")
@@ -83,7 +84,7 @@ def plan_from_args(args: argparse.Namespace):
     preset = load_presets()[args.preset]
     algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
     return make_plan(preset, algorithms, args.tasks or list(preset.tasks or PAPER_TASKS), args.seeds, args.runs_dir,
-                     arms=args.arms)
+                     arms=args.arms, results_dir=args.results_dir)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         return _report(args, given_runs_dir)
 
     from agents import checkpoint
-    from agents.table.plan import format_plan
+    from agents.table.plan_format import format_plan
     from agents.table.run import run_cells
 
     if args.dry_run:

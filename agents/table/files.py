@@ -5,9 +5,11 @@ A cell directory (`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`) holds one r
 with `cell.json` beside it. A runner deletes nothing and starts no run over files it did not
 make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
 short before its first checkpoint (which it trains again from the start), or it is refused,
-named, before anything runs. The report (`agents.table.raw`) reads finished cells with
-`read_cell`, and their one-file copies under `bench/results/table/` with `read_raw`; both refuse a
-damaged cell naming the file and the field instead of leaving it out.
+named, before anything runs. A cell copied from another preset's raw copy (`record_copy`) holds
+that run's files but its checkpoints: finished, never trained or evaluated again. The report
+(`agents.table.raw`) reads finished cells with `read_cell`, and their one-file copies under
+`bench/results/table/` with `read_raw`; both refuse a damaged cell naming the file and the field
+instead of leaving it out.
 """
 
 from __future__ import annotations
@@ -26,6 +28,11 @@ RAW_SUFFIX = ".json"
 """A raw copy's file name is its cell's directory name with this suffix (`read_raw`)."""
 RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
 """What a cell's run leaves before its first checkpoint (`agents.driver`), besides its lock."""
+RECORD_FIELD = "adopted_record"
+"""cell.json's field naming the raw copy a cell was copied from (`record_copy`)."""
+CURVE_FILE = "curve.png"
+COPY_FILES = {CELL_FILE, checkpoint.CONFIG_FILE, EVAL_FILE, checkpoint.METRICS_FILE, CURVE_FILE}
+"""What a cell copied from a raw copy holds: its run's files but the checkpoints (`record_copy`)."""
 
 
 def expected_episodes(task: str, protocol: dict[str, int]) -> int:
@@ -147,3 +154,46 @@ def read_raw(path: Path) -> dict[str, Any]:
                algorithm=path.parent.name, cell_where=f"{path}: cell", eval_where=f"{path}: eval",
                config_where="config")
     return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}
+
+
+def record_path(results_dir: str | Path, preset: str, algorithm: str, name: str) -> Path:
+    """Where the report keeps the raw copy of `preset`'s cell `<algorithm>/<name>`."""
+    return Path(results_dir) / "table" / preset / algorithm / (name + RAW_SUFFIX)
+
+
+def read_record(path: Path, same_settings: Callable[[Any], bool], episodes: int | None):
+    """The config (a `TrainConfig`) and raw copy (`read_raw`) at `path` where it is a finished run
+    with a cell's settings (`same_settings(config)`, called last) scored with its protocol
+    (`episodes`), seeds and the reporting key; None where there is no such file or it is another
+    run. A damaged copy is a `ValueError` naming the file: it is the repository's record, which the
+    report refuses as well, so it is mended, never trained over unseen."""
+    from agents.registry import config_from_json
+
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        raw = read_raw(path)
+    except OSError as error:
+        raise ValueError(f"{path}: not readable ({error}); restore it from git or move it away") from error
+    config = config_from_json(raw["config"])
+    if eval_problem(raw["eval"], config.seeds, episodes, REPORT_EVAL_SEED) is not None or not same_settings(config):
+        return None
+    return config, raw
+
+
+def record_copy(directory: Path, owner: tuple) -> dict | None:
+    """The cell.json of a cell copied from a raw copy (it names the copy in `RECORD_FIELD`) where
+    `directory` holds one of the cell `owner` (its preset, algorithm, task, arm or None), whole or
+    cut short (a subset of `COPY_FILES` with its cell.json, which the copy writes first); None for
+    any other directory, which the table treats as any directory without checkpoints."""
+    if directory.is_symlink() or not (directory / CELL_FILE).is_file():
+        return None
+    entries = {p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE}
+    if not entries <= COPY_FILES or any((directory / e).is_symlink() or not (directory / e).is_file() for e in entries):
+        return None
+    try:
+        cell = schemas.load(directory / CELL_FILE, schemas.CELL_JSON)
+    except (OSError, ValueError):
+        return None
+    mine = (cell["preset"], cell["algorithm"], cell["task"], cell.get("variant")) == tuple(owner)
+    return cell if mine and RECORD_FIELD in cell else None

@@ -6,6 +6,9 @@ A cell is one (algorithm, environment task) run in `<runs-dir>/<preset>/<algorit
 paper's `1d-static` column is three cells, one per shape. Budgets come from the presets of
 `budgets.toml` (`agents.table.presets`); wall-time estimates from measured rates (`rates.json`, written by
 `bench/table_rates.py`), or, for a cell that has started, from its own `metrics.jsonl`.
+
+A preset that `adopts` another takes over its finished cell with a new cell's settings (`find_twin`):
+its run, else its raw copy in the record, since runs directories stay where they were trained.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from typing import Any
 from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
-from agents.table.files import EVAL_FILE, eval_is_valid, expected_episodes, new_cell_leftovers
+from agents.table.files import (EVAL_FILE, RECORD_FIELD, eval_is_valid, expected_episodes, new_cell_leftovers,
+                                 read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
@@ -137,6 +141,7 @@ class Cell:
     metrics: list[dict] = dataclasses.field(default_factory=list)  # a started run's metrics.jsonl
     variant: Variant | None = None  # an ablation preset's arm; its cell's directory is <task>.<arm>
     adopts_from: Path | None = None  # a new cell's twin: another preset's finished run with its settings
+    adopts_record: bool = False  # adopts_from is that run's raw copy in the record, not a run directory
 
     @property
     def total_steps(self) -> int:
@@ -147,8 +152,9 @@ class Cell:
         """cell.json: what the table needs beside config.json and eval.json."""
         arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
                                                 "switches": self.variant.switches, "settings": self.variant.settings}
-        adopted = {} if self.adopts_from is None else {
-            "adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.adopts_from.name}"}
+        adopted = {} if self.adopts_from is None else {"adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.task}"}
+        if self.adopts_record:
+            adopted[RECORD_FIELD] = str(self.adopts_from)
         return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
                 "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
                 "protocol": self.preset.protocol, **arm, **adopted}
@@ -198,9 +204,28 @@ def _check_same_config(cell: Cell) -> None:
     _take_run_budget(cell, config)
 
 
+def own_copy(cell: Cell) -> dict | None:
+    """The cell.json of this cell's copy of a raw copy in its directory (`files.record_copy`), or None."""
+    return record_copy(cell.directory, (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name))
+
+
 def cell_state(cell: Cell) -> None:
     """Fill in the cell's status and the env steps per seed its run has done. A new cell's
-    directory must hold nothing the table did not make (`files.new_cell_leftovers`)."""
+    directory must hold nothing the table did not make (`files.new_cell_leftovers`). A cell copied
+    from a raw copy (no checkpoints) is done once its eval.json, which the copy writes last, is
+    there; before that it is new, and running it completes the copy."""
+    if (copied := own_copy(cell)) is not None:
+        if (cell.directory / checkpoint.CONFIG_FILE).is_file():
+            _check_same_config(cell)
+        cell.status, cell.done_steps = "new", 0
+        if (cell.directory / EVAL_FILE).is_file():
+            episodes = expected_episodes(cell.task, cell.preset.protocol)
+            if not eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, episodes):
+                raise ValueError(f"{cell.directory / EVAL_FILE} is not a finished result of this cell, and the cell, "
+                                 f"copied from {copied[RECORD_FIELD]}, has no checkpoints to evaluate again: move "
+                                 "that directory away")
+            cell.status, cell.done_steps = "done", cell.total_steps
+        return
     if checkpoint.latest_chunk(cell.directory) is None:
         cell.status, cell.done_steps = "new", 0
         new_cell_leftovers(cell.directory, lambda config: _continues(cell, config))
@@ -215,12 +240,28 @@ def cell_state(cell: Cell) -> None:
     cell.status, cell.done_steps = "partial", (cell.metrics[-1]["env_steps"] if cell.metrics else 0)
 
 
-def find_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
+def find_twin(cell: Cell, runs_dir: str | Path, results_dir: str | Path | None = None) -> Path | None:
     """The finished run of the preset `cell.preset.adopts` with the cell's settings and protocol
-    (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), which the cell takes over instead of
+    (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), else, with `results_dir`, that run's raw
+    copy there (`record_twin`; then `cell.adopts_record`), which the cell takes over instead of
     training the same thing again; None where there is none."""
     if cell.preset.adopts is None:
         return None
+    twin = _run_twin(cell, runs_dir)
+    if twin is None and results_dir is not None:
+        path = record_path(results_dir, cell.preset.adopts, cell.algorithm, cell.task)
+        cell.adopts_record = record_twin(cell, path) is not None
+        twin = path if cell.adopts_record else None
+    return twin
+
+
+def record_twin(cell: Cell, path: Path) -> tuple[TrainConfig, dict] | None:
+    """The config and raw copy at `path` where it is the cell's twin (`files.read_record`: a
+    damaged one is a `ValueError` naming it); the cell takes its budget (`_continues`)."""
+    return read_record(path, lambda config: _continues(cell, config), expected_episodes(cell.task, cell.preset.protocol))
+
+
+def _run_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
     source = Path(runs_dir) / cell.preset.adopts / cell.algorithm / cell.task
     if checkpoint.latest_chunk(source) is None:
         return None
@@ -242,7 +283,8 @@ def estimate(cell: Cell, rates: dict) -> None:
         cell.estimate_s, cell.estimate_from = 0.0, "finished"
         return
     if cell.adopts_from is not None:
-        cell.estimate_s, cell.estimate_from = 0.0, f"adopts {cell.adopts_from}, finished with the same settings"
+        twin = f"the record {cell.adopts_from}" if cell.adopts_record else cell.adopts_from
+        cell.estimate_s, cell.estimate_from = 0.0, f"adopts {twin}, finished with the same settings"
         return
     seeds = cell.config.seeds
     remaining = (cell.total_steps - cell.done_steps) * seeds
@@ -265,9 +307,10 @@ def estimate(cell: Cell, rates: dict) -> None:
 
 
 def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: str | Path,
-              rates: dict | None = None, arms=None) -> list[Cell]:
+              rates: dict | None = None, arms=None, results_dir: str | Path | None = None) -> list[Cell]:
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
-    its config, budget, status and estimate."""
+    its config, budget, status and estimate. `results_dir`: where the record's raw copies are,
+    for twins no run of `runs_dir` holds (`find_twin`; None: runs only)."""
     rates = load_rates() if rates is None else rates
     algorithms = list(dict.fromkeys(algorithms))  # a cell named twice is one cell, planned and run once
     variants = preset.variants
@@ -310,7 +353,10 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
     for cell in cells:
         cell_state(cell)
         if cell.status == "new":
-            cell.adopts_from = find_twin(cell, runs_dir)
+            cell.adopts_from = find_twin(cell, runs_dir, results_dir)
+            if not cell.adopts_record and (copied := own_copy(cell)) is not None:
+                raise ValueError(f"{cell.directory} holds a copy of {copied[RECORD_FIELD]} cut short, which this plan "
+                                 "does not adopt (another --results-dir, or the record changed): move that directory away")
         estimate(cell, rates)
     return cells
 
@@ -321,62 +367,11 @@ def _column_seeds(preset: Preset, cheap: list[Cell], rates: dict) -> int:
     under `cheap_minutes` (training and evaluation), else `seeds`. A started cell keeps the count
     it started with, as a started cell keeps its capped budget: both come from estimates, and
     re-measured rates must not strand a run."""
-    started = [checkpoint.read_config(c.directory).seeds for c in cheap if checkpoint.latest_chunk(c.directory) is not None]
+    started = [checkpoint.read_config(c.directory).seeds for c in cheap if checkpoint.latest_chunk(c.directory) is not None
+               or (own_copy(c) is not None and (c.directory / checkpoint.CONFIG_FILE).is_file())]
     if started:
         return started[0] if started[0] in (preset.seeds, preset.cheap_seeds) else preset.seeds
     for c in cheap:
         estimate(c, rates)
     fits = all(c.estimate_s is not None and c.estimate_s < 60.0 * preset.cheap_minutes for c in cheap)
     return preset.cheap_seeds if fits else preset.seeds
-
-
-def duration(seconds: float | None) -> str:
-    if seconds is None:
-        return "?"
-    seconds = int(round(seconds))
-    hours, rest = divmod(seconds, 3600)
-    return f"{hours} h {rest // 60:02d} min" if hours else f"{rest // 60} min {rest % 60:02d} s"
-
-
-def _seed_counts(cells: list[Cell]) -> str:
-    counts = sorted({c.config.seeds for c in cells})
-    if len(counts) == 1:
-        return f"{counts[0]} seeds each"
-    cheap = cells[0].preset.cheap_minutes
-    return (f"{counts[0]} seeds each, {counts[-1]} on cheap columns (each cell estimated under {cheap:g} min at that "
-            f"count when the column was first planned; {sum(c.config.seeds == counts[-1] for c in cells)} cells)")
-
-
-def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
-    """The plan as printed before anything starts: one line per cell, then the budgets' sources
-    and the total."""
-    if not cells:
-        return "nothing to run"
-    preset = cells[0].preset
-    width = max(18, *(len(c.directory.name) for c in cells))
-    own = sorted({f"{c.algorithm} {preset.wall_limit(c.algorithm) / 60:g}" for c in cells
-                  if preset.wall_limit(c.algorithm) is not None and preset.wall_limit(c.algorithm) != preset.wall_limit_s})
-    limit = "" if preset.wall_limit_s is None else (f"; budgets capped to fit ~{preset.wall_limit_s / 60:g} min per cell"
-                                                    + (f" ({', '.join(own)})" if own else ""))
-    lines = [f"snac table, preset {preset.name!r}: {preset.description}{limit}",
-             f"{len(cells)} cells, {_seed_counts(cells)} (vmapped), under {Path(runs_dir) / preset.name}/", "",
-             f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'seeds':>5} {'status':<9} {'estimate':>13}  estimate from"]
-    for c in cells:
-        status = (f"{c.done_steps / max(c.total_steps, 1):.0%} done" if c.status == "partial"
-                  else "adopt" if c.adopts_from is not None else c.status)
-        lines.append(f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {c.config.seeds:>5} {status:<9} "
-                     f"{duration(c.estimate_s):>13}  {c.estimate_from}")
-    lines += ["", "budgets:"]
-    for source in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells):
-        lines.append(f"  {source}")
-    for algorithm in dict.fromkeys(c.algorithm for c in cells if c.budget.capped):
-        lines.append(f"  {algorithm} capped: the largest budget (two significant figures) whose estimate fits "
-                     f"{preset.wall_limit(algorithm) / 60:g} min with every seed's evaluation")
-    known = [c.estimate_s for c in cells if c.estimate_s is not None]
-    unknown = len(cells) - len(known)
-    adopted = sum(c.status == "new" and c.adopts_from is not None for c in cells)
-    counts = {s: sum(c.status == s for c in cells) for s in ("new", "partial", "done")}
-    lines += ["", f"total estimate: {duration(sum(known))} ({counts['new'] - adopted} new, "
-                  + (f"{adopted} adopted, " if adopted else "") + f"{counts['partial']} partial, "
-                  f"{counts['done']} done" + (f"; {unknown} cells without a measured rate not counted)" if unknown else ")")]
-    return "\n".join(lines)

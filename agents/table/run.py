@@ -1,18 +1,21 @@
 """Running the plan of `snac table`: each unfinished cell is one `agents.driver.train` call (a
 started one resumes from its last checkpoint), then its learning curve and the reporting
 protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped, and a
-cell whose preset adopts another's finished run with the same settings copies that run instead."""
+cell whose preset adopts another's finished run with the same settings copies that run instead,
+or that run's raw copy in the record (`adopt_record`)."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import shutil
 import tempfile
 from pathlib import Path
 
 from agents import checkpoint
+from agents.config import save_config
 from agents.table.files import CELL_FILE, EVAL_FILE
-from agents.table.plan import Cell, cell_state
+from agents.table.plan import Cell, cell_state, own_copy, record_twin
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
@@ -37,6 +40,9 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
         if cell.status == "done":
             return True
         started = (cell.directory / checkpoint.CONFIG_FILE).is_file()  # new: this cell's start, cut before a checkpoint
+        if cell.status == "new" and cell.adopts_record and (not started or own_copy(cell) is not None):
+            adopt_record(cell)  # a copy cut short included: it is completed
+            return True
         if cell.status == "new" and cell.adopts_from is not None and not started:
             adopt(cell)
             return True
@@ -61,15 +67,48 @@ def adopt(cell: Cell) -> None:
     into the cell's (locked, empty) directory one entry at a time with eval.json last: a kill
     leaves either no eval.json (a run with every checkpoint, which the next plan resumes and
     evaluates) or the whole cell."""
+    def copy(staging: Path) -> None:
+        shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns(checkpoint.LOCK_FILE))
+
+    _assemble(cell, copy)
+
+
+def adopt_record(cell: Cell) -> None:
+    """Take over the cell's twin from the record (`Cell.adopts_record`: `adopts_from` is a raw
+    copy, read and checked again here, under the cell's lock): its config.json, eval.json and
+    curve as metrics.jsonl, with this cell's cell.json naming the copy and a curve titled for this
+    cell; no checkpoints, so the cell is never trained or evaluated again. Assembled and moved in
+    as `adopt` does, cell.json first and eval.json last: a kill leaves either the whole cell or a
+    copy cut short without eval.json, which the next plan sees as this cell's and completes
+    (`plan.cell_state`)."""
+    found = record_twin(cell, cell.adopts_from)
+    if found is None:
+        raise ValueError(f"{cell.adopts_from} is no longer a finished run with the settings of {cell.directory}; "
+                         "plan again")
+    config, raw = found
+
+    def copy(staging: Path) -> None:
+        save_config(config, staging / checkpoint.CONFIG_FILE)
+        (staging / checkpoint.METRICS_FILE).write_text("".join(json.dumps(r) + "\n" for r in raw["metrics"]))
+        atomic_write_json(staging / EVAL_FILE, raw["eval"])
+
+    _assemble(cell, copy)
+
+
+def _assemble(cell: Cell, copy) -> None:
+    """Fill a folder of the cell's own under `<algorithm>/.adopting/` (`copy(folder)`, then this
+    cell's cell.json and curve), then move it into the cell's (locked) directory one entry at a
+    time, cell.json first and eval.json last (an entry there already, from a copy cut short, is
+    replaced)."""
     holder = cell.directory.parent / ".adopting"
     holder.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f"{cell.directory.name}.", dir=holder))
     try:
-        shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
-                        ignore=shutil.ignore_patterns(checkpoint.LOCK_FILE))
+        copy(staging)
         atomic_write_json(staging / CELL_FILE, cell.record())
         _plot_curve(cell, staging)
-        for entry in sorted(staging.iterdir(), key=lambda p: p.name == EVAL_FILE):
+        for entry in sorted(staging.iterdir(), key=lambda p: (p.name != CELL_FILE) + (p.name == EVAL_FILE)):
             entry.rename(cell.directory / entry.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # made by this call; empty unless the copy failed

@@ -2,6 +2,11 @@
 
 Policies come from the registry in `snac_jax.policies` (name -> builder), so a learned agent
 plugs in by registering a builder; options such as `--checkpoint` are handed to the builder.
+
+A team (`--robots N`, or the checkpoint of a team run such as `snac train ippo`) is scored with
+the same protocol in `snac_jax.multi`'s world (SPEC §13, `snac_jax.multi.evaluation`): one world,
+one design, one brick budget and one step limit for the whole team, so the IoU and the episode
+length compare across N.
 """
 
 from __future__ import annotations
@@ -9,7 +14,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 from snac_jax.atomic import atomic_write_json, check_writable
 from snac_jax.cli.arguments import add_devices_argument, add_seed_index_argument, check_seed_index, positive_int, seed
@@ -19,6 +26,9 @@ from snac_jax.policies import POLICIES
 from snac_jax.tasks import TASKS
 
 TASK_CHOICES = ("all", *PAPER_TASKS, *(t for t in TASKS if t not in PAPER_TASKS))
+TEAM_POLICIES = ("handcrafted", "handcrafted-map", "random")
+"""Registered policies a team runs (`--robots N`): the handcrafted ones as the split of the plan
+(`snac_jax.policies.split`, SPEC §13), the random one as N independent random robots."""
 
 
 def _task(text: str) -> str:
@@ -43,7 +53,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--policy", type=_policy, default=None, help=f"one of: {', '.join(POLICIES)}")
     parser.add_argument(
         "--checkpoint", type=Path, default=None, metavar="DIR",
-        help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given)",
+        help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given); "
+             "a team run (snac train ippo) is scored as its team, with its own robots and switches",
     )
     add_seed_index_argument(parser)
     parser.add_argument(
@@ -52,6 +63,16 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument(
         "--task", type=_task, default=None, help="'all' (default: the paper's ten columns), a paper column or a task id"
+    )
+    parser.add_argument(
+        "--switches", default=None, metavar="KEY=VALUE,...",
+        help="with --policy: score on tasks built with these switches (SPEC §9), the syntax of "
+             "`snac train --switches`, e.g. gps=true,stride_probs=1/0/0 (a checkpoint keeps its run's own)",
+    )
+    parser.add_argument(
+        "--robots", type=positive_int, default=None, metavar="N",
+        help=f"with --policy ({', '.join(TEAM_POLICIES)}): score a team of N robots in one world (snac_jax.multi, "
+             "SPEC §13); handcrafted splits the plan among them (snac_jax.policies.split)",
     )
     parser.add_argument(
         "--episodes",
@@ -77,14 +98,78 @@ def _environment_tasks(task: str) -> tuple[str, ...]:
     return tuple(t for column in (PAPER_TASKS if task == "all" else (task,)) for t in environment_tasks(column))
 
 
-def run(args: argparse.Namespace) -> int:
-    from snac_jax.evaluation import evaluate_task
-    from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
-    from snac_jax.policies import policy_builder
+# --- teams ---------------------------------------------------------------------------------------
 
+
+def team_policy(name: str, env):
+    """The team form of registered policy `name` for `env` (a `snac_jax.multi.MultiSNACEnv`)."""
+    from snac_jax import multi
+    from snac_jax.policies.random import random_policy
+    from snac_jax.policies.split import handcrafted_split
+
+    if name not in TEAM_POLICIES:
+        raise ValueError(f"--robots runs a team of one of: {', '.join(TEAM_POLICIES)}; got --policy {name}")
+    if name != "random":
+        return handcrafted_split(env, "map" if name == "handcrafted-map" else "no-map")
+    return _independent_team(random_policy(env.single), env.num_agents, multi.MultiPolicy)
+
+
+def _independent_team(single, num_robots: int, team_class):
+    """N robots each running `single` on the whole design, with keys of their own."""
+    import jax
+
+    def init(key, design):
+        return jax.vmap(single.init, in_axes=(0, None))(jax.random.split(key, num_robots), design)
+
+    def act(params, states, obs, key):
+        keys = jax.random.split(key, num_robots)
+        return jax.vmap(single.act, in_axes=(None, 0, 0, 0))(params, states, obs, keys)
+
+    return team_class(init=init, act=act, params=single.params, name=f"{single.name}-x{num_robots}")
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+
+def _check_worlds(env_tasks, robots: int | None, switches: dict[str, Any]) -> None:
+    """Build every world the evaluation will use, so a switch value out of range or a robot
+    count a task does not hold is a one-line error before anything runs (a dynamic task is
+    pinned to a test design here, which draws no training bank)."""
+    from snac_jax import multi
+    from snac_jax.tasks import make, task_spec
+
+    for env_task in env_tasks:
+        pin = {}
+        if task_spec(env_task).dynamic:
+            pin = {"design_bank_size": 2} if "design_change" in switches else {"test_design": 0}
+        if robots is None:
+            make(env_task, **switches, **pin)
+        else:
+            multi.make(env_task, num_robots=robots, **switches, **pin)
+
+
+def _check_sources(args: argparse.Namespace) -> None:
     sources = [args.policy, args.checkpoint, args.human]
     if sum(source is not None for source in sources) != 1:
         raise ValueError("give exactly one of --policy NAME, --checkpoint DIR or --human FILE")
+    if args.checkpoint is not None:
+        for flag, value in (("--switches", args.switches), ("--robots", args.robots)):
+            if value is not None:
+                raise ValueError(f"{flag}: a checkpoint is scored with its run's own switches and robots; leave it out")
+    if args.human is not None and (args.switches is not None or args.robots is not None):
+        raise ValueError("--switches and --robots apply to --policy or --checkpoint, not to --human")
+    if args.robots is not None and args.policy not in TEAM_POLICIES:
+        raise ValueError(f"--robots runs a team of one of: {', '.join(TEAM_POLICIES)}; got --policy {args.policy}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from snac_jax.evaluation import evaluate_task
+    from snac_jax.multi.evaluation import evaluate_team_task
+    from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
+    from snac_jax.policies import policy_builder
+    from snac_jax.tasks import parse_switches
+
+    _check_sources(args)
     check_seed_index(args)
     if args.json is not None:
         check_writable(args.json, "--json")  # before the evaluation, not after it
@@ -93,10 +178,13 @@ def run(args: argparse.Namespace) -> int:
 
         print(human_report(args.human, paper_results=args.paper_results))
         return 0
+    robots = args.robots
     if args.checkpoint is not None:
         from snac_jax.plugins import load_checkpoint
 
         builder, run_task, method, run_overrides = load_checkpoint(args.checkpoint, args.seed_index)
+        run_overrides = dict(run_overrides)
+        robots = run_overrides.pop("num_robots", None)  # a team run's loader names its robots
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:
@@ -104,33 +192,51 @@ def run(args: argparse.Namespace) -> int:
                              f"{', '.join(others)} (leave out --task to evaluate it on its own)")
         policy_name = f"checkpoint {args.checkpoint}, training seed index {args.seed_index or 0}"
     else:
-        builder, method, policy_name = policy_builder(args.policy), POLICIES[args.policy].paper_method, args.policy
-        run_overrides = {}
-    paper = paper_row(load_paper_results(args.paper_results), method)
+        run_overrides = parse_switches(args.switches or "")
+        method, policy_name = POLICIES[args.policy].paper_method, args.policy
+        builder = policy_builder(args.policy) if robots is None else partial(team_policy, args.policy)
     args.task = args.task or "all"
     tasks = PAPER_TASKS if args.task == "all" else (args.task,)
+    if args.checkpoint is None:
+        _check_worlds(_environment_tasks(args.task), robots, run_overrides)
     episodes = {}
     if args.episodes is not None:
         episodes = {"static_episodes": args.episodes, "episodes_per_test_design": args.episodes}
 
     if run_overrides:
-        print(f"with the run's training settings {run_overrides} (the protocol's numbers assume the task's own)",
-              file=sys.stderr)
-    results = []
+        where = "the run's training settings" if args.checkpoint is not None else "the switches"
+        print(f"with {where} {run_overrides} (the protocol's numbers assume the task's own)", file=sys.stderr)
+    results, rows = [], []
     start = time.perf_counter()
     for task in tasks:
-        result = evaluate_task(task, builder, seed=args.seed, num_devices=args.devices, **episodes, **run_overrides)
+        if robots is None:
+            result = evaluate_task(task, builder, seed=args.seed, num_devices=args.devices, **episodes, **run_overrides)
+            rows.append(result)
+        else:
+            result = evaluate_team_task(task, builder, robots, seed=args.seed, **episodes, **run_overrides)
+            rows.append(result.result)
+            print(f"{task}: {result.finished_fraction:.3f} of the episodes ended before the step limit "
+                  f"({result.max_steps})", file=sys.stderr)
         results.append(result)
-        print(f"{task}: mean IoU {result.mean:.3f} over {result.episodes} episodes ({result.wall_s:.1f} s)", file=sys.stderr)
+        print(f"{task}: mean IoU {rows[-1].mean:.3f} over {rows[-1].episodes} episodes ({rows[-1].wall_s:.1f} s)",
+              file=sys.stderr)
     total_s = time.perf_counter() - start
 
-    columns = "".join(f"; {t} beside the paper's {paper_column(t)} column" for t in tasks if paper_column(t) != t)
-    print(f"policy {policy_name} (paper row: {method or 'none'}{columns}), seed {args.seed}")
+    if robots is None:
+        paper = paper_row(load_paper_results(args.paper_results), method)
+        cells = {r.task: paper_cell(paper, r.task) for r in rows}
+        columns = "".join(f"; {t} beside the paper's {paper_column(t)} column" for t in tasks if paper_column(t) != t)
+        print(f"policy {policy_name} (paper row: {method or 'none'}{columns}), seed {args.seed}")
+    else:
+        cells = {}  # the paper has one robot
+        print(f"policy {policy_name}, a team of {robots} robot(s) in one world (SPEC §13; the paper has one robot: "
+              f"no paper row), seed {args.seed}")
     print()
-    print(markdown_table(results, {r.task: paper_cell(paper, r.task) for r in results}))
+    print(markdown_table(rows, cells))
     print()
     print(f"wall time {total_s:.1f} s (compile included)")
     if args.json is not None:
-        atomic_write_json(args.json, {r.task: r.to_json() for r in results})
+        atomic_write_json(args.json, {r.task: r.to_json() for r in rows} if robots is None
+                          else {r.result.task: r.to_json() for r in results})
         print(f"wrote {args.json}")
     return 0

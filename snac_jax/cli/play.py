@@ -6,7 +6,8 @@ import argparse
 import sys
 
 from snac_jax.cli.arguments import positive_int, seed, task_id
-from snac_jax.tasks import TASKS
+from snac_jax.human.game import LANDMARK_KEY
+from snac_jax.tasks import SWITCHES, TASKS
 
 DEFAULT_RECORD = "runs/human.jsonl"
 
@@ -26,6 +27,14 @@ def add_parser(subparsers) -> None:
                         help=f"JSONL file the finished episodes are appended to (default {DEFAULT_RECORD})")
     parser.add_argument("--player", default=None, help="a name stored with each episode")
     parser.add_argument("--max-steps", type=positive_int, default=None, help="override the task's step limit")
+    parser.add_argument(
+        "--switches", default="", metavar="KEY=VALUE,...",
+        help="environment switches, the syntax of `snac train --switches` (keys: " + ", ".join(SWITCHES) + "; "
+             "SPEC §9, §14, §15), stored with each episode so its replay rebuilds the same world; e.g. "
+             f"landmark_action=4 lets you place up to 4 landmarks an episode with the {LANDMARK_KEY.upper()} key "
+             "(2D/3D), design_change=100/300 changes a dynamic task's design once, between those steps "
+             "(in eval mode at the evaluator's fixed step for each test design)",
+    )
     parser.add_argument("--episodes", type=positive_int, default=None, help="quit after this many episodes")
     parser.set_defaults(func=run)
 
@@ -34,8 +43,9 @@ def run(args: argparse.Namespace) -> int:
     from snac_jax.human.game import GameSession
     from snac_jax.human.window import run_window
 
-    session = GameSession(
-        args.task, mode=args.mode, seed=args.seed, max_steps=args.max_steps, record_path=args.record, player=args.player
+    session = GameSession(  # a bad --switches is a one-line ValueError here, before the window
+        args.task, mode=args.mode, seed=args.seed, max_steps=args.max_steps, switches=args.switches,
+        record_path=args.record, player=args.player,
     )
     try:
         run_window(session, max_episodes=args.episodes)

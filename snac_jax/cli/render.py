@@ -1,4 +1,8 @@
-"""`snac render`: record one episode of a policy as a GIF, with step, bricks and IoU on every frame."""
+"""`snac render`: record one episode of a policy as a GIF, with step, bricks and IoU on every frame.
+
+The checkpoint of a team run (`snac train ippo --robots N`) is drawn as its team: N robots in one
+world (`snac_jax.multi`, SPEC §13), each in its colour (`snac_jax.rendering.robots`).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ import time
 
 from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, check_seed_index, positive_int, seed, task_id
 from snac_jax.tasks import TASKS
+
 
 def _policy_names() -> list[str]:
     from snac_jax.policies import POLICIES
@@ -29,7 +34,8 @@ def add_parser(subparsers) -> None:
         default=None,
         help="a registered policy (default: random; with --checkpoint, the trained agent)",
     )
-    parser.add_argument("--checkpoint", default=None, metavar="DIR", help="a trained agent's checkpoint directory")
+    parser.add_argument("--checkpoint", default=None, metavar="DIR",
+                        help="a trained agent's checkpoint directory (a team run, snac train ippo, draws its team)")
     add_seed_index_argument(parser)
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the reset, the strides and the policy")
@@ -62,6 +68,53 @@ def frame_bytes(env, params, cell: int | None) -> int:
     return int(small.shape[0] * small.shape[1] * 3 * (cell / 4) ** 2)
 
 
+def record_team(env, params, policy, key):
+    """One episode of a team (`policy` a `snac_jax.multi.MultiPolicy` of `env`, a
+    `MultiSNACEnv`) kept step by step, as `snac_jax.recording.record_episode` keeps a single
+    robot's: a `Trajectory` whose states are `MultiState`s and whose actions and strides are
+    (length, N). One jitted scan over the whole step limit; an ended episode stays as it was."""
+    import jax
+    import numpy as np
+
+    from snac_jax.recording import Trajectory
+
+    scan = jax.jit(_scan_team, static_argnames=("env", "init", "act", "num_steps"))  # one episode a command
+    states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
+        scan(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
+    length = int(np.sum(live))  # the step limit ends every episode within the scan
+    return Trajectory(states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
+                      actions=np.asarray(actions[:length]), strides=np.asarray(strides[:length]),
+                      rewards=np.asarray(rewards[:length]), final_iou=float(final_iou),
+                      terminated=bool(terminated[length - 1]))
+
+
+def _scan_team(key, env, params, init, act, policy_params, num_steps: int):
+    import jax
+    import jax.numpy as jnp
+
+    from snac_jax.multi.episodes import stack
+
+    key_reset, key_policy, key_run = jax.random.split(key, 3)
+    obs, state = env.reset(key_reset, params)
+
+    def body(carry, step_key):
+        obs, state, agent, ended = carry
+        key_act, key_step = jax.random.split(step_key)
+        actions, next_agent = act(policy_params, agent, obs, key_act)
+        next_obs, next_state, rewards, dones, infos = env.step_env(
+            key_step, state, {name: actions[i] for i, name in enumerate(env.agents)}, params)
+        keep = lambda old, new: jax.tree.map(lambda o, n: jnp.where(ended, o, n), old, new)
+        carry = (keep(obs, stack(env, next_obs)), keep(state, next_state), keep(agent, next_agent),
+                 ended | dones["__all__"])
+        return carry, (carry[1], actions, infos["strides"], rewards[env.agents[0]], infos["terminated"], ~ended)
+
+    first = (stack(env, obs), state, init(key_policy, state.world.design), jnp.asarray(False))
+    (_, final, _, _), (states, actions, strides, rewards, terminated, live) = jax.lax.scan(
+        body, first, jax.random.split(key_run, num_steps))
+    states = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)
+    return states, actions, strides, rewards, terminated, live, env.iou(final)
+
+
 def run(args: argparse.Namespace) -> int:
     import jax
 
@@ -70,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     from snac_jax.policies import build_policy
     from snac_jax.recording import record_episode
     from snac_jax.rendering import render, save_gif
+    from snac_jax.rendering.robots import render_robots
 
     if not str(args.out).lower().endswith(".gif"):
         raise ValueError(f"--out must name a .gif file, got {args.out!r}")
@@ -81,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
+    robots = None  # a team run's robot count
     try:
         if args.checkpoint is not None:
             from snac_jax.plugins import load_checkpoint
@@ -88,17 +143,26 @@ def run(args: argparse.Namespace) -> int:
             builder, run_task, _, run_overrides = load_checkpoint(args.checkpoint, args.seed_index)
             if run_task != args.task:
                 raise ValueError(f"it was trained on {run_task!r}, not {args.task!r}")
+            run_overrides = dict(run_overrides)
+            robots = run_overrides.pop("num_robots", None)
             # the run's switches (its observation and rules); the length is --max-steps'
             overrides = {**{k: v for k, v in run_overrides.items() if k != "max_steps"}, **overrides}
-        env, params = make(args.task, **overrides)
-        policy = build_policy(name, env) if args.checkpoint is None else builder(env)
+        if robots is None:
+            env, params = make(args.task, **overrides)
+            policy = build_policy(name, env) if args.checkpoint is None else builder(env)
+        else:
+            from snac_jax import multi
+
+            env = multi.make(args.task, num_robots=robots, **overrides)
+            params, policy = env.default_params, builder(env)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
-    one_frame = frame_bytes(env, params, args.cell)
+    one_frame = frame_bytes(env if robots is None else env.single, params, args.cell)
     memory.require(f"one frame at --cell {args.cell}", one_frame, "lower --cell")
 
     start = time.perf_counter()
-    trajectory = record_episode(env, params, policy, jax.random.key(args.seed))
+    key = jax.random.key(args.seed)
+    trajectory = record_episode(env, params, policy, key) if robots is None else record_team(env, params, policy, key)
     episode_s = time.perf_counter() - start
     num_frames = len(frame_indices(trajectory.length, args.every))
     # the frames, and the GIF encoder's copy of them
@@ -107,23 +171,27 @@ def run(args: argparse.Namespace) -> int:
     label = policy.name if args.seed_index is None else f"{policy.name} (training seed {args.seed_index})"
     start = time.perf_counter()
     frames = []
+    team = "" if robots is None else f"  {robots} robots"
     for t in frame_indices(trajectory.length, args.every):
         state = trajectory.state_at(t)
+        world = state if robots is None else state.world
         lines = [
-            f"{args.task}  policy {label}  seed {args.seed}",
-            f"step {int(state.time)}  bricks {int(state.bricks_used)}/{int(state.max_bricks)}  "
-            f"IoU {float(metrics.iou(state)):.3f}",
+            f"{args.task}  policy {label}{team}  seed {args.seed}",
+            f"step {int(world.time)}  bricks {int(world.bricks_used)}/{int(world.max_bricks)}  "
+            f"IoU {float(metrics.iou(world)):.3f}",
         ]
-        frames.append(render(env, state, params, cell=args.cell, caption=lines))
+        draw = render if robots is None else render_robots
+        frames.append(draw(env, state, params, cell=args.cell, caption=lines))
     durations = [1000.0 / args.fps] * len(frames)
     durations[-1] += 1000.0 * args.hold
     path = save_gif(args.out, frames, durations_ms=durations)
     draw_s = time.perf_counter() - start
 
     ending = "terminated" if trajectory.terminated else "truncated"
+    last = trajectory.state_at(-1) if robots is None else trajectory.state_at(-1).world
     print(
-        f"{args.task}, policy {label}, seed {args.seed}: {trajectory.length} steps ({ending}), "
-        f"{int(trajectory.state_at(-1).bricks_used)} bricks, final IoU {trajectory.final_iou:.4f}"
+        f"{args.task}, policy {label}{'' if robots is None else f', {robots} robots'}, seed {args.seed}: "
+        f"{trajectory.length} steps ({ending}), {int(last.bricks_used)} bricks, final IoU {trajectory.final_iou:.4f}"
     )
     print(f"wrote {path} ({len(frames)} frames, {frames[0].shape[1]}x{frames[0].shape[0]} px, "
           f"{path.stat().st_size / 1024:.0f} KiB); episode {episode_s:.1f} s, drawing {draw_s:.1f} s")

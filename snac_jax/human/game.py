@@ -25,9 +25,9 @@ import numpy as np
 from snac_jax.atomic import check_writable
 from snac_jax.config import DOWN, LEFT, RIGHT, UP, EnvConfig
 from snac_jax.designs import NUM_TEST_DESIGNS
-from snac_jax.human.records import MODES, EpisodeRecord, append_record
+from snac_jax.human.records import MODES, EpisodeRecord, append_record, game_world, start_episode
 from snac_jax.rendering import CAPTION_BG, CAPTION_FG, draw_text, render_observation
-from snac_jax.tasks import MAX_SEED, make, task_spec
+from snac_jax.tasks import MAX_SEED, parse_switches, task_spec
 
 _DIRECTION_WORDS = {LEFT: "left", RIGHT: "right", DOWN: "down", UP: "up"}
 _MOVE_KEYS = _DIRECTION_WORDS  # pygame names the arrow keys by their direction
@@ -77,12 +77,25 @@ def key_legend(config: EnvConfig) -> str:
     return f"{moves}   drop: {drops}{mark}   esc: quit"
 
 
+def canonical_switches(text: str) -> str:
+    """`text` checked by `parse_switches` (a one-line error naming the allowed keys), with the
+    spaces around its items, keys and values dropped: games with the same switches share one
+    row of `snac eval --human` however they were typed."""
+    parse_switches(text)
+    items = (item.strip() for item in text.split(","))
+    return ",".join("=".join(part.strip() for part in item.split("=", 1)) for item in items if item)
+
+
 class GameSession:
     """A sequence of episodes of one task played through key presses.
 
-    Episode `i` uses seed `seed + i` (modulo 2**32; reset key `jax.random.key(seed + i)`; the stride of step
-    t comes from `fold_in` of that key with t + 1). In evaluation mode a dynamic task cycles
-    through its ten test designs (episode i plays test design i mod 10), as the protocol does.
+    Episode `i` uses seed `seed + i` (modulo 2**32; `records.start_episode` turns it into the reset
+    key and the step keys, the stride of step t from `fold_in` with t + 1). In evaluation mode a
+    dynamic task cycles through its ten test designs (episode i plays test design i mod 10), as the
+    protocol does, with its fixed design change where `design_change` is on (SPEC §15).
+    `switches` are the environment switches in the text of `snac train --switches`
+    (`parse_switches`; `landmark_action=K` binds the L key, SPEC §14); they are stored with each
+    record, so its replay rebuilds the same environment.
     Each finished episode is appended to `record_path` (if given) as an `EpisodeRecord`. The path
     is checked when the session starts; an episode whose append fails later (disk full,
     permissions changed) is kept in `unsaved` and never dropped: `save_unsaved` writes it
@@ -96,6 +109,7 @@ class GameSession:
         seed: int = 0,
         *,
         max_steps: int | None = None,
+        switches: str = "",
         record_path: str | Path | None = None,
         player: str | None = None,
         clock=time.monotonic,
@@ -110,10 +124,13 @@ class GameSession:
         self.unsaved: list[EpisodeRecord] = []
         self.save_error: str | None = None
         self._clock = clock
-        self._overrides = {} if max_steps is None else {"max_steps": max_steps}
-        # A dynamic task's training design bank takes seconds to draw: build it on first use only.
+        self.switches = canonical_switches(switches)
+        self._max_steps = max_steps
+        # `make` checks every switch value here, before a window opens. A dynamic task's training
+        # design bank takes seconds to draw: the ten test designs give the env, the bank comes on first use.
         dynamic = task_spec(task).dynamic
-        self.env, params = make(task, **({"test_design": 0} if dynamic else {}), **self._overrides)
+        self.env, params = game_world(task, "eval" if dynamic else mode, self.switches, max_steps)
+        self._eval_params = params if dynamic else None
         self._train_params = None if dynamic else params
         self.config = self.env.config
         self.bindings = key_bindings(self.config)
@@ -134,14 +151,13 @@ class GameSession:
         self.episode_index += 1
         if self.test_design is None:
             if self._train_params is None:
-                _, self._train_params = make(self.task, **self._overrides)
+                _, self._train_params = game_world(self.task, "train", self.switches, self._max_steps)
             self.params = self._train_params
         else:
-            _, self.params = make(self.task, test_design=self.test_design, **self._overrides)
+            self.params = self._eval_params
         self.episode_seed = (self.seed + self.episode_index) % (MAX_SEED + 1)
-        key = jax.random.key(self.episode_seed)
-        self._key_reset, self._key_steps = jax.random.split(key)
-        self.obs, self.state = self.env.reset(self._key_reset, self.params)
+        self.obs, self.state, self._key_steps = start_episode(self.env, self.params, self.episode_seed, self.test_design)
+        self._start_design = np.asarray(self.state.design).astype(int).tolist()
         self.actions: list[int] = []
         self.strides: list[int] = []
         self.last_reward: float | None = None
@@ -183,7 +199,7 @@ class GameSession:
             mode=self.mode,
             seed=self.episode_seed,
             test_design=self.test_design,
-            design=np.asarray(self.state.design).astype(int).tolist(),
+            design=self._start_design,
             max_steps=int(self.params.max_steps_in_episode),
             actions=list(self.actions),
             strides=list(self.strides),
@@ -194,6 +210,7 @@ class GameSession:
             duration_s=round(self._clock() - self._started, 3),
             started_at=self._started_at,
             player=self.player,
+            switches=self.switches,
         )
         self.records.append(record)
         if self.record_path is not None:

@@ -1,27 +1,32 @@
 """Human episodes on disk: one JSON object per line, appended atomically, read back, checked.
 
-A record holds what is needed to replay the episode exactly (the design, the actions and the
-stride drawn at every step) next to what was measured (IoU, bricks, reward, duration), so a
-collected human baseline can be checked against the environment (`replay_iou`) and summarised
-like any policy (`summarize_records`, which `snac eval --human FILE` prints).
+A record holds what is needed to replay the episode exactly (the switches, the seed, the design,
+the actions and the stride drawn at every step) next to what was measured (IoU, bricks, reward,
+duration), so a collected human baseline can be checked against the environment (`replay_iou`)
+and summarised like any policy (`summarize_records`, which `snac eval --human FILE` prints). The
+game and the replay build the episode's world and first state with the same two functions
+(`game_world`, `start_episode`), so a replay meets the game's landmarks and design change.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from pathlib import Path
 from typing import Any, Iterable
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from snac_jax.atomic import atomic_write
-from snac_jax.config import PLAN_SIZE_1D, PLAN_SIZE_2D
+from snac_jax.config import MAX_STRIDE, PLAN_SIZE_1D, PLAN_SIZE_2D
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.paper import paper_column
 from snac_jax.schema import HUMAN_RECORD, MODES, check
-from snac_jax.tasks import task_spec
+from snac_jax.tasks import parse_switches, task_spec
 
 RECORD_VERSION = 1
 
@@ -32,7 +37,7 @@ class EpisodeRecord:
     mode: str  # one of MODES
     seed: int  # the episode's seed: reset key jax.random.key(seed) (strides are recorded too)
     test_design: int | None  # dynamic tasks in eval mode: the test design played (0..9)
-    design: list  # the episode's design, plan-shaped nested lists of ints
+    design: list  # the episode's design at its start, plan-shaped nested lists of ints
     max_steps: int
     actions: list[int]
     strides: list[int]
@@ -43,6 +48,7 @@ class EpisodeRecord:
     duration_s: float  # wall-clock seconds from the first frame to the end
     started_at: str  # ISO 8601, UTC
     player: str | None = None
+    switches: str = ""  # the environment switches played with (`parse_switches` text; "" none)
     version: int = RECORD_VERSION
 
     @property
@@ -66,6 +72,7 @@ class EpisodeRecord:
         the lengths, the design's shape and the test design's presence (`verify_record`
         replays the rest)."""
         check(dataclasses.asdict(self), HUMAN_RECORD, "")
+        parse_switches(self.switches)  # the keys; `make` checks the values when the record is replayed
         if len(self.actions) != len(self.strides) or not self.actions:
             raise ValueError("a record needs one stride per action and at least one action")
         if len(self.actions) > self.max_steps:
@@ -118,35 +125,116 @@ def load_records(path: str | os.PathLike) -> list[EpisodeRecord]:
     return records
 
 
-def _record_env(record: EpisodeRecord):
-    """The environment the game played the record in, with the record's design as its only one."""
-    from snac_jax.tasks import make, make_params
+def game_world(task: str, mode: str, switches: str = "", max_steps: int | None = None):
+    """`(env, params)` the game plays an episode of `task` in, built by `make` (which checks every
+    switch value): the task's designs, or for a dynamic task in eval mode its ten test designs
+    (episode i plays design i mod 10, `start_episode`). With `design_change` a test design cannot be
+    pinned (SPEC §15), so the env comes from a bank of two, as `TrainConfig.scored_world` does, and
+    the ten test designs replace that bank; without it from test design 0, so no training bank is drawn."""
+    from snac_jax.evaluation import test_design_params
+    from snac_jax.tasks import make, parse_switches
 
-    env, params = make(record.task, max_steps=record.max_steps)
-    fresh = make_params(np.asarray(record.design, dtype=np.int16)[None], env.config.dim)
-    params = params.replace(
-        designs=fresh.designs, design_max_bricks=fresh.design_max_bricks, design_volume=fresh.design_volume
-    )
-    return env, params
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    overrides = {**parse_switches(switches), **({} if max_steps is None else {"max_steps": max_steps})}
+    if not task_spec(task).dynamic or mode == "train":
+        return make(task, **overrides)
+    pin = {"design_bank_size": 2} if "design_change" in overrides else {"test_design": 0}
+    env, params = make(task, **overrides, **pin)
+    return env, test_design_params(task, params)
+
+
+def start_episode(env, params, seed: int, test_design: int | None):
+    """`(obs, state, key_steps)` of the game's episode with `seed`: the reset key is the first half
+    of `key(seed)`, the step keys fold the second with the step number. A test design is pinned as
+    `reset_env` would pin a bank of one (the same key), and with `design_change` it meets the
+    evaluator's fixed change (`design_change.schedule`, SPEC §15), so a person's game on test
+    design i changes where every policy's does."""
+    import jax
+
+    from snac_jax import design_change
+
+    key_reset, key_steps = jax.random.split(jax.random.key(seed))
+    if test_design is None:
+        obs, state = env.reset(key_reset, params)
+        return obs, state, key_steps
+    key = jax.random.fold_in(key_reset, 1) if env.config.num_landmarks else key_reset
+    obs, state = env.reset_to_design(key, params, test_design)
+    if env.config.design_change is not None:
+        state = design_change.schedule(env.config, params, state, test_design)
+    return obs, state, key_steps
+
+
+def _game_start(record: EpisodeRecord):
+    """`(env, params, obs, state)`: the world and first state the game gave the record's episode."""
+    env, params = game_world(record.task, record.mode, record.switches, record.max_steps)
+    obs, state, _ = start_episode(env, params, record.seed, record.test_design)
+    return env, params, obs, state
+
+
+def _on_design(env, params, state, design: np.ndarray):
+    """`(obs, state)` with `design` in place of the state's design (its budget and volume too), so a
+    replay plays the record's own design; unchanged when it is the game's."""
+    from snac_jax.tasks import make_params
+
+    if np.array_equal(np.asarray(state.design), design):
+        return env.get_obs(state, params), state
+    fresh = make_params(design.astype(np.int16)[None], env.config.dim)
+    state = state.replace(design=fresh.designs[0], max_bricks=fresh.design_max_bricks[0], union=fresh.design_volume[0])
+    return env.get_obs(state, params), state
+
+
+REPLAY_CHUNK = 512
+"""Replays are padded to a multiple of this many steps, so a task compiles a few times at most."""
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _replay_scan(env, params, obs0, state0, actions, strides):
+    from snac_jax import episodes, metrics
+
+    def decide(episode, action_stride):
+        action, stride = action_stride
+        return episodes.Move(action, stride=stride), episode.agent
+
+    def record(step):
+        return step.reward, step.terminated, step.truncated, metrics.iou(step.state), step.state
+
+    first = episodes.start(obs0, state0, None)
+    return episodes.scan_episode(env, params, decide, first, xs=(actions, strides), record=record)[1]
+
+
+def replay_record(record: EpisodeRecord) -> dict[str, Any]:
+    """Replay the record's actions and strides from the game's first state of its episode (its
+    switches, seed and test design; `start_episode`) on the record's design: rewards, terminated
+    and truncated (one per action), the final IoU, the bricks used and the state after the last
+    action. Actions after the episode's end change nothing (`snac_jax.episodes.Step`)."""
+    from snac_jax.env import check_range
+
+    env, params, obs0, state0 = _game_start(record)
+    obs0, state0 = _on_design(env, params, state0, np.asarray(record.design))
+    steps = len(record.actions)
+    check_range("actions", np.asarray(record.actions), 0, env.num_actions - 1)
+    check_range("strides", np.asarray(record.strides), 1, MAX_STRIDE)
+    padded = -(-steps // REPLAY_CHUNK) * REPLAY_CHUNK
+    pad = lambda x: jnp.asarray(np.pad(np.asarray(x, np.int32), (0, padded - steps), constant_values=1))
+    rewards, terminated, truncated, ious, states = _replay_scan(env, params, obs0, state0, pad(record.actions),
+                                                                pad(record.strides))
+    final = jax.tree.map(lambda x: x[steps - 1], states)
+    return {
+        "rewards": np.asarray(rewards[:steps]),
+        "terminated": np.asarray(terminated[:steps]),
+        "truncated": np.asarray(truncated[:steps]),
+        "final_iou": float(ious[steps - 1]),
+        "bricks_used": int(final.bricks_used),
+        "final_state": final,
+    }
 
 
 def expected_design(record: EpisodeRecord) -> np.ndarray:
-    """The design the game gives the record's episode: the static task's, the test design played,
-    or (dynamic tasks in training mode) the one the reset with the record's seed draws from the
-    task's training designs (the game's reset key is the first half of `key(seed)`)."""
-    import jax
-
-    from snac_jax.designs import fixed_design
-    from snac_jax.tasks import make
-
-    spec = task_spec(record.task)
-    if not spec.dynamic:
-        return fixed_design(spec.design)
-    if record.test_design is not None:
-        return fixed_design(f"{record.task}-test{record.test_design}")
-    env, params = make(record.task)
-    key_reset, _ = jax.random.split(jax.random.key(record.seed))
-    return np.asarray(env.reset(key_reset, params)[1].design)
+    """The design the game gives the record's episode at its start: the static task's, the test
+    design played, or (dynamic tasks in training mode) the one the reset with the record's seed
+    draws from the task's training designs."""
+    return np.asarray(_game_start(record)[3].design)
 
 
 def verify_record(record: EpisodeRecord, tolerance: float = 1e-6) -> None:
@@ -157,16 +245,13 @@ def verify_record(record: EpisodeRecord, tolerance: float = 1e-6) -> None:
     be ignored; not after: it would be unfinished), and the claimed IoU, bricks used, total
     reward and termination are the replay's.
     """
-    from snac_jax.replay import replay
-
     record.validate()
     who = f"record of {record.task} seed {record.seed}"
     if not np.array_equal(np.asarray(record.design), expected_design(record)):
         which = "its test design" if record.test_design is not None else "the design the game gives this episode"
         raise ValueError(f"{who}: its design is not {which}")
-    env, params = _record_env(record)
     try:
-        out = replay(env, params, record.actions, record.strides)
+        out = replay_record(record)
     except ValueError as error:
         raise ValueError(f"{who}: {error}") from error
     done = out["terminated"] | out["truncated"]
@@ -191,15 +276,14 @@ def replay_iou(record: EpisodeRecord) -> float:
 
     Equal to `record.iou` for every honest record (`verify_record` checks it, and the rest).
     """
-    from snac_jax.replay import replay
-
-    env, params = _record_env(record)
-    return replay(env, params, record.actions, record.strides)["final_iou"]
+    return replay_record(record)["final_iou"]
 
 
 def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = None, verify: bool = True):
     """Human episodes summarised per paper task as `snac_jax.evaluation.TaskResult`s.
 
+    Games played with switches form their own row, named `task (switches)`: they are another
+    environment, so they neither mix with the plain games nor stand beside the paper's number.
     Strata are as in the protocol: the shape (1d-static), the test design (dynamic tasks in eval
     mode), or the task's training designs. `mode` keeps only one mode's episodes; `verify`
     replays every record and raises `ValueError` when it contradicts its record
@@ -215,7 +299,8 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
             verify_record(r)
     groups: dict[str, list[EpisodeRecord]] = {}
     for r in chosen:
-        groups.setdefault(paper_column(r.task), []).append(r)
+        column = paper_column(r.task)
+        groups.setdefault(f"{column} ({r.switches})" if r.switches else column, []).append(r)
     results = []
     for task, group in groups.items():
         strata: dict[str, list[float]] = {}

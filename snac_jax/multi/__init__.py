@@ -7,11 +7,12 @@
 
 Modules: `rules` (the step of N robots and their observations, pure functions of one world),
 `env` (`MultiSNACEnv` and `make`), `episodes` (a team policy's interface, one episode to its end,
-replaying recorded actions and strides).
+replaying recorded actions and strides), `evaluation` (SPEC §8's protocol run by a team).
 """
 
 from snac_jax.multi.env import MultiSNACEnv, MultiState, agent_names, check_num_robots, make
 from snac_jax.multi.episodes import MultiPolicy, TeamEpisode, replay, run_episode
+from snac_jax.multi.evaluation import TeamResult, evaluate_team_task
 from snac_jax.multi.rules import ROBOT_VALUE, max_robots, start_positions
 
 __all__ = [
@@ -20,8 +21,10 @@ __all__ = [
     "MultiSNACEnv",
     "MultiState",
     "TeamEpisode",
+    "TeamResult",
     "agent_names",
     "check_num_robots",
+    "evaluate_team_task",
     "make",
     "max_robots",
     "replay",

@@ -1,0 +1,298 @@
+"""How a trained policy uses the landmark-placement action (SPEC §14): how many landmarks it
+places, when, whether on design cells, and where on the plan.
+
+    python bench/landmark_use.py --run runs/table/landmark-action/ppo/2d-static-sparse.landmark-action --out OUT
+
+Each training seed's greedy policy (`agents.trained.checkpoint_policy`) plays the evaluation
+protocol's episodes (SPEC §8): `--episodes` on a static task's design (default 100), or on each
+of a dynamic task's ten test designs (default 20), with the run's switches and the report key
+(`REPORT_EVAL_SEED`) unless `--eval-seed` says otherwise. The episodes are those `evaluate_task`
+runs with the same key and counts (same keys, same loop, `snac_jax.episodes.run_to_end`), so the
+final IoUs here equal the protocol's; only the policy's placements are tallied on the way.
+
+Writes only under `--out`: `landmark_use.json` (a summary per seed and pooled, and every
+episode's placements) and `landmark_use.png` (where the landmarks landed, summed over episodes,
+one panel per seed and one pooled). A static task's panels carry its design's outline; a dynamic
+task's episodes have different designs, so its panels show plan positions without an outline.
+A step is counted from 0: a placement at step 0 is the episode's first action.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from functools import partial
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from flax import struct  # noqa: E402
+
+from snac_jax import design_change, episodes, landmark_action, metrics  # noqa: E402
+from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
+from snac_jax.evaluation import (REPORT_EVAL_SEED, _task_key, require_episode_memory,  # noqa: E402
+                                 test_design_params)
+from snac_jax.policy import call_act  # noqa: E402
+from snac_jax.tasks import make, task_spec, test_design_names  # noqa: E402
+
+STATIC_EPISODES = 100
+EPISODES_PER_TEST_DESIGN = 20
+
+
+@struct.dataclass
+class Tally:
+    """One episode's placements so far. Slot i is the i-th placement that landed (step -1: none)."""
+
+    attempts: jax.Array  # int32, steps whose action was the placement, landed or not
+    steps: jax.Array  # int32 (K,), the step each placement was taken at
+    rows: jax.Array  # int32 (K,), plan row of the cell it landed on
+    cols: jax.Array  # int32 (K,)
+    on_design: jax.Array  # bool (K,), the cell is a design cell of the design in force then
+
+
+def empty_tally(k: int) -> Tally:
+    minus = jnp.full((k,), -1, jnp.int32)
+    return Tally(jnp.zeros((), jnp.int32), minus, minus, minus, jnp.zeros((k,), bool))
+
+
+def tally_step(config, tally: Tally, state, action) -> Tally:
+    """`tally` after `action` is taken in `state` (the state before the step).
+
+    Whether it lands is `landmark_action.place` applied to that state: a placement does not move
+    the robot or change the grid, so the state before the step has the cell it lands on and
+    the cell's brick and landmark, and the env's own rule decides."""
+    attempt = action == config.place_landmark_action
+    landed = landmark_action.place(config, state, action).landmarks_left < state.landmarks_left
+    slot = config.landmark_action - state.landmarks_left  # placements landed before this one
+    row, col = state.position[0], state.position[1]
+
+    def fill(values, value):
+        return values.at[slot].set(jnp.where(landed, value, values[slot]), mode="drop")
+
+    return Tally(
+        attempts=tally.attempts + attempt.astype(jnp.int32),
+        steps=fill(tally.steps, state.time),
+        rows=fill(tally.rows, row),
+        cols=fill(tally.cols, col),
+        on_design=fill(tally.on_design, state.design[row, col] > 0),
+    )
+
+
+@struct.dataclass
+class LandmarkEpisodes:
+    """Per-episode outcomes (leading axis: episodes)."""
+
+    iou: jax.Array  # float32, final IoU
+    length: jax.Array  # int32, steps taken
+    placed: jax.Array  # int32, K - landmarks_left at the end: the env's own count
+    new_cells: jax.Array  # bool plan-shaped, landmark cells at the end that were none at reset
+    design_index: jax.Array  # int32
+    tally: Tally
+
+
+@partial(jax.jit, static_argnames=("env", "init", "act"))
+def _rollout(env, init, act, policy_params, env_params, keys, design_indices) -> LandmarkEpisodes:
+    """`evaluation._run_episodes` with the same key schedule, tallying placements on the way."""
+    config = env.config
+    (h, w), (pr, pc) = config.plan_shape, config.pad
+
+    def decide(episode: episodes.Episode, _):
+        key, policy_state, tally = episode.agent
+        key, key_act, key_step = jax.random.split(key, 3)
+        action, policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
+        return episodes.Move(action, key=key_step), (key, policy_state, tally_step(config, tally, episode.state, action))
+
+    def run(key, design_index):
+        key_reset, key_init, key_run = jax.random.split(key, 3)
+        obs, state = env.reset_to_design(key_reset, env_params, design_index)
+        if config.design_change is not None:
+            state = design_change.schedule(config, env_params, state, design_index)
+        agent = (key_run, init(key_init, state.design), empty_tally(config.landmark_action))
+        final = episodes.run_to_end(env, env_params, decide, episodes.start(obs, state, agent))
+        new = final.state.landmarks & ~state.landmarks
+        return LandmarkEpisodes(
+            iou=metrics.iou(final.state),
+            length=final.state.time,
+            placed=config.landmark_action - final.state.landmarks_left,
+            new_cells=new[pr:pr + h, pc:pc + w],
+            design_index=design_index,
+            tally=final.agent[2],
+        )
+
+    return jax.vmap(run)(keys, design_indices)
+
+
+def run_landmark_episodes(env, params, policy, key, design_indices) -> LandmarkEpisodes:
+    """One episode per entry of `design_indices`, all in one jitted, vmapped call (host arrays back)."""
+    if not env.config.landmark_action:
+        raise ValueError("the env has no landmark placement action: make it with landmark_action=K (SPEC §14)")
+    indices = jnp.asarray(np.asarray(design_indices), jnp.int32)
+    require_episode_memory(env, params, policy, int(indices.shape[0]))
+    keys = jax.random.split(key, indices.shape[0])
+    return jax.device_get(_rollout(env, policy.init, policy.act, policy.params, params, keys, indices))
+
+
+def protocol_world(task: str, overrides: dict, count: int):
+    """`(env, params, design names, design indices)` of the protocol's episodes (SPEC §8), `count`
+    per design."""
+    env, params = make(task, **overrides)
+    if task_spec(task).dynamic:
+        names = test_design_names(task)
+        return env, test_design_params(task, params), names, np.repeat(np.arange(len(names)), count)
+    return env, params, [task], np.zeros(count, np.int32)
+
+
+# --- what is reported ----------------------------------------------------------------------------
+
+
+def _mean(values) -> float | None:
+    values = np.asarray(values, np.float64)
+    return float(values.mean()) if values.size else None
+
+
+def episode_rows(result: LandmarkEpisodes, names: list[str]) -> list[dict]:
+    rows = []
+    for i in range(result.iou.shape[0]):
+        t = jax.tree.map(lambda x: np.asarray(x[i]), result.tally)
+        used = t.steps >= 0
+        rows.append({
+            "design": names[int(result.design_index[i])], "iou": float(result.iou[i]), "length": int(result.length[i]),
+            "attempts": int(t.attempts), "placed": int(result.placed[i]), "steps": t.steps[used].tolist(),
+            "cells": np.stack([t.rows[used], t.cols[used]], 1).tolist(), "on_design": t.on_design[used].tolist(),
+        })
+    return rows
+
+
+def summarize(rows: list[dict], k: int) -> dict:
+    """The per-seed (or pooled) numbers from `episode_rows`."""
+    placed = np.array([r["placed"] for r in rows])
+    iou = np.array([r["iou"] for r in rows])
+    on_design = [flag for r in rows for flag in r["on_design"]]
+    firsts = [r["steps"][0] for r in rows if r["steps"]]
+    used = placed > 0
+    return {
+        "episodes": len(rows),
+        "mean_iou": _mean(iou),
+        "mean_placed": _mean(placed),
+        "mean_attempts": _mean([r["attempts"] for r in rows]),
+        "fraction_with_placement": _mean(used),
+        "placements": int(placed.sum()),
+        "fraction_on_design": _mean(on_design),
+        "mean_first_step": _mean(firsts),
+        "iou_with_placement": {"mean": _mean(iou[used]), "episodes": int(used.sum())},
+        "iou_without_placement": {"mean": _mean(iou[~used]), "episodes": int((~used).sum())},
+        "placed_histogram": np.bincount(placed, minlength=k + 1).tolist(),
+    }
+
+
+def plot_heatmaps(maps: dict[str, np.ndarray], outline: np.ndarray | None, title: str, path: Path) -> None:
+    """One panel per entry of `maps` (plan-shaped counts), the design's outline on each if given."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from snac_jax.atomic import atomic_write
+
+    fig, axes = plt.subplots(1, len(maps), figsize=(3.6 * len(maps) + 0.6, 3.8), squeeze=False)
+    for ax, (name, counts) in zip(axes[0], maps.items()):
+        image = ax.imshow(counts, cmap="magma", interpolation="nearest", vmin=0, vmax=max(1, int(counts.max())))
+        if outline is not None and outline.any():
+            ax.contour(outline.astype(float), levels=[0.5], colors="cyan", linewidths=1.2)
+        ax.set_title(f"{name}: {int(counts.sum())} landmarks", fontsize="small")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04)
+    fig.suptitle(title, fontsize="small")
+    fig.tight_layout()
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run", type=Path, required=True, help="a `snac train` run directory trained with landmark_action")
+    parser.add_argument("--out", type=Path, required=True, help="directory for landmark_use.json and landmark_use.png")
+    parser.add_argument("--seed-index", type=int, default=None, help="one training seed (default: every seed of the run)")
+    parser.add_argument("--episodes", type=positive_int, default=None,
+                        help=f"episodes on a static design / per dynamic test design "
+                             f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
+    parser.add_argument("--eval-seed", type=seed, default=REPORT_EVAL_SEED,
+                        help=f"evaluation key (default {REPORT_EVAL_SEED}, the report key)")
+    return parser.parse_args(argv)
+
+
+def analyse(args: argparse.Namespace) -> dict:
+    from agents import sweep, trained
+    from agents.checkpoint import read_config
+    from snac_jax.atomic import atomic_write_json, check_writable
+    from snac_jax.tasks import parse_switches
+
+    config = read_config(args.run)
+    k = parse_switches(config.switches).get("landmark_action", 0)
+    if not k:
+        raise ValueError(f"{args.run} was trained without landmark_action (switches {config.switches!r}): "
+                         "its policy has no placement action to analyse")
+    json_path = check_writable(args.out / "landmark_use.json", "--out")
+    dynamic = task_spec(config.task).dynamic
+    count = args.episodes or (EPISODES_PER_TEST_DESIGN if dynamic else STATIC_EPISODES)
+    env, params, names, design_indices = protocol_world(config.task, config.env_overrides, count)
+    indices = range(config.seeds) if args.seed_index is None else [args.seed_index]
+    key = _task_key(args.eval_seed, config.task)
+    seeds, maps, rows_all = {}, {}, []
+    shared = None  # the seeds of one config share the network: the first's functions compile once for all
+    for index in indices:
+        policy = trained.checkpoint_policy(env, args.run, index)
+        if shared is not None:
+            policy = policy._replace(init=shared.init, act=shared.act)
+        elif sweep.load(args.run) is None:  # a sweep's arms may differ in network
+            shared = policy
+        result = run_landmark_episodes(env, params, policy, key, design_indices)
+        if not np.array_equal(np.asarray(result.placed), (np.asarray(result.tally.steps) >= 0).sum(1)):
+            raise AssertionError("the tally of landed placements disagrees with the env's landmarks_left")
+        rows = episode_rows(result, names)
+        rows_all += rows
+        seeds[str(index)] = {**summarize(rows, k), "episodes_detail": rows}
+        maps[f"seed {index}"] = np.asarray(result.new_cells).sum(0)
+        print(f"seed {index}: {seeds[str(index)]['mean_placed']:.2f} placed per episode, "
+              f"IoU {seeds[str(index)]['mean_iou']:.3f}", file=sys.stderr)
+    if len(maps) > 1:
+        maps["pooled"] = sum(maps.values())
+    outline = None if dynamic else np.asarray(params.designs[0]) > 0
+    report = {
+        "run": str(args.run), "task": config.task, "algorithm": config.algorithm, "switches": config.switches,
+        "landmark_action": k, "eval_seed": args.eval_seed, "episodes_per_design": count, "designs": names,
+        "step_origin": 0, "on_design": "against the design in force at the placement's step",
+        "heatmap": "landmark cells per plan position, summed over episodes; "
+                   + ("outline: the task's design" if outline is not None else "no outline: designs vary by episode"),
+        "pooled": summarize(rows_all, k), "seeds": seeds,
+    }
+    atomic_write_json(json_path, report)
+    title = f"{config.algorithm} on {config.task} ({config.switches}), eval seed {args.eval_seed}"
+    plot_heatmaps(maps, outline, title, args.out / "landmark_use.png")
+    return report
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    try:
+        report = analyse(args)
+    except ValueError as error:
+        print(f"landmark_use.py: error: {error}", file=sys.stderr)
+        return 2
+    pooled = report["pooled"]
+    print(f"{pooled['episodes']} episodes: {pooled['mean_placed']:.2f} landmarks placed per episode, "
+          f"{pooled['fraction_with_placement']:.0%} of episodes place one; wrote {args.out}/landmark_use.json, "
+          f"{args.out}/landmark_use.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
