@@ -250,6 +250,19 @@ def _task_key(seed: int, env_task: str) -> jax.Array:
     return jax.random.fold_in(jax.random.key(seed), zlib.crc32(env_task.encode()))
 
 
+def check_protocol_args(static_episodes, episodes_per_test_design, seed, overrides) -> None:
+    """The protocol's counts, key and overrides, checked before anything is built: one-line
+    `ValueError`s naming what is allowed (shared by the single robot's and the team's protocol)."""
+    for name, count in (("static_episodes", static_episodes), ("episodes_per_test_design", episodes_per_test_design)):
+        if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {count!r}")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an int in 0..{MAX_SEED}, got {seed!r}")
+    if "test_design" in overrides:
+        raise ValueError("test_design pins one design, but the protocol scores a dynamic task on all ten of its "
+                         "test designs (a static task has none): leave it out")
+
+
 def evaluate_task(
     task: str,
     policy: PolicyLike,
@@ -268,14 +281,7 @@ def evaluate_task(
     A policy that takes an action outside the task's actions (the env would clamp it to a valid
     one: a policy built for another task) is refused with a `ValueError`, not scored."""
     env_tasks = environment_tasks(task)
-    for name, count in (("static_episodes", static_episodes), ("episodes_per_test_design", episodes_per_test_design)):
-        if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {count!r}")
-    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
-        raise ValueError(f"seed must be an int in 0..{MAX_SEED}, got {seed!r}")
-    if "test_design" in overrides:
-        raise ValueError("test_design pins one design, but the protocol scores a dynamic task on all ten of its "
-                         "test designs (a static task has none): leave it out")
+    check_protocol_args(static_episodes, episodes_per_test_design, seed, overrides)
     start = time.perf_counter()
     strata: dict[str, np.ndarray] = {}
     outcomes: list[Episodes] = []

@@ -105,7 +105,8 @@ def test_a_policy_for_another_task_is_not_scored(capsys, monkeypatch):
 
 
 def _protocol_fields(entry: dict) -> dict:
-    return {k: v for k, v in entry.items() if k != "wall_s"}
+    """The protocol's numbers of an entry: not its wall time, nor the overrides written beside them."""
+    return {k: v for k, v in entry.items() if k not in ("wall_s", "overrides")}
 
 
 def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
@@ -123,6 +124,10 @@ def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
     assert _protocol_fields(switched) == _protocol_fields(expected.to_json())
     plain = evaluate_task("2d-static-sparse", handcrafted_policy, static_episodes=3, seed=5)
     assert _protocol_fields(switched) != _protocol_fields(plain.to_json())
+    assert switched["overrides"] == {"stride_probs": [1.0, 0.0, 0.0]}  # what it was scored with travels with it
+    assert main([*argv, "--switches", "stride_probs=1/0/0"]) == 0
+    printed = capsys.readouterr().out
+    assert "(no paper row)" in printed and "| 0.655 | 0.143 |" not in printed  # the paper scored the task as it is
 
 
 @pytest.mark.parametrize(
@@ -140,6 +145,8 @@ def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
          "num_robots must be an int in 1..2 for 1d-static-sin (one per end of the row), got 4"),
         (["--policy", "handcrafted", "--robots", "2", "--task", "2d-dynamic-dense", "--switches", "design_change=100/300"],
          "design_change is a single-robot switch"),
+        (["--policy", "handcrafted", "--robots", "2", "--task", "2d-static-dense", "--devices", "2"],
+         "--devices 2: a team's episodes run on one device"),
     ],
 )
 def test_bad_switches_and_robots_are_one_line_errors_before_anything_runs(argv, message, capsys, monkeypatch):

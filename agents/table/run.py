@@ -71,7 +71,7 @@ def adopt(cell: Cell) -> None:
         shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns(checkpoint.LOCK_FILE))
 
-    _assemble(cell, copy)
+    _assemble(cell, copy, cell_json_first=False)
 
 
 def adopt_record(cell: Cell) -> None:
@@ -93,14 +93,16 @@ def adopt_record(cell: Cell) -> None:
         (staging / checkpoint.METRICS_FILE).write_text("".join(json.dumps(r) + "\n" for r in raw["metrics"]))
         atomic_write_json(staging / EVAL_FILE, raw["eval"])
 
-    _assemble(cell, copy)
+    _assemble(cell, copy, cell_json_first=True)
 
 
-def _assemble(cell: Cell, copy) -> None:
+def _assemble(cell: Cell, copy, *, cell_json_first: bool) -> None:
     """Fill a folder of the cell's own under `<algorithm>/.adopting/` (`copy(folder)`, then this
     cell's cell.json and curve), then move it into the cell's (locked) directory one entry at a
-    time, cell.json first and eval.json last (an entry there already, from a copy cut short, is
-    replaced)."""
+    time, eval.json last. `cell_json_first`: a record's copy moves cell.json first, so a copy cut
+    short is recognised as this cell's and completed (`plan.own_copy`); a run's copy keeps
+    cell.json for the end (before eval.json), so a copy cut short is a run with its checkpoints,
+    which the next plan resumes."""
     holder = cell.directory.parent / ".adopting"
     holder.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f"{cell.directory.name}.", dir=holder))
@@ -108,7 +110,8 @@ def _assemble(cell: Cell, copy) -> None:
         copy(staging)
         atomic_write_json(staging / CELL_FILE, cell.record())
         _plot_curve(cell, staging)
-        for entry in sorted(staging.iterdir(), key=lambda p: (p.name != CELL_FILE) + (p.name == EVAL_FILE)):
+        first = (lambda p: p.name != CELL_FILE) if cell_json_first else (lambda p: p.name == CELL_FILE)
+        for entry in sorted(staging.iterdir(), key=lambda p: 2 * (p.name == EVAL_FILE) + first(p)):
             entry.rename(cell.directory / entry.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # made by this call; empty unless the copy failed

@@ -158,6 +158,8 @@ def _check_sources(args: argparse.Namespace) -> None:
                 raise ValueError(f"{flag}: a checkpoint is scored with its run's own switches and robots; leave it out")
     if args.human is not None and (args.switches is not None or args.robots is not None):
         raise ValueError("--switches and --robots apply to --policy or --checkpoint, not to --human")
+    if args.robots is not None and args.devices not in (None, 1):
+        raise ValueError(f"--devices {args.devices}: a team's episodes run on one device; leave it out with --robots")
     if args.robots is not None and args.policy not in TEAM_POLICIES:
         raise ValueError(f"--robots runs a team of one of: {', '.join(TEAM_POLICIES)}; got --policy {args.policy}")
 
@@ -222,11 +224,14 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
     total_s = time.perf_counter() - start
 
-    if robots is None:
+    if robots is None and not run_overrides:
         paper = paper_row(load_paper_results(args.paper_results), method)
         cells = {r.task: paper_cell(paper, r.task) for r in rows}
         columns = "".join(f"; {t} beside the paper's {paper_column(t)} column" for t in tasks if paper_column(t) != t)
         print(f"policy {policy_name} (paper row: {method or 'none'}{columns}), seed {args.seed}")
+    elif robots is None:
+        cells = {}  # the paper scored the tasks as they are, not with these settings
+        print(f"policy {policy_name}, with {run_overrides} (no paper row), seed {args.seed}")
     else:
         cells = {}  # the paper has one robot
         print(f"policy {policy_name}, a team of {robots} robot(s) in one world (SPEC §13; the paper has one robot: "
@@ -236,7 +241,9 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f"wall time {total_s:.1f} s (compile included)")
     if args.json is not None:
-        atomic_write_json(args.json, {r.task: r.to_json() for r in rows} if robots is None
-                          else {r.result.task: r.to_json() for r in results})
+        scored = {r.task: r.to_json() for r in rows} if robots is None else {r.result.task: r.to_json() for r in results}
+        if run_overrides:  # what the numbers were scored with travels with them
+            scored = {task: {**entry, "overrides": run_overrides} for task, entry in scored.items()}
+        atomic_write_json(args.json, scored)
         print(f"wrote {args.json}")
     return 0

@@ -23,6 +23,7 @@ from snac_jax.evaluation import (
     TUNING_EVAL_SEED,
     TaskResult,
     _task_key,
+    check_protocol_args,
     environment_tasks,
     test_design_params,
 )
@@ -67,9 +68,7 @@ def evaluate_team_task(task: str, team: TeamLike, num_robots: int, *, static_epi
     task (`fold_in(key(seed), crc32(env task))`) as `snac_jax.evaluation.evaluate_task`, so with
     one robot and a policy that uses no randomness the episodes are the single robot's. The
     episodes run on one device."""
-    if "test_design" in overrides:
-        raise ValueError("test_design pins one design, but the protocol scores a dynamic task on all ten of its "
-                         "test designs: leave it out")
+    check_protocol_args(static_episodes, episodes_per_test_design, seed, overrides)
     start, strata, outcomes, limits = time.perf_counter(), {}, [], []
     for env_task in environment_tasks(task):
         env = make(env_task, num_robots=num_robots, **overrides)
