@@ -166,13 +166,10 @@ class TrainConfig:
         built by `make`, which checks every value; a dynamic task is pinned to one test design, so
         no training bank is drawn (`make_env` draws it). With `design_change` a pinned design has
         none to change to (SPEC §15): a bank of two, the smallest it allows, is drawn instead."""
-        from snac_jax.tasks import make, task_spec
+        from snac_jax.tasks import make, without_training_bank
 
         overrides = self.env_overrides
-        pin = {}
-        if task_spec(self.task).dynamic:
-            pin = {"design_bank_size": 2} if "design_change" in overrides else {"test_design": 0}
-        return make(self.task, **overrides, **pin)
+        return make(self.task, **overrides, **without_training_bank(self.task, overrides))
 
     def env_config(self):
         """The static `EnvConfig` (observation, action table, rules) the run's switches give: what a

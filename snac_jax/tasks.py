@@ -179,6 +179,16 @@ def _stride_probs(value: Any) -> tuple[float, float, float]:
     return probs
 
 
+def without_training_bank(task_id: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """What to add to `overrides` so that `make` builds the task's world without drawing its
+    training bank (a check of the settings, a world the test designs then replace): a dynamic
+    task pinned to test design 0, or, under `design_change`, which needs another design to change
+    to (SPEC §15), a bank of two, the smallest it allows. Nothing for a static task."""
+    if not task_spec(task_id).dynamic:
+        return {}
+    return {"design_bank_size": 2} if "design_change" in overrides else {"test_design": 0}
+
+
 def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     """Build a task: `env, params = make("2d-static-dense", gps=True)`.
 

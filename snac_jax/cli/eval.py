@@ -136,12 +136,10 @@ def _check_worlds(env_tasks, robots: int | None, switches: dict[str, Any]) -> No
     count a task does not hold is a one-line error before anything runs (a dynamic task is
     pinned to a test design here, which draws no training bank)."""
     from snac_jax import multi
-    from snac_jax.tasks import make, task_spec
+    from snac_jax.tasks import make, without_training_bank
 
     for env_task in env_tasks:
-        pin = {}
-        if task_spec(env_task).dynamic:
-            pin = {"design_bank_size": 2} if "design_change" in switches else {"test_design": 0}
+        pin = without_training_bank(env_task, switches)
         if robots is None:
             make(env_task, **switches, **pin)
         else:

@@ -132,15 +132,14 @@ def game_world(task: str, mode: str, switches: str = "", max_steps: int | None =
     pinned (SPEC §15), so the env comes from a bank of two, as `TrainConfig.scored_world` does, and
     the ten test designs replace that bank; without it from test design 0, so no training bank is drawn."""
     from snac_jax.evaluation import test_design_params
-    from snac_jax.tasks import make, parse_switches
+    from snac_jax.tasks import make, parse_switches, without_training_bank
 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     overrides = {**parse_switches(switches), **({} if max_steps is None else {"max_steps": max_steps})}
     if not task_spec(task).dynamic or mode == "train":
         return make(task, **overrides)
-    pin = {"design_bank_size": 2} if "design_change" in overrides else {"test_design": 0}
-    env, params = make(task, **overrides, **pin)
+    env, params = make(task, **overrides, **without_training_bank(task, overrides))
     return env, test_design_params(task, params)
 
 
