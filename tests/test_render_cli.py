@@ -95,3 +95,20 @@ def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     single = tmp_path / "single.gif"
     assert main(["render", "--task", "1d-static-sin", "--policy", "random", "--out", str(single), "--max-steps", "2"]) == 0
     assert not np.all(iio.imread(single, index=None) == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1).any()
+
+
+def test_a_team_episode_compiles_once_per_configuration():
+    """Two episodes of one team and world (other keys) reuse one compilation of the recorder."""
+    import jax
+
+    from snac_jax import multi
+    from snac_jax.cli.render import _team_scan, record_team
+    from snac_jax.cli.eval import team_policy
+
+    env = multi.make("1d-static-sin", num_robots=2)
+    team = team_policy("handcrafted", env)
+    before = _team_scan()._cache_size()
+    first = record_team(env, env.default_params, team, jax.random.key(0))
+    record_team(env, env.default_params, team, jax.random.key(1))
+    assert _team_scan()._cache_size() == before + 1
+    assert first.actions.shape[1] == 2 and len(first.actions) >= 1

@@ -7,6 +7,7 @@ world (`snac_jax.multi`, SPEC §13), each in its colour (`snac_jax.rendering.rob
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, check_seed_index, positive_int, seed, task_id
@@ -78,14 +79,22 @@ def record_team(env, params, policy, key):
 
     from snac_jax.recording import Trajectory
 
-    scan = jax.jit(_scan_team, static_argnames=("env", "init", "act", "num_steps"))  # one episode a command
     states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
-        scan(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
+        _team_scan()(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
     length = int(np.sum(live))  # the step limit ends every episode within the scan
     return Trajectory(states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
                       actions=np.asarray(actions[:length]), strides=np.asarray(strides[:length]),
                       rewards=np.asarray(rewards[:length]), final_iou=float(final_iou),
                       terminated=bool(terminated[length - 1]))
+
+
+@functools.cache
+def _team_scan():
+    """`_scan_team` jitted once per process (JAX is imported only when a team is drawn), so every
+    episode of one configuration reuses one compilation."""
+    import jax
+
+    return jax.jit(_scan_team, static_argnames=("env", "init", "act", "num_steps"))
 
 
 def _scan_team(key, env, params, init, act, policy_params, num_steps: int):
