@@ -344,6 +344,9 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     print(markdown_table(results, paper))
     if diverged:
         print(f"\nnote: {diverged}")
-    atomic_write_json(out_dir / "eval.json", {r.task: r.to_json() for r in results})
+    rows = {r.task: r.to_json() for r in results}
+    if overrides:  # what the numbers were scored with travels with them, as `snac eval` writes it
+        rows = {task: {**row, "overrides": overrides} for task, row in rows.items()}
+    atomic_write_json(out_dir / "eval.json", rows)
     print(f"\nwrote {out_dir / 'eval.json'}")
     return results

@@ -91,7 +91,7 @@ EVAL_ROW = Object({
     "task": Str(), "mean": IOU, "min": IOU, "std": Number(0.0), "ci95": ListOf(Number(), length=2),
     "episodes": Int(1), "mean_length": Number(0.0), "mean_bricks_used": Number(0.0), "mean_return": Number(),
     "per_design": MapOf(STRATUM), "seed": Int(0, MAX_SEED), "wall_s": Number(0.0),
-})
+}, {"overrides": MapOf(Anything())})  # the `make` overrides it was scored with, where not the task's own
 EVAL_JSON = MapOf(EVAL_ROW, min_items=1)
 
 
