@@ -71,7 +71,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def measure(task: str, num_robots: int, episodes: int | None, eval_seed: int) -> dict:
     """One row: the protocol's numbers for the handcrafted split of `num_robots` on `task`."""
-    from snac_jax.cli.eval import team_policy
+    from snac_jax.policies.team import team_policy
     from snac_jax.multi.evaluation import evaluate_team_task
 
     counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
@@ -89,7 +89,7 @@ def markdown(rows: list[dict], context: dict) -> str:
         f"{context['backend']} ({context['device']}), jax {context['jax']}.",
         "",
         "| task | robots | episodes | mean IoU | 95% CI | min IoU | mean length (steps) | length vs 1 robot "
-        "| ended before the step limit | step limit | mean bricks |",
+        "| ended by termination | step limit | mean bricks |",
         "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
     single = {r["task"]: r["mean_length"] for r in rows if r["robots"] == 1}
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
             row = measure(task, n, args.episodes, args.seed)
             rows.append(row)
             print(f"{task} N={n}: IoU {row['mean_iou']:.3f} [{row['ci95'][0]:.3f}, {row['ci95'][1]:.3f}], "
-                  f"length {row['mean_length']:.1f}, ended before the limit {row['finished_fraction']:.3f} "
+                  f"length {row['mean_length']:.1f}, ended by termination {row['finished_fraction']:.3f} "
                   f"({row['wall_s']:.1f} s)", flush=True)
     episodes = ("the protocol's episodes (500 per static task, 200 per test design)" if args.episodes is None
                 else f"{args.episodes} episodes per design")

@@ -194,4 +194,4 @@ def test_a_team_checkpoint_is_scored_as_its_training_scored_it(tmp_path, capsys)
     entry = json.loads(out.read_text())["1d-static-sin"]
     trained = json.loads((run / "eval.json").read_text())["1d-static-sin"]
     assert entry["robots"] == 2 and entry["max_steps"] == 20 and entry["mean_length"] <= 20
-    assert {k: entry[k] for k in trained if k != "wall_s"} == _protocol_fields(trained)
+    assert {k: entry[k] for k in _protocol_fields(trained)} == _protocol_fields(trained)

@@ -495,6 +495,49 @@ def test_each_robot_builds_its_share_of_a_hand_written_design():
     np.testing.assert_array_equal(states.estimate, [[0, 0], [19, 19]])
 
 
+# --- whole episodes: the recording and the protocol's finish ------------------------------------
+
+
+def test_a_recorded_episode_is_the_episode_run_episode_scores():
+    """`record_team_episode` and `run_episode` share one step and one key schedule: from the same
+    key on a static task (one design, so `reset` and `reset_to_design(0)` agree) the random team,
+    which draws its actions and strides from the keys, takes the same steps to the same end."""
+    from snac_jax.multi.episodes import record_team_episode
+    from snac_jax.policies.team import team_policy
+
+    env = multi.make("2d-static-dense", num_robots=2, max_steps=SHORT)
+    params, team = env.default_params, team_policy("random", env)
+    run = jax.jit(lambda k: multi.run_episode(env, team, k, 0, params))
+    for seed in range(3):
+        key = jax.random.key(seed)
+        recorded, scored = record_team_episode(env, params, team, key), run(key)
+        assert recorded.length == int(scored.length) and recorded.terminated == bool(scored.terminated)
+        assert recorded.final_iou == float(scored.iou)
+        assert int(recorded.state_at(-1).world.bricks_used) == int(scored.bricks_used)
+        np.testing.assert_allclose(recorded.rewards.sum(), float(scored.team_return), rtol=1e-6)
+        assert recorded.actions.shape == (recorded.length, 2) and int(recorded.state_at(-1).world.time) == recorded.length
+
+
+_ALWAYS_DROP = multi.MultiPolicy(init=lambda key, design: jnp.zeros(()),
+                                 act=lambda params, state, obs, key: (jnp.full(obs.shape[0], 2, jnp.int32), state),
+                                 name="always-drop")
+"""Every robot drops a brick every step (action 2 in 1D), each onto its own column."""
+
+
+@pytest.mark.parametrize("max_steps, finished", [(301, 1.0), (300, 1.0), (299, 0.0)])
+def test_finished_episodes_are_the_terminated_ones_the_last_step_included(max_steps, finished):
+    """1d-static-sin's budget is 600 bricks; two robots always dropping spend two a step, so the
+    budget runs out on step 300. With a limit of 300 the episode terminates on its last allowed
+    step (terminated and truncated at once) and counts as finished, as with a limit of 301; with
+    299 the limit truncates it, 598 bricks spent, and it counts as unfinished."""
+    assert int(multi.make("1d-static-sin", num_robots=2).default_params.design_max_bricks[0]) == 600
+    team = multi.evaluate_team_task("1d-static-sin", _ALWAYS_DROP, 2, static_episodes=2, max_steps=max_steps)
+    length = min(max_steps, 300)
+    assert team.finished_fraction == finished and team.max_steps == max_steps
+    assert team.result.mean_length == length and team.result.mean_bricks_used == 2 * length
+    assert team.to_json()["finished_fraction"] == finished
+
+
 # --- the picture ---------------------------------------------------------------------------------
 
 

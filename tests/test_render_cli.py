@@ -102,13 +102,13 @@ def test_a_team_episode_compiles_once_per_configuration():
     import jax
 
     from snac_jax import multi
-    from snac_jax.cli.render import _team_scan, record_team
-    from snac_jax.cli.eval import team_policy
+    from snac_jax.multi.episodes import _record_scan, record_team_episode
+    from snac_jax.policies.team import team_policy
 
     env = multi.make("1d-static-sin", num_robots=2)
     team = team_policy("handcrafted", env)
-    before = _team_scan()._cache_size()
-    first = record_team(env, env.default_params, team, jax.random.key(0))
-    record_team(env, env.default_params, team, jax.random.key(1))
-    assert _team_scan()._cache_size() == before + 1
+    before = _record_scan._cache_size()
+    first = record_team_episode(env, env.default_params, team, jax.random.key(0))
+    record_team_episode(env, env.default_params, team, jax.random.key(1))
+    assert _record_scan._cache_size() == before + 1
     assert first.actions.shape[1] == 2 and len(first.actions) >= 1

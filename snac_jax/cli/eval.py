@@ -23,12 +23,10 @@ from snac_jax.cli.arguments import add_devices_argument, add_seed_index_argument
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_TASKS
 from snac_jax.policies import POLICIES
+from snac_jax.policies.team import TEAM_POLICIES, team_policy
 from snac_jax.tasks import TASKS
 
 TASK_CHOICES = ("all", *PAPER_TASKS, *(t for t in TASKS if t not in PAPER_TASKS))
-TEAM_POLICIES = ("handcrafted", "handcrafted-map", "random")
-"""Registered policies a team runs (`--robots N`): the handcrafted ones as the split of the plan
-(`snac_jax.policies.split`, SPEC §13), the random one as N independent random robots."""
 
 
 def _task(text: str) -> str:
@@ -96,36 +94,6 @@ def _environment_tasks(task: str) -> tuple[str, ...]:
     from snac_jax.evaluation import environment_tasks
 
     return tuple(t for column in (PAPER_TASKS if task == "all" else (task,)) for t in environment_tasks(column))
-
-
-# --- teams ---------------------------------------------------------------------------------------
-
-
-def team_policy(name: str, env):
-    """The team form of registered policy `name` for `env` (a `snac_jax.multi.MultiSNACEnv`)."""
-    from snac_jax import multi
-    from snac_jax.policies.random import random_policy
-    from snac_jax.policies.split import handcrafted_split
-
-    if name not in TEAM_POLICIES:
-        raise ValueError(f"--robots runs a team of one of: {', '.join(TEAM_POLICIES)}; got --policy {name}")
-    if name != "random":
-        return handcrafted_split(env, "map" if name == "handcrafted-map" else "no-map")
-    return _independent_team(random_policy(env.single), env.num_agents, multi.MultiPolicy)
-
-
-def _independent_team(single, num_robots: int, team_class):
-    """N robots each running `single` on the whole design, with keys of their own."""
-    import jax
-
-    def init(key, design):
-        return jax.vmap(single.init, in_axes=(0, None))(jax.random.split(key, num_robots), design)
-
-    def act(params, states, obs, key):
-        keys = jax.random.split(key, num_robots)
-        return jax.vmap(single.act, in_axes=(None, 0, 0, 0))(params, states, obs, keys)
-
-    return team_class(init=init, act=act, params=single.params, name=f"{single.name}-x{num_robots}")
 
 
 # --- the command ---------------------------------------------------------------------------------
@@ -215,8 +183,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             result = evaluate_team_task(task, builder, robots, seed=args.seed, **episodes, **run_overrides)
             rows.append(result.result)
-            print(f"{task}: {result.finished_fraction:.3f} of the episodes ended before the step limit "
-                  f"({result.max_steps})", file=sys.stderr)
+            print(f"{task}: {result.finished_fraction:.3f} of the episodes ended with the bricks spent or a robot "
+                  f"stuck rather than at the step limit ({result.max_steps})", file=sys.stderr)
         results.append(result)
         print(f"{task}: mean IoU {rows[-1].mean:.3f} over {rows[-1].episodes} episodes ({rows[-1].wall_s:.1f} s)",
               file=sys.stderr)

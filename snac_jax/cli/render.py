@@ -1,13 +1,13 @@
 """`snac render`: record one episode of a policy as a GIF, with step, bricks and IoU on every frame.
 
 The checkpoint of a team run (`snac train ippo --robots N`) is drawn as its team: N robots in one
-world (`snac_jax.multi`, SPEC §13), each in its colour (`snac_jax.rendering.robots`).
+world (`snac_jax.multi`, SPEC §13), each in its colour (`snac_jax.rendering.robots`), its episode
+recorded by `snac_jax.multi.episodes.record_team_episode`.
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
 import time
 
 from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, check_seed_index, positive_int, seed, task_id
@@ -69,66 +69,12 @@ def frame_bytes(env, params, cell: int | None) -> int:
     return int(small.shape[0] * small.shape[1] * 3 * (cell / 4) ** 2)
 
 
-def record_team(env, params, policy, key):
-    """One episode of a team (`policy` a `snac_jax.multi.MultiPolicy` of `env`, a
-    `MultiSNACEnv`) kept step by step, as `snac_jax.recording.record_episode` keeps a single
-    robot's: a `Trajectory` whose states are `MultiState`s and whose actions and strides are
-    (length, N). One jitted scan over the whole step limit; an ended episode stays as it was."""
-    import jax
-    import numpy as np
-
-    from snac_jax.recording import Trajectory
-
-    states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
-        _team_scan()(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
-    length = int(np.sum(live))  # the step limit ends every episode within the scan
-    return Trajectory(states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
-                      actions=np.asarray(actions[:length]), strides=np.asarray(strides[:length]),
-                      rewards=np.asarray(rewards[:length]), final_iou=float(final_iou),
-                      terminated=bool(terminated[length - 1]))
-
-
-@functools.cache
-def _team_scan():
-    """`_scan_team` jitted once per process (JAX is imported only when a team is drawn), so every
-    episode of one configuration reuses one compilation."""
-    import jax
-
-    return jax.jit(_scan_team, static_argnames=("env", "init", "act", "num_steps"))
-
-
-def _scan_team(key, env, params, init, act, policy_params, num_steps: int):
-    import jax
-    import jax.numpy as jnp
-
-    from snac_jax.multi.episodes import stack
-
-    key_reset, key_policy, key_run = jax.random.split(key, 3)
-    obs, state = env.reset(key_reset, params)
-
-    def body(carry, step_key):
-        obs, state, agent, ended = carry
-        key_act, key_step = jax.random.split(step_key)
-        actions, next_agent = act(policy_params, agent, obs, key_act)
-        next_obs, next_state, rewards, dones, infos = env.step_env(
-            key_step, state, {name: actions[i] for i, name in enumerate(env.agents)}, params)
-        keep = lambda old, new: jax.tree.map(lambda o, n: jnp.where(ended, o, n), old, new)
-        carry = (keep(obs, stack(env, next_obs)), keep(state, next_state), keep(agent, next_agent),
-                 ended | dones["__all__"])
-        return carry, (carry[1], actions, infos["strides"], rewards[env.agents[0]], infos["terminated"], ~ended)
-
-    first = (stack(env, obs), state, init(key_policy, state.world.design), jnp.asarray(False))
-    (_, final, _, _), (states, actions, strides, rewards, terminated, live) = jax.lax.scan(
-        body, first, jax.random.split(key_run, num_steps))
-    states = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)
-    return states, actions, strides, rewards, terminated, live, env.iou(final)
-
-
 def run(args: argparse.Namespace) -> int:
     import jax
 
     from snac_jax import make, memory, metrics
     from snac_jax.atomic import check_writable
+    from snac_jax.multi.episodes import record_team_episode
     from snac_jax.policies import build_policy
     from snac_jax.recording import record_episode
     from snac_jax.rendering import render, save_gif
@@ -171,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     key = jax.random.key(args.seed)
-    trajectory = record_episode(env, params, policy, key) if robots is None else record_team(env, params, policy, key)
+    record = record_episode if robots is None else record_team_episode
+    trajectory = record(env, params, policy, key)
     episode_s = time.perf_counter() - start
     num_frames = len(frame_indices(trajectory.length, args.every))
     # the frames, and the GIF encoder's copy of them

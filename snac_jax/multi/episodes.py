@@ -1,8 +1,11 @@
-"""Whole episodes of several robots: a team policy run to the episode's end, and a replay.
+"""Whole episodes of several robots: a team policy run to the episode's end, the same episode
+kept step by step for a video, and a replay.
 
-Both step without auto-reset (`MultiSNACEnv.step_env`, `step_with_strides`) and leave an
+All step without auto-reset (`MultiSNACEnv.step_env`, `step_with_strides`) and leave an
 ended episode as it was, as the single-robot loops of `snac_jax.episodes` do, so an
 evaluation's score is the final IoU of each episode and its length the steps it took.
+`run_episode` and `record_team_episode` share one step (`_team_step`) and one key schedule,
+so a recorded episode is the episode an evaluation scores from the same key and start.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from flax import struct
 from snac_jax.config import MAX_STRIDE
 from snac_jax.env import check_range
 from snac_jax.multi.env import MultiSNACEnv
+from snac_jax.recording import Trajectory
 from snac_jax.replay import REPLAY_CHUNK
 from snac_jax.state import EnvParams
 
@@ -46,11 +50,33 @@ class TeamEpisode:
     length: jax.Array  # int32, the steps taken (N_s)
     bricks_used: jax.Array  # int32
     team_return: jax.Array  # float32, the sum of the team rewards
+    # bool: the env ended it (bricks spent, a robot stuck), on any step including the last allowed one;
+    # False: the step limit alone truncated it
+    terminated: jax.Array
 
 
 def stack(env: MultiSNACEnv, by_agent: dict[str, jax.Array]) -> jax.Array:
     """A dict keyed by agent as one array, robot order first."""
     return jnp.stack([by_agent[agent] for agent in env.agents])
+
+
+def _team_start(env: MultiSNACEnv, policy: MultiPolicy, key: jax.Array, reset: Callable[[jax.Array], Any]):
+    """The first carry of `_team_step`: the world from `reset(key)`, the policy's state, the run's key."""
+    key_reset, key_init, key_run = jax.random.split(key, 3)
+    obs, state = reset(key_reset)
+    return stack(env, obs), state, policy.init(key_init, state.world.design), key_run
+
+
+def _team_step(env: MultiSNACEnv, policy: MultiPolicy, params: EnvParams, carry):
+    """One step of the team: the policy acts on the stacked observations, the world steps with
+    strides drawn from the carried key. Returns the next carry and `(actions (N,), team reward,
+    done, infos)`; the one body of `run_episode` and `record_team_episode`."""
+    obs, state, agent, key = carry
+    key, key_act, key_step = jax.random.split(key, 3)
+    actions, agent = policy.act(policy.params, agent, obs, key_act)
+    by_agent = {name: actions[i] for i, name in enumerate(env.agents)}
+    obs, state, rewards, dones, infos = env.step_env(key_step, state, by_agent, params)
+    return (stack(env, obs), state, agent, key), (actions, rewards[env.agents[0]], dones["__all__"], infos)
 
 
 def run_episode(
@@ -59,22 +85,51 @@ def run_episode(
     """One episode on `params.designs[design_index]` from its reset to its end (a `while_loop`,
     bounded by the step limit); jit and vmap it from the caller (over keys or design indices)."""
     params = env.default_params if params is None else params
-    key_reset, key_init, key_run = jax.random.split(key, 3)
-    obs, state = env.reset_to_design(key_reset, design_index, params)
-    agent = policy.init(key_init, state.world.design)
-    first = (stack(env, obs), state, agent, key_run, jnp.zeros((), jnp.float32), jnp.asarray(False))
+    start = _team_start(env, policy, key, lambda k: env.reset_to_design(k, design_index, params))
 
-    def body(carry):
-        obs, state, agent, key, total, _ = carry
-        key, key_act, key_step = jax.random.split(key, 3)
-        actions, agent = policy.act(policy.params, agent, obs, key_act)
-        by_agent = {name: actions[i] for i, name in enumerate(env.agents)}
-        obs, state, rewards, dones, _ = env.step_env(key_step, state, by_agent, params)
-        return stack(env, obs), state, agent, key, total + rewards[env.agents[0]], dones["__all__"]
+    def body(loop):
+        carry, total, _, _ = loop
+        carry, (_, reward, done, infos) = _team_step(env, policy, params, carry)
+        return carry, total + reward, done, infos["terminated"]
 
-    _, state, _, _, total, _ = jax.lax.while_loop(lambda carry: ~carry[-1], body, first)
+    first = (start, jnp.zeros((), jnp.float32), jnp.asarray(False), jnp.asarray(False))
+    (_, state, _, _), total, _, terminated = jax.lax.while_loop(lambda loop: ~loop[2], body, first)
     world = state.world
-    return TeamEpisode(iou=env.iou(state), length=world.time, bricks_used=world.bricks_used, team_return=total)
+    return TeamEpisode(iou=env.iou(state), length=world.time, bricks_used=world.bricks_used, team_return=total,
+                       terminated=terminated)
+
+
+@partial(jax.jit, static_argnames=("env", "init", "act", "num_steps"))
+def _record_scan(key, env: MultiSNACEnv, params: EnvParams, init, act, policy_params, num_steps: int):
+    # `init` and `act` static, as in `snac_jax.recording`: one compilation per configuration.
+    policy = MultiPolicy(init, act, policy_params)
+    start = _team_start(env, policy, key, lambda k: env.reset(k, params))
+
+    def body(loop, _):
+        carry, ended = loop
+        stepped, (actions, reward, done, infos) = _team_step(env, policy, params, carry)
+        keep = lambda old, new: jax.tree.map(lambda o, n: jnp.where(ended, o, n), old, new)
+        carry = (*keep(carry[:3], stepped[:3]), stepped[3])  # after the end, only the unused key moves
+        return (carry, ended | done), (carry[1], actions, infos["strides"], reward, infos["terminated"], ~ended)
+
+    ((_, final, _, _), _), (states, actions, strides, rewards, terminated, live) = jax.lax.scan(
+        body, (start, jnp.asarray(False)), None, length=num_steps)
+    states = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), start[1], states)
+    return states, actions, strides, rewards, terminated, live, env.iou(final)
+
+
+def record_team_episode(env: MultiSNACEnv, params: EnvParams, policy: MultiPolicy, key: jax.Array) -> Trajectory:
+    """One episode of a team from `env.reset`, kept step by step, as `snac_jax.recording.record_episode`
+    keeps a single robot's: a `Trajectory` whose states are `MultiState`s and whose actions and
+    strides are (length, N). One scan over the whole step limit, jitted once per configuration
+    (env, policy functions, step limit); an ended episode stays as it was."""
+    states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
+        _record_scan(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
+    length = int(np.sum(live))  # the step limit ends every episode within the scan
+    return Trajectory(states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
+                      actions=np.asarray(actions[:length]), strides=np.asarray(strides[:length]),
+                      rewards=np.asarray(rewards[:length]), final_iou=float(final_iou),
+                      terminated=bool(terminated[length - 1]))
 
 
 @partial(jax.jit, static_argnums=0)

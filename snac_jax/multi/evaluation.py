@@ -22,15 +22,13 @@ from snac_jax.evaluation import (
     STATIC_EPISODES,
     TUNING_EVAL_SEED,
     TaskResult,
-    _task_key,
     check_protocol_args,
     environment_tasks,
-    test_design_params,
+    protocol_episodes,
 )
 from snac_jax.memory import require, tree_bytes
 from snac_jax.multi.env import MultiSNACEnv, make
 from snac_jax.multi.episodes import MultiPolicy, run_episode
-from snac_jax.tasks import task_spec, test_design_names
 
 TeamLike = MultiPolicy | Callable[[MultiSNACEnv], MultiPolicy]
 """A `MultiPolicy` used as is for every environment task, or a builder `team(env) -> MultiPolicy`
@@ -40,13 +38,13 @@ called once per environment task."""
 @dataclasses.dataclass
 class TeamResult:
     """The protocol's numbers of a team (`result`), with how many robots and how many of its
-    episodes ended before the step limit (brick budget spent or a robot stuck): whether a team
-    finishes, beside how long it takes (`result.mean_length`)."""
+    episodes the env ended (brick budget spent or a robot stuck) rather than the step limit:
+    whether a team finishes, beside how long it takes (`result.mean_length`)."""
 
     result: TaskResult
     robots: int
     max_steps: int
-    finished_fraction: float  # episodes with length < max_steps
+    finished_fraction: float  # episodes that ended terminated (on any step, the last one included), not truncated
 
     def to_json(self) -> dict[str, Any]:
         return {**self.result.to_json(), "robots": self.robots, "max_steps": self.max_steps,
@@ -76,30 +74,26 @@ def evaluate_team_task(task: str, team: TeamLike, num_robots: int, *, static_epi
         policy = team if isinstance(team, MultiPolicy) else team(env)
         if not isinstance(policy, MultiPolicy):
             raise ValueError(f"a team needs a snac_jax.multi.MultiPolicy, got {type(policy).__name__}")
-        if task_spec(env_task).dynamic:
-            params, names = test_design_params(env_task, params), test_design_names(env_task)
-            design_indices = np.repeat(np.arange(len(names)), episodes_per_test_design).astype(np.int32)
-        else:
-            names, design_indices = [env_task], np.zeros(static_episodes, np.int32)
+        setup = protocol_episodes(env_task, params, seed, static_episodes, episodes_per_test_design)
+        params, names = setup.params, setup.names
 
         def one_episode(k):  # what one episode holds: its observations, world and policy state
             obs, state = env.reset_to_design(k, 0, params)
             return obs, state, policy.init(k, state.world.design)
 
         one = jax.eval_shape(one_episode, jax.random.key(0))
-        require(f"{design_indices.size:,} team episodes at once", 4 * design_indices.size * tree_bytes(one),
+        require(f"{setup.num_episodes:,} team episodes at once", 4 * setup.num_episodes * tree_bytes(one),
                 "evaluate fewer episodes")
-        keys = jax.random.split(_task_key(seed, env_task), design_indices.size)
+        design_indices, keys = setup.design_indices, setup.keys
         episodes = jax.device_get(_team_episodes(env, policy.init, policy.act, policy.params, params, keys,
                                                  jnp.asarray(design_indices)))
         outcomes.append(episodes)
-        limits.append(np.full(design_indices.size, int(params.max_steps_in_episode)))
+        limits.append(int(params.max_steps_in_episode))
         for index, name in enumerate(names):
             strata[name] = np.asarray(episodes.iou[design_indices == index], np.float64)
     everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
-    limits = np.concatenate(limits)
     result = TaskResult.from_episodes(task=task, strata=strata, lengths=everything.length,
                                       bricks_used=everything.bricks_used, returns=everything.team_return,
                                       seed=seed, wall_s=time.perf_counter() - start)
-    finished = float(np.mean(np.asarray(everything.length) < limits))
-    return TeamResult(result=result, robots=num_robots, max_steps=int(limits.max()), finished_fraction=finished)
+    finished = float(np.mean(np.asarray(everything.terminated)))
+    return TeamResult(result=result, robots=num_robots, max_steps=max(limits), finished_fraction=finished)
