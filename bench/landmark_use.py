@@ -3,12 +3,14 @@ places, when, whether on design cells, and where on the plan.
 
     python bench/landmark_use.py --run runs/table/landmark-action/ppo/2d-static-sparse.landmark-action --out OUT
 
-Each training seed's greedy policy (`agents.trained.checkpoint_policy`) plays the evaluation
-protocol's episodes (SPEC §8): `--episodes` on a static task's design (default 100), or on each
-of a dynamic task's ten test designs (default 20), with the run's switches and the report key
-(`REPORT_EVAL_SEED`) unless `--eval-seed` says otherwise. The episodes are those `evaluate_task`
-runs with the same key and counts (same keys, same loop, `snac_jax.episodes.run_to_end`), so the
-final IoUs here equal the protocol's; only the policy's placements are tallied on the way.
+Each training seed's greedy policy (`agents.trained.checkpoint_policy`; of a sweep, the seeds of
+the arm `--arm` names, which a sweep requires) plays the evaluation protocol's episodes (SPEC §8):
+`--episodes` on a static task's design (default 100), or on each of a dynamic task's ten test
+designs (default 20), with the run's switches and the report key (`REPORT_EVAL_SEED`) unless
+`--eval-seed` says otherwise. The episodes are those `evaluate_task` runs with the same key and
+counts (`snac_jax.evaluation.protocol_episodes`: the same designs and episode keys; the same loop,
+`snac_jax.episodes.run_to_end`), so the final IoUs here equal the protocol's; only the policy's
+placements are tallied on the way.
 
 Writes only under `--out`: `landmark_use.json` (a summary per seed and pooled, and every
 episode's placements) and `landmark_use.png` (where the landmarks landed, summed over episodes,
@@ -34,10 +36,10 @@ from flax import struct  # noqa: E402
 
 from snac_jax import design_change, episodes, landmark_action, metrics  # noqa: E402
 from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
-from snac_jax.evaluation import (REPORT_EVAL_SEED, _task_key, require_episode_memory,  # noqa: E402
-                                 test_design_params)
+from snac_jax.evaluation import (REPORT_EVAL_SEED, ProtocolEpisodes, protocol_episodes,  # noqa: E402
+                                 require_episode_memory)
 from snac_jax.policy import call_act  # noqa: E402
-from snac_jax.tasks import make, task_spec, test_design_names  # noqa: E402
+from snac_jax.tasks import make, task_spec  # noqa: E402
 
 STATIC_EPISODES = 100
 EPISODES_PER_TEST_DESIGN = 20
@@ -96,7 +98,7 @@ class LandmarkEpisodes:
 
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _rollout(env, init, act, policy_params, env_params, keys, design_indices) -> LandmarkEpisodes:
-    """`evaluation._run_episodes` with the same key schedule, tallying placements on the way."""
+    """`evaluation._run_episodes` with the same use of each episode's key, tallying placements on the way."""
     config = env.config
     (h, w), (pr, pc) = config.plan_shape, config.pad
 
@@ -126,24 +128,33 @@ def _rollout(env, init, act, policy_params, env_params, keys, design_indices) ->
     return jax.vmap(run)(keys, design_indices)
 
 
-def run_landmark_episodes(env, params, policy, key, design_indices) -> LandmarkEpisodes:
-    """One episode per entry of `design_indices`, all in one jitted, vmapped call (host arrays back)."""
+def run_landmark_episodes(env, policy, setup: ProtocolEpisodes) -> LandmarkEpisodes:
+    """The protocol's episodes `setup` (`protocol_episodes`), all in one jitted, vmapped call
+    (host arrays back)."""
     if not env.config.landmark_action:
         raise ValueError("the env has no landmark placement action: make it with landmark_action=K (SPEC §14)")
-    indices = jnp.asarray(np.asarray(design_indices), jnp.int32)
-    require_episode_memory(env, params, policy, int(indices.shape[0]))
-    keys = jax.random.split(key, indices.shape[0])
-    return jax.device_get(_rollout(env, policy.init, policy.act, policy.params, params, keys, indices))
+    require_episode_memory(env, setup.params, policy, setup.num_episodes)
+    indices = jnp.asarray(setup.design_indices)
+    return jax.device_get(_rollout(env, policy.init, policy.act, policy.params, setup.params, setup.keys, indices))
 
 
-def protocol_world(task: str, overrides: dict, count: int):
-    """`(env, params, design names, design indices)` of the protocol's episodes (SPEC §8), `count`
-    per design."""
-    env, params = make(task, **overrides)
-    if task_spec(task).dynamic:
-        names = test_design_names(task)
-        return env, test_design_params(task, params), names, np.repeat(np.arange(len(names)), count)
-    return env, params, [task], np.zeros(count, np.int32)
+def run_indices(run: Path, swept, seeds: int, arm: int | None, seed_index: int | None) -> list[tuple[int, int]]:
+    """`(seed, index into the run's trained policies)` for each policy analysed: every seed of the
+    run, or of `arm` of the sweep `swept` (arm a, seed s is index a * seeds + s), or the one
+    `seed_index`. `swept`: `agents.sweep.load(run)`, None for a run of one arm.
+
+    A sweep's arms are different settings, so pooling them would describe no one policy: a sweep
+    needs `--arm`, and a run of one arm refuses it."""
+    if swept is None and arm is not None:
+        raise ValueError(f"--arm {arm} given, but {run} is not a sweep (it trained one arm): leave --arm out")
+    if swept is not None and (arm is None or not 0 <= arm < swept.num_arms):
+        got = "none given" if arm is None else f"got {arm}"
+        raise ValueError(f"{run} is a sweep of {swept.num_arms} arms: --arm must be in 0..{swept.num_arms - 1} "
+                         f"({got})")
+    if seed_index is not None and not 0 <= seed_index < seeds:
+        raise ValueError(f"--seed-index must be in 0..{seeds - 1} for {run}, got {seed_index}")
+    first = 0 if arm is None else arm * seeds
+    return [(s, first + s) for s in (range(seeds) if seed_index is None else [seed_index])]
 
 
 # --- what is reported ----------------------------------------------------------------------------
@@ -220,7 +231,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", type=Path, required=True, help="a `snac train` run directory trained with landmark_action")
     parser.add_argument("--out", type=Path, required=True, help="directory for landmark_use.json and landmark_use.png")
-    parser.add_argument("--seed-index", type=int, default=None, help="one training seed (default: every seed of the run)")
+    parser.add_argument("--seed-index", type=int, default=None,
+                        help="one training seed (default: every seed of the run, or of its --arm)")
+    parser.add_argument("--arm", type=int, default=None,
+                        help="the arm of a sweep run to analyse (required for a sweep; a run of one arm has none)")
     parser.add_argument("--episodes", type=positive_int, default=None,
                         help=f"episodes on a static design / per dynamic test design "
                              f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
@@ -240,34 +254,38 @@ def analyse(args: argparse.Namespace) -> dict:
     if not k:
         raise ValueError(f"{args.run} was trained without landmark_action (switches {config.switches!r}): "
                          "its policy has no placement action to analyse")
+    swept = sweep.load(args.run)
+    indices = run_indices(args.run, swept, config.seeds, args.arm, args.seed_index)
     json_path = check_writable(args.out / "landmark_use.json", "--out")
     dynamic = task_spec(config.task).dynamic
     count = args.episodes or (EPISODES_PER_TEST_DESIGN if dynamic else STATIC_EPISODES)
-    env, params, names, design_indices = protocol_world(config.task, config.env_overrides, count)
-    indices = range(config.seeds) if args.seed_index is None else [args.seed_index]
-    key = _task_key(args.eval_seed, config.task)
+    env, params = make(config.task, **config.env_overrides)
+    setup = protocol_episodes(config.task, params, args.eval_seed, static_episodes=count,
+                              episodes_per_test_design=count)
+    names = list(setup.names)
     seeds, maps, rows_all = {}, {}, []
-    shared = None  # the seeds of one config share the network: the first's functions compile once for all
-    for index in indices:
+    shared = None  # the seeds of one arm share the network: the first's functions compile once for all
+    for seed_number, index in indices:
         policy = trained.checkpoint_policy(env, args.run, index)
-        if shared is not None:
-            policy = policy._replace(init=shared.init, act=shared.act)
-        elif sweep.load(args.run) is None:  # a sweep's arms may differ in network
+        if shared is None:
             shared = policy
-        result = run_landmark_episodes(env, params, policy, key, design_indices)
+        else:
+            policy = policy._replace(init=shared.init, act=shared.act)
+        result = run_landmark_episodes(env, policy, setup)
         if not np.array_equal(np.asarray(result.placed), (np.asarray(result.tally.steps) >= 0).sum(1)):
             raise AssertionError("the tally of landed placements disagrees with the env's landmarks_left")
         rows = episode_rows(result, names)
         rows_all += rows
-        seeds[str(index)] = {**summarize(rows, k), "episodes_detail": rows}
-        maps[f"seed {index}"] = np.asarray(result.new_cells).sum(0)
-        print(f"seed {index}: {seeds[str(index)]['mean_placed']:.2f} placed per episode, "
-              f"IoU {seeds[str(index)]['mean_iou']:.3f}", file=sys.stderr)
+        seeds[str(seed_number)] = {**summarize(rows, k), "episodes_detail": rows}
+        maps[f"seed {seed_number}"] = np.asarray(result.new_cells).sum(0)
+        print(f"seed {seed_number}: {seeds[str(seed_number)]['mean_placed']:.2f} placed per episode, "
+              f"IoU {seeds[str(seed_number)]['mean_iou']:.3f}", file=sys.stderr)
     if len(maps) > 1:
         maps["pooled"] = sum(maps.values())
-    outline = None if dynamic else np.asarray(params.designs[0]) > 0
+    outline = None if dynamic else np.asarray(setup.params.designs[0]) > 0
     report = {
         "run": str(args.run), "task": config.task, "algorithm": config.algorithm, "switches": config.switches,
+        "arm": args.arm, "arm_settings": None if swept is None else swept.arm_settings(args.arm),
         "landmark_action": k, "eval_seed": args.eval_seed, "episodes_per_design": count, "designs": names,
         "step_origin": 0, "on_design": "against the design in force at the placement's step",
         "heatmap": "landmark cells per plan position, summed over episodes; "
@@ -275,7 +293,8 @@ def analyse(args: argparse.Namespace) -> dict:
         "pooled": summarize(rows_all, k), "seeds": seeds,
     }
     atomic_write_json(json_path, report)
-    title = f"{config.algorithm} on {config.task} ({config.switches}), eval seed {args.eval_seed}"
+    arm = "" if swept is None else f", arm {args.arm} ({swept.label(args.arm)})"
+    title = f"{config.algorithm} on {config.task} ({config.switches}){arm}, eval seed {args.eval_seed}"
     plot_heatmaps(maps, outline, title, args.out / "landmark_use.png")
     return report
 

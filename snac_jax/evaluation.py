@@ -146,7 +146,7 @@ def run_episodes(
     num_episodes = indices.shape[0]
     require_episode_memory(env, params, policy, num_episodes)
     design_indices = jnp.asarray(indices, jnp.int32)
-    keys = jax.random.split(key, num_episodes)
+    keys = _episode_keys(key, num_episodes)
     mesh = devices.env_mesh(num_devices, num_envs=num_episodes)
     if mesh.devices.size == 1:
         return _run_episodes(env, policy.init, policy.act, policy.params, params, keys, design_indices)
@@ -250,6 +250,55 @@ def _task_key(seed: int, env_task: str) -> jax.Array:
     return jax.random.fold_in(jax.random.key(seed), zlib.crc32(env_task.encode()))
 
 
+def _episode_keys(key: jax.Array, num_episodes: int) -> jax.Array:
+    # Episode i's key depends only on `key` and i, never on how the episodes are split over devices.
+    return jax.random.split(key, num_episodes)
+
+
+@dataclasses.dataclass(frozen=True)
+class ProtocolEpisodes:
+    """The episodes the protocol runs on one environment task (SPEC §8), before any policy acts.
+
+    The per-episode arrays are built when read, so a caller can refuse a count too large for the
+    device (`require_episode_memory` with `num_episodes`) before any of them is allocated."""
+
+    params: Any  # the task's params; a dynamic task's designs replaced by its ten test designs
+    names: tuple[str, ...]  # the design behind each design index: the test designs, or the task itself
+    episodes_per_design: int
+    key: jax.Array  # the task's key: `run_episodes(..., key, design_indices)` draws `keys` from it
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.names) * self.episodes_per_design
+
+    @property
+    def design_indices(self) -> np.ndarray:
+        """int32 (episodes,), design-major: every episode of design 0 first."""
+        return np.repeat(np.arange(len(self.names), dtype=np.int32), self.episodes_per_design)
+
+    @property
+    def keys(self) -> jax.Array:
+        """(episodes,): episode i's key, the one `run_episodes` gives it."""
+        return _episode_keys(self.key, self.num_episodes)
+
+
+def protocol_episodes(env_task: str, params, seed: int, static_episodes: int = STATIC_EPISODES,
+                      episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN) -> ProtocolEpisodes:
+    """The designs and keys of the protocol's episodes on `env_task` with evaluation key `seed`,
+    `params` being the task's as `make` built them (the single robot's `EnvParams` or a team's).
+
+    The one statement of which episodes the protocol runs: `evaluate_task` and anything that runs
+    the protocol's episodes another way (a team, a tally of what the policy does on the way) draw
+    them here, so they see the same episodes with the same keys. `env_task` is an environment task
+    (not a paper group such as `1d-static`; `environment_tasks` expands those)."""
+    check_protocol_args(static_episodes, episodes_per_test_design, seed, {})
+    if task_spec(env_task).dynamic:
+        setup = test_design_params(env_task, params), tuple(test_design_names(env_task)), episodes_per_test_design
+    else:
+        setup = params, (env_task,), static_episodes
+    return ProtocolEpisodes(*setup, key=_task_key(seed, env_task))
+
+
 def check_protocol_args(static_episodes, episodes_per_test_design, seed, overrides) -> None:
     """The protocol's counts, key and overrides, checked before anything is built: one-line
     `ValueError`s naming what is allowed (shared by the single robot's and the team's protocol)."""
@@ -286,22 +335,14 @@ def evaluate_task(
     strata: dict[str, np.ndarray] = {}
     outcomes: list[Episodes] = []
     for env_task in env_tasks:
-        dynamic = task_spec(env_task).dynamic
         env, params = make(env_task, **overrides)
         episode_policy = policy if isinstance(policy, Policy) else policy(env)
         if not isinstance(episode_policy, Policy):
             raise ValueError(f"expected a Policy or a builder returning one, got {type(episode_policy).__name__}")
-        if dynamic:
-            params = test_design_params(env_task, params)
-            names = test_design_names(env_task)
-            require_episode_memory(env, params, episode_policy, len(names) * episodes_per_test_design)
-            design_indices = np.repeat(np.arange(len(names)), episodes_per_test_design)
-        else:
-            names = [env_task]
-            require_episode_memory(env, params, episode_policy, static_episodes)
-            design_indices = np.zeros(static_episodes, np.int32)
-        key = _task_key(seed, env_task)
-        result = jax.device_get(run_episodes(env, params, episode_policy, key, design_indices, num_devices))
+        setup = protocol_episodes(env_task, params, seed, static_episodes, episodes_per_test_design)
+        require_episode_memory(env, setup.params, episode_policy, setup.num_episodes)
+        result = jax.device_get(run_episodes(env, setup.params, episode_policy, setup.key, setup.design_indices,
+                                             num_devices))
         invalid = np.asarray(result.invalid_actions)
         if invalid.any():
             raise ValueError(
@@ -310,7 +351,7 @@ def evaluate_task(
                 f"clamp them to valid ones, so they are not scored (a policy for a task with another action count?)"
             )
         outcomes.append(result)
-        for index, name in enumerate(names):
+        for index, name in enumerate(setup.names):
             strata[name] = np.asarray(result.iou[result.design_index == index], np.float64)
     wall_s = time.perf_counter() - start
 

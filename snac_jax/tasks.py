@@ -120,6 +120,25 @@ def _switch_value(key: str, value: str) -> Any:
         return value
 
 
+def format_switches(switches: dict[str, Any]) -> str:
+    """The text of `switches` (as `parse_switches` returns them) that parses back to the same
+    dict, keys in `SWITCHES` order, so switches that parse equal have one text: `true`/`false`,
+    integers without padding, a tuple's numbers joined by `/` (a whole float as an integer), a
+    word as is."""
+    unknown = [key for key in switches if key not in SWITCHES]
+    if unknown:
+        raise ValueError(f"unknown switch {unknown[0]!r}; allowed: {', '.join(SWITCHES)}")
+
+    def text(value: Any) -> str:
+        if isinstance(value, bool):
+            return "true" if value else "false"
+        if isinstance(value, tuple):
+            return "/".join(str(int(v)) if float(v).is_integer() else repr(float(v)) for v in value)
+        return str(value)
+
+    return ",".join(f"{key}={text(switches[key])}" for key in SWITCHES if key in switches)
+
+
 MAX_INT32 = 2**31 - 1
 """Step counts are int32 on device."""
 MAX_SEED = 2**32 - 1

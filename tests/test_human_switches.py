@@ -131,7 +131,7 @@ def test_switched_games_form_their_own_row_of_the_summary(tmp_path):
 
 
 def test_canonical_switches_drops_spaces_and_checks_keys():
-    assert canonical_switches(" landmark_action = 2 , gps=true,") == "landmark_action=2,gps=true"
+    assert canonical_switches(" landmark_action = 2 , gps=true,") == "gps=true,landmark_action=2"
     assert canonical_switches("") == ""
     with pytest.raises(ValueError, match="unknown switch 'max_steps'"):
         canonical_switches("max_steps=5")

@@ -1,6 +1,6 @@
 """`bench/landmark_use.py`: the placement tally on hand-built states, scripted policies whose
-placements are known, a tiny trained run (counts consistent, IoUs equal to the protocol's) and
-the refusal of a run trained without the switch."""
+placements are known, a tiny trained run (counts consistent, IoUs equal to the protocol's), the
+refusal of a run trained without the switch and the choice of a sweep's arm."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bench.landmark_use import empty_tally, main, run_landmark_episodes, tally_step
+from bench.landmark_use import empty_tally, main, run_indices, run_landmark_episodes, tally_step
+from snac_jax.evaluation import protocol_episodes
 from snac_jax.policy import Policy
 from snac_jax.tasks import make
 
@@ -81,7 +82,8 @@ def test_a_scripted_policy_placing_at_step_zero_places_one_landmark_on_its_start
     step never moves, so only that first one lands and the other 11 attempts do nothing."""
     env, params = make("2d-static-sparse", landmark_action=4, max_steps=12)
     design = np.asarray(params.designs[0])
-    result = run_landmark_episodes(env, params, _scripted(place_when), jax.random.key(3), np.zeros(8, np.int32))
+    setup = protocol_episodes("2d-static-sparse", params, 3, static_episodes=8)
+    result = run_landmark_episodes(env, _scripted(place_when), setup)
     assert result.length.tolist() == [12] * 8
     assert result.placed.tolist() == [1] * 8 and result.tally.attempts.tolist() == [attempts] * 8
     assert (result.tally.steps[:, 0] == 0).all() and (result.tally.steps[:, 1:] == -1).all()
@@ -149,3 +151,75 @@ def test_a_run_without_the_switch_is_refused_in_one_line(tmp_path):
     assert done.stderr.strip() == (f"landmark_use.py: error: {run} was trained without landmark_action (switches "
                                    "'landmarks=4'): its policy has no placement action to analyse")
     assert not out.exists()
+
+
+def test_the_indices_of_one_arm_are_its_seeds_arm_major():
+    from agents.sweep import Sweep
+
+    swept = Sweep(("lr",), ((1e-3,), (3e-4,), (1e-4,)))
+    assert run_indices(Path("r"), swept, 3, 2, None) == [(0, 6), (1, 7), (2, 8)]
+    assert run_indices(Path("r"), swept, 3, 1, 2) == [(2, 5)]
+    assert run_indices(Path("r"), None, 2, None, None) == [(0, 0), (1, 1)]
+    assert run_indices(Path("r"), None, 2, None, 1) == [(1, 1)]
+    with pytest.raises(ValueError, match=r"^--seed-index must be in 0\.\.2 for r, got 3$"):
+        run_indices(Path("r"), swept, 3, 0, 3)
+
+
+def _config_only_run(tmp_path, arms=None):
+    """A run directory with a config (and a sweep of `arms` learning rates): enough for the
+    refusals, which come before any checkpoint is read."""
+    from agents import sweep
+    from agents.config import save_config
+    from agents.registry import make_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    save_config(make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, **TINY),
+                run / "config.json")
+    if arms is not None:
+        sweep.save(sweep.Sweep(("lr",), tuple((1e-3 / (i + 1),) for i in range(arms))), run)
+    return run
+
+
+@pytest.mark.parametrize("arms, arm, message", [
+    (3, None, "{run} is a sweep of 3 arms: --arm must be in 0..2 (none given)"),
+    (3, 3, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got 3)"),
+    (3, -1, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got -1)"),
+    (None, 0, "--arm 0 given, but {run} is not a sweep (it trained one arm): leave --arm out"),
+])
+def test_a_sweep_needs_one_of_its_arms_in_one_line(tmp_path, arms, arm, message):
+    run = _config_only_run(tmp_path, arms)
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out),
+                           *([] if arm is None else ["--arm", str(arm)])], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 2
+    assert done.stderr.strip() == "landmark_use.py: error: " + message.format(run=run)
+    assert done.stderr.count("\n") == 1 and not out.exists()
+
+
+def test_an_arm_of_a_sweep_is_scored_with_its_own_policies(tmp_path):
+    """Arm 1 of a 2-arm sweep with 2 seeds is run indices 2 and 3: its seeds' IoUs are the
+    protocol's for those policies, and differ from arm 0's (another learning rate)."""
+    from agents import trained
+    from agents.driver import train
+    from agents.registry import make_config
+    from agents.sweep import parse_sweep
+    from snac_jax.evaluation import evaluate_task
+
+    run = tmp_path / "sweep"
+    config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1,
+                         **TINY)
+    train(config, run, progress=False, swept=parse_sweep(["learning_rate=1e-4,3e-2"], config))
+    reports = {}
+    for arm in (0, 1):
+        out = tmp_path / f"arm{arm}"
+        assert main(["--run", str(run), "--out", str(out), "--arm", str(arm), "--episodes", "4", "--eval-seed", "7"]) == 0
+        reports[arm] = json.loads((out / "landmark_use.json").read_text())
+    assert reports[1]["arm"] == 1 and reports[1]["arm_settings"] == {"learning_rate": 3e-2}
+    assert set(reports[1]["seeds"]) == {"0", "1"} and reports[1]["pooled"]["episodes"] == 8
+    for seed in (0, 1):
+        protocol = evaluate_task("2d-static-sparse", lambda env: trained.checkpoint_policy(env, run, 2 + seed),
+                                 static_episodes=4, seed=7, num_devices=1, landmark_action=4)
+        assert reports[1]["seeds"][str(seed)]["mean_iou"] == pytest.approx(protocol.mean, abs=1e-12)
+    rows = lambda arm: [r for s in ("0", "1") for r in reports[arm]["seeds"][s]["episodes_detail"]]
+    assert rows(0) != rows(1)

@@ -27,7 +27,7 @@ from snac_jax.config import DOWN, LEFT, RIGHT, UP, EnvConfig
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.human.records import MODES, EpisodeRecord, append_record, game_world, start_episode
 from snac_jax.rendering import CAPTION_BG, CAPTION_FG, draw_text, render_observation
-from snac_jax.tasks import MAX_SEED, parse_switches, task_spec
+from snac_jax.tasks import MAX_SEED, format_switches, parse_switches, task_spec
 
 _DIRECTION_WORDS = {LEFT: "left", RIGHT: "right", DOWN: "down", UP: "up"}
 _MOVE_KEYS = _DIRECTION_WORDS  # pygame names the arrow keys by their direction
@@ -78,12 +78,11 @@ def key_legend(config: EnvConfig) -> str:
 
 
 def canonical_switches(text: str) -> str:
-    """`text` checked by `parse_switches` (a one-line error naming the allowed keys), with the
-    spaces around its items, keys and values dropped: games with the same switches share one
-    row of `snac eval --human` however they were typed."""
-    parse_switches(text)
-    items = (item.strip() for item in text.split(","))
-    return ",".join("=".join(part.strip() for part in item.split("=", 1)) for item in items if item)
+    """`text` checked by `parse_switches` (a one-line error naming the allowed keys) and written
+    back by `format_switches`: keys in a fixed order, values normalised (`04` is `4`, `True` is
+    `true`), so games with the same switches share one row of `snac eval --human` however they
+    were typed. Records hold this text."""
+    return format_switches(parse_switches(text))
 
 
 class GameSession:

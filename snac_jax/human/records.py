@@ -26,7 +26,7 @@ from snac_jax.config import MAX_STRIDE, PLAN_SIZE_1D, PLAN_SIZE_2D
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.paper import paper_column
 from snac_jax.schema import HUMAN_RECORD, MODES, check
-from snac_jax.tasks import parse_switches, task_spec
+from snac_jax.tasks import format_switches, parse_switches, task_spec
 
 RECORD_VERSION = 1
 
@@ -207,9 +207,13 @@ def replay_record(record: EpisodeRecord) -> dict[str, Any]:
     switches, seed and test design; `start_episode`) on the record's design: rewards, terminated
     and truncated (one per action), the final IoU, the bricks used and the state after the last
     action. Actions after the episode's end change nothing (`snac_jax.episodes.Step`)."""
+    return _replay_from(record, *_game_start(record))
+
+
+def _replay_from(record: EpisodeRecord, env, params, obs0, state0) -> dict[str, Any]:
+    """`replay_record` from the game's start `_game_start(record)`, built by the caller."""
     from snac_jax.env import check_range
 
-    env, params, obs0, state0 = _game_start(record)
     obs0, state0 = _on_design(env, params, state0, np.asarray(record.design))
     steps = len(record.actions)
     check_range("actions", np.asarray(record.actions), 0, env.num_actions - 1)
@@ -244,13 +248,14 @@ def verify_record(record: EpisodeRecord, tolerance: float = 1e-6) -> None:
     be ignored; not after: it would be unfinished), and the claimed IoU, bricks used, total
     reward and termination are the replay's.
     """
-    record.validate()
     who = f"record of {record.task} seed {record.seed}"
-    if not np.array_equal(np.asarray(record.design), expected_design(record)):
-        which = "its test design" if record.test_design is not None else "the design the game gives this episode"
-        raise ValueError(f"{who}: its design is not {which}")
     try:
-        out = replay_record(record)
+        record.validate()
+        start = _game_start(record)  # the world is built once, for the design check and the replay
+        if not np.array_equal(np.asarray(record.design), np.asarray(start[3].design)):
+            which = "its test design" if record.test_design is not None else "the design the game gives this episode"
+            raise ValueError(f"its design is not {which}")
+        out = _replay_from(record, *start)
     except ValueError as error:
         raise ValueError(f"{who}: {error}") from error
     done = out["terminated"] | out["truncated"]
@@ -281,8 +286,10 @@ def replay_iou(record: EpisodeRecord) -> float:
 def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = None, verify: bool = True):
     """Human episodes summarised per paper task as `snac_jax.evaluation.TaskResult`s.
 
-    Games played with switches form their own row, named `task (switches)`: they are another
-    environment, so they neither mix with the plain games nor stand beside the paper's number.
+    Games played with switches form their own row, named `task (switches)` with the switches'
+    canonical text (`format_switches`, which the game records), so records that spell the same
+    switches differently share it: they are another environment, so they neither mix with the
+    plain games nor stand beside the paper's number.
     Strata are as in the protocol: the shape (1d-static), the test design (dynamic tasks in eval
     mode), or the task's training designs. `mode` keeps only one mode's episodes; `verify`
     replays every record and raises `ValueError` when it contradicts its record
@@ -298,8 +305,8 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
             verify_record(r)
     groups: dict[str, list[EpisodeRecord]] = {}
     for r in chosen:
-        column = paper_column(r.task)
-        groups.setdefault(f"{column} ({r.switches})" if r.switches else column, []).append(r)
+        column, switches = paper_column(r.task), format_switches(parse_switches(r.switches))
+        groups.setdefault(f"{column} ({switches})" if switches else column, []).append(r)
     results = []
     for task, group in groups.items():
         strata: dict[str, list[float]] = {}
