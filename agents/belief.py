@@ -15,7 +15,7 @@ the window, an egocentric map of the design around the robot, which can stand in
 encoder's allocentric reading of a dynamic task's design (`design_encoder=False`), at a fraction
 of its cost.
 
-Two beliefs, one per run (`belief_filter`):
+Three beliefs, one per run (`belief_filter`, `brick_map`):
 
 - **filter** (the default): a histogram filter over rows and over columns, carried beside the
   GRU state. Each step moves the belief along the last action's axis by the cells the move
@@ -23,11 +23,15 @@ Two beliefs, one per run (`belief_filter`):
   (trained by the move loss on the true count), then keeps the positions whose plan edges agree
   with where the window shows padding (`filter_step`). An episode starts at the plan's corner
   (SPEC §2). It is the handcrafted policy's dead reckoning with the window's shift read by a
-  learned head; it ignores what the built cells could add.
+  learned head; it ignores what the built cells could add (`agents.belief_filter`).
+- **mapping filter** (`brick_map`): the same moves and padding on a joint belief over rows and
+  columns, which also maps the bricks the robot laid under its belief and weighs each position
+  by how well the window's bricks match that map (`agents.belief_map`, `MappingBeliefQNetwork`):
+  SLAM with distributions.
 - **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
   position loss on the true position; a distribution over rows and one over columns.
 
-Honest acting: either belief is computed from the observations alone (the filter's only learned
+Honest acting: every belief is computed from the observations alone (the filter's only learned
 part reads the windows and the action), and the design it reads is the observation's (a dynamic
 task) or the task's one fixed design (a static task, where every episode builds the same design,
 part of the task's definition like the step limit). The true position and moves enter only the
@@ -50,102 +54,13 @@ from agents.auxiliary import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losse
 from agents.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
 from agents.config import option
 from agents.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.belief_filter import belief_cross_entropy, expected_design_window, filter_step
+from agents.belief_map import drop_table, mapping_filter_step
 from agents.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
-UNLIKELY = 1e-6  # the filter's weight on a position the window's padding contradicts
-
-
-# --- pure pieces, each checked by hand in tests/test_belief.py ---------------------------------------
-
-
-def expected_design_window(p_row: jax.Array, p_col: jax.Array, design: jax.Array, window_shape: tuple[int, int],
-                           outside: float) -> jax.Array:
-    """The design the robot expects in its window, `(..., wr, wc)`, under independent beliefs
-    `p_row (..., rows)` and `p_col (..., cols)` over the plan `design (..., rows, cols)`; window
-    cells off the plan read `outside` (the window shows padding there).
-
-    Window cell (i, j) of a robot at plan (r, c) is plan cell (r + i - hr, c + j - hc), hr and hc
-    the window's half sizes, so with the design padded by them it is padded cell (r + i, c + j):
-    the expectation is `sum_r,c p_row[r] p_col[c] padded[r + i, c + j]`, i.e. `A @ padded @ B^T`
-    with row i of A the row belief shifted right by i (and B likewise).
-    """
-    wr, wc = window_shape
-    pad = [(0, 0)] * (design.ndim - 2) + [(wr // 2, wr // 2), (wc // 2, wc // 2)]
-    padded = jnp.pad(design, pad, constant_values=outside)
-
-    def shifted(p: jax.Array, size: int) -> jax.Array:  # (..., size, n + size - 1)
-        lead = [(0, 0)] * (p.ndim - 1)
-        return jnp.stack([jnp.pad(p, lead + [(i, size - 1 - i)]) for i in range(size)], axis=-2)
-
-    return jnp.einsum("...ir,...rc,...jc->...ij", shifted(p_row, wr), padded, shifted(p_col, wc))
-
-
-def shift_matrices(n: int) -> np.ndarray:
-    """`(2 * MAX_STRIDE + 1, n, n)`: matrix k moves a one-hot belief by `k - MAX_STRIDE` cells,
-    stopping at the ends (the plan's clipping, SPEC §3)."""
-    offsets = np.arange(-MAX_STRIDE, MAX_STRIDE + 1)
-    to = np.clip(np.arange(n)[None, :] + offsets[:, None], 0, n - 1)  # (offsets, from)
-    return (to[:, :, None] == np.arange(n)[None, None, :]).astype(np.float32)
-
-
-def move_belief(belief: jax.Array, p_cells: jax.Array, sign: jax.Array) -> jax.Array:
-    """The belief `(..., n)` after a move of `sign` (-1, 0 or +1) along its axis by m cells with
-    probability `p_cells[..., m]`, m = 0..MAX_STRIDE; sign 0 leaves it as it is."""
-    moved = jnp.einsum("...i,kij->...kj", belief, jnp.asarray(shift_matrices(belief.shape[-1])))
-    index = (sign[..., None] * jnp.arange(MAX_STRIDE + 1) + MAX_STRIDE).astype(jnp.int32)  # (..., m)
-    return jnp.einsum("...m,...mj->...j", p_cells, jnp.take_along_axis(moved, index[..., None], axis=-2))
-
-
-def padding_agrees(padding: jax.Array, n: int) -> jax.Array:
-    """`(..., n)`: for each position 0..n-1 along an axis, whether the window line across it,
-    `padding (..., w)` (True where the window shows padding), has padding exactly where the
-    window reaches off the plan from that position."""
-    w = padding.shape[-1]
-    seen = np.arange(n)[:, None] + np.arange(w)[None, :] - w // 2  # (n, w): the plan cell each window cell shows
-    off = (seen < 0) | (seen >= n)
-    return jnp.all(padding[..., None, :] == jnp.asarray(off), axis=-1)
-
-
-def correct_belief(belief: jax.Array, agrees: jax.Array) -> jax.Array:
-    """Bayes' rule with a near-certain likelihood, after a floor of `UNLIKELY` under every
-    position: a belief that has gone wrong (a move misread) moves to the positions the padding
-    allows instead of staying where it contradicts the window."""
-    belief = (belief + UNLIKELY) * jnp.where(agrees, 1.0, UNLIKELY)
-    return belief / belief.sum(axis=-1, keepdims=True)
-
-
-def belief_cross_entropy(p_row: jax.Array, p_col: jax.Array, position: jax.Array) -> jax.Array:
-    """Mean over steps of -log P(true row) P(true column) under the belief, `position (..., 2)`:
-    how well the belief the Q head read knew where the robot was (a metric, in the position
-    loss's units; ln rows + ln cols when it guesses)."""
-    picked = (jnp.take_along_axis(p_row, position[..., 0:1], -1) * jnp.take_along_axis(p_col, position[..., 1:2], -1))
-    return -jnp.log(jnp.maximum(picked, 1e-12)).mean()
-
-
-def start_belief(n: int) -> jax.Array:
-    """An episode starts at the plan's corner, row 0 and column 0 (SPEC §2)."""
-    return jax.nn.one_hot(0, n)
-
-
-def filter_step(belief: tuple[jax.Array, jax.Array], reset: jax.Array, p_cells: jax.Array, sign: jax.Array,
-                window_padding: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """One step of the row and column filters, `belief = (b_row (B, rows), b_col (B, cols))`: back
-    to the start where `reset`, else moved by the last action (`sign (B, 2)`: its row and column
-    direction, 0 for a drop or no action) by `p_cells (B, MAX_STRIDE + 1)` cells, then corrected
-    by the window's padding (`window_padding (B, wr, wc)`) along its centre column (rows) and
-    centre row (columns)."""
-    b_row, b_col = belief
-    wr, wc = window_padding.shape[-2:]
-    b_row = jnp.where(reset[:, None], start_belief(b_row.shape[-1]), move_belief(b_row, p_cells, sign[:, 0]))
-    b_col = jnp.where(reset[:, None], start_belief(b_col.shape[-1]), move_belief(b_col, p_cells, sign[:, 1]))
-    b_row = correct_belief(b_row, padding_agrees(window_padding[:, :, wc // 2], b_row.shape[-1]))
-    b_col = correct_belief(b_col, padding_agrees(window_padding[:, wr // 2, :], b_col.shape[-1]))
-    return b_row, b_col
-
-
-# --- the network ----------------------------------------------------------------------------------------
+# --- the networks ----------------------------------------------------------------------------------------
 
 
 class MoveHead(nn.Module):
@@ -243,6 +158,37 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         return jnp.concatenate([b_row, b_col], axis=-1), beliefs
 
 
+class MappingBeliefQNetwork(BeliefQNetwork):
+    """`BeliefQNetwork` whose filter is `mapping_filter_step`: the carry after the GRU's state holds
+    the joint belief and the map's mean and variance, each `rows x cols`. The Q head reads the
+    design expected under the belief's row and column marginals, as `BeliefQNetwork` does, so the
+    one change against it is the evidence the filter weighs."""
+
+    drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0)
+    capped: bool = True  # the 0/1 grid of 2D (SPEC §5)
+
+    @property
+    def carry_size(self) -> int:
+        rows, cols = self.layout.plan_shape
+        return self.rnn_size + 3 * rows * cols
+
+    def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
+        rows, cols = self.layout.plan_shape
+        p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
+        last_action = self.layout.split(obs)["last_action"]
+        sign = last_action @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
+        window = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size])
+        drops = tuple(self.drops)
+
+        def step(state, inputs):
+            state = mapping_filter_step(state, *inputs, drops=drops, capped=self.capped)
+            return state, (state[0].sum(axis=2), state[0].sum(axis=1))
+
+        state = tuple(part.reshape(-1, rows, cols) for part in jnp.split(belief, 3, axis=-1))
+        state, marginals = jax.lax.scan(step, state, (resets, p_cells, sign, last_action, window))
+        return jnp.concatenate([part.reshape(part.shape[0], -1) for part in state], axis=-1), marginals
+
+
 # --- the learner ----------------------------------------------------------------------------------------
 
 
@@ -267,6 +213,9 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
                                   "the egocentric view alone)")
     belief_filter: bool = option(True, "the belief is a histogram filter driven by a learned move head (trained by "
                                  "the move loss: move_coef > 0); off: the position head (position_coef > 0)")
+    brick_map: bool = option(False, "the filter also maps the bricks it laid under its belief and weighs positions by "
+                             "how well the window's bricks match the map, with a joint belief over rows and columns "
+                             "(agents/belief_map.py)")
 
     def check(self) -> None:
         super().check()
@@ -277,6 +226,8 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
         if self.belief_filter and not self.previous_step:
             raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
                              "before the last action and the action")
+        if self.brick_map and not self.belief_filter:
+            raise ValueError("pqn-belief with brick_map needs belief_filter=True: the map is the filter's")
         if self.view_radius:
             low, high = view_radius_range(self.env_config())
             if not low <= self.view_radius <= high:
@@ -321,11 +272,16 @@ class PQNBelief(PQNAux):
             moves = tuple(map(tuple, move_directions(self.env.config).tolist()))
             others = tuple(name for name in heads.heads if name != "move")
             heads = AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others) if others else None
-        self.network = BeliefQNetwork(
+        fields = dict(
             layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
             auxiliary_heads=heads, fixed_design=None if self.layout.dynamic else self._fixed_design(), moves=moves,
             view_radius=config.view_radius, design_encoder=config.design_encoder,
         )
+        if config.brick_map:
+            self.network = MappingBeliefQNetwork(**fields, drops=drop_table(self.env.config),
+                                                 capped=self.env.config.dim == 2)
+        else:
+            self.network = BeliefQNetwork(**fields)
 
     def _loss(self, params, carry0, batch: AuxiliaryTransition, targets):
         """PQN-aux's loss, and as a metric (no gradient) how well the belief the Q head read knew

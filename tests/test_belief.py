@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from agents.auxiliary import move_directions
-from agents.belief import (BeliefQNetwork, belief_cross_entropy, correct_belief, expected_design_window, filter_step,
+from agents.belief import BeliefQNetwork
+from agents.belief_filter import (belief_cross_entropy, correct_belief, expected_design_window, filter_step,
                            move_belief, padding_agrees, start_belief)
 from agents.registry import build_algorithm, make_config
 from snac_jax.tasks import make

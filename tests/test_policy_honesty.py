@@ -46,6 +46,7 @@ TINY = {
     "pqn": PPO,
     "pqn-aux": PPO,
     "pqn-belief": PPO,
+    "pqn-belief --brick-map": dict(PPO, brick_map=True),  # the filter that maps its own bricks (agents/belief_map.py)
     "dqn": dict(REPLAY, frame_stack=2),  # the stacked frames are memory too
     "drqn": DRQN,
     "drqn-her": DRQN,
@@ -56,7 +57,7 @@ TINY = {
 }
 SINGLE = [name for name in ALGORITHMS if name != "ippo"]
 CASES = [(name, task) for name in SINGLE for task in ("2d-static-sparse", "2d-dynamic-sparse")]
-CASES += [("ppo", "3d-static-sparse")]
+CASES += [("ppo", "3d-static-sparse"), ("pqn-belief --brick-map", "2d-dynamic-sparse")]
 
 
 # --- a world that lies about its state --------------------------------------------------------------
@@ -205,7 +206,7 @@ def _random_params(shapes, seed):
 def _learner(name, task):
     """The tiny learner, its greedy policy and its parameters' shapes (from `eval_shape`: nothing of
     the learner is compiled)."""
-    agent = build_algorithm(make_config(name, task, **TINY[name], max_steps=STEPS))
+    agent = build_algorithm(make_config(name.split()[0], task, **TINY[name], max_steps=STEPS))
     shapes = jax.eval_shape(agent.init, jax.random.key(0)).params
     return agent, agent.policy(_random_params(shapes, 0)), shapes
 
