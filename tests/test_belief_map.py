@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agents.auxiliary import move_directions
-from agents.belief_filter import filter_step
+from agents.belief_filter import filter_step, move_belief
 from agents.belief import MappingBeliefQNetwork
 from agents.belief_map import (WINDOW_NOISE, add_drop, brick_log_likelihood, drop_table,
                                drop_target, mapping_filter_step, move_joint, shifted)
@@ -63,7 +63,18 @@ def test_the_bricks_likelihood_by_hand():
     assert float(brick_log_likelihood(landmark, mean, jnp.zeros_like(mean))[0, 1, 1]) == pytest.approx(-1 / (2 * WINDOW_NOISE))
 
 
-def test_a_joint_move_is_the_axis_move_of_each_line():
+@pytest.mark.parametrize("sign", [(0, 1), (0, -1), (1, 0), (-1, 0), (0, 0)])
+def test_a_joint_move_moves_every_line_as_the_axis_filter_moves_one(sign):
+    belief = jax.nn.softmax(jax.random.normal(jax.random.key(0), (4, 5 * 6))).reshape(4, 5, 6)
+    p_cells = jax.nn.softmax(jax.random.normal(jax.random.key(1), (4, 4)))
+    signs = jnp.tile(jnp.array([sign], jnp.float32), (4, 1))
+    axis = 1 if sign[1] else 0
+    lines = jnp.moveaxis(belief, 1 + (1 - axis), 1)  # (4, k, n): the lines along the moving axis
+    expected = jax.vmap(lambda b, p, s: jax.vmap(lambda line: move_belief(line, p, s))(b))(lines, p_cells, signs[:, axis])
+    np.testing.assert_allclose(move_joint(belief, p_cells, signs), jnp.moveaxis(expected, 1, 1 + (1 - axis)), atol=1e-6)
+
+
+def test_a_joint_move_by_hand():
     belief = jnp.zeros((1, 3, 4)).at[0, 1, 1].set(1.0)
     moved = move_joint(belief, jnp.array([[0.0, 0.5, 0.5, 0.0]]), jnp.array([[0.0, 1.0]]))[0]  # right by 1 or 2
     np.testing.assert_allclose(moved[1], [0, 0, 0.5, 0.5])
