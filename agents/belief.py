@@ -294,6 +294,23 @@ class PQNBelief(PQNAux):
         p_row, p_col = sown["intermediates"]["belief"][0]
         return loss, {**info, "belief_nll": belief_cross_entropy(p_row, p_col, recorded["position"])}
 
+    def held_belief(self, params, policy_state: dict, obs: jax.Array) -> jax.Array:
+        """The belief over plan positions, `(rows, cols)`, that the greedy policy (`policy`) reads
+        when it acts on `obs` with `policy_state` (one world, unbatched, as its `act` takes them):
+        the mapping filter's joint belief (`brick_map`), else the product of the row and column
+        marginals the Q head reads. It applies the network to the inputs `act` gives it and reads
+        what the network sows and carries; the action stays `act`'s, so a caller that also wants
+        the action calls `act` beside it (bench/belief_episodes.py)."""
+        network, layout = self.network, self.layout
+        net_obs = layout.acting_inputs(obs, policy_state)
+        (carry, _), sown = network.apply(params, policy_state["carry"][None], net_obs[None, None],
+                                         policy_state["reset"][None, None], mutable="intermediates")
+        rows, cols = layout.plan_shape
+        if isinstance(network, MappingBeliefQNetwork):  # the carry after the GRU's state: belief, map mean, variance
+            return carry[0, network.rnn_size : network.rnn_size + rows * cols].reshape(rows, cols)
+        p_row, p_col = sown["intermediates"]["belief"][0]
+        return p_row[0, 0][:, None] * p_col[0, 0][None, :]
+
     def _fixed_design(self) -> tuple:
         """A static task's design as nested tuples (a hashable module field)."""
         designs = np.asarray(self.env_params.designs)

@@ -1,0 +1,237 @@
+"""`bench/belief_episodes.py`: the worst episodes by hand, the belief the Q head reads, a tiny
+trained run drawn (the evaluator's episodes and IoUs, beliefs that sum to 1), a mapping filter's
+joint belief on its own episodes, and the one-line refusals."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bench.belief_episodes import HEAT_ANCHORS, _record, belief_numbers, heat_colours, main, worst_episodes
+from snac_jax.evaluation import protocol_episodes, run_episodes
+from snac_jax.tasks import make
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "bench" / "belief_episodes.py"
+TASK = "2d-dynamic-sparse"
+TINY = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8, max_steps=20)
+
+
+def test_the_worst_episodes_are_the_lowest_ious_ties_by_lower_index():
+    iou = np.array([0.5, 0.1, 0.3, 0.1, 0.0, 0.3], np.float32)
+    assert worst_episodes(iou, 3).tolist() == [4, 1, 3]
+    assert worst_episodes(iou, 5).tolist() == [4, 1, 3, 2, 5]
+
+
+def test_the_belief_numbers_by_hand():
+    belief = np.zeros((3, 4))
+    belief[0, 1], belief[2, 3], belief[1, 1] = 0.2, 0.5, 0.3
+    assert belief_numbers(belief, (1, 1)) == (0.3, 3, (2, 3))  # argmax (2, 3): one row and two columns away
+    assert belief_numbers(belief, (2, 3)) == (0.5, 0, (2, 3))
+    tied = np.full((2, 2), 0.25)
+    assert belief_numbers(tied, (1, 1)) == (0.25, 2, (0, 0))  # the first largest in row-major order
+
+
+def test_heat_colours_run_from_the_first_anchor_to_the_last():
+    colours = heat_colours(np.array([0.0, 1.0, 0.125, 2.0]))
+    np.testing.assert_array_equal(colours[0], HEAT_ANCHORS[0])
+    np.testing.assert_array_equal(colours[1], HEAT_ANCHORS[-1])
+    # 0.125 of four intervals is halfway between anchors 0 and 1: (0+80)/2, (0+18)/2, (4+123)/2 = 63.5 -> 64
+    np.testing.assert_array_equal(colours[2], [40, 9, 64])
+    np.testing.assert_array_equal(colours[3], HEAT_ANCHORS[-1])  # clipped
+
+
+def _untrained(**options):
+    """A tiny pqn-belief agent and its greedy policy with freshly initialised weights."""
+    from agents.registry import build_algorithm, make_config
+
+    agent = build_algorithm(make_config("pqn-belief", TASK, **TINY, **options))
+    policy = agent.policy(None)
+    obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+    start = policy.init(None, None)
+    net_obs = agent.layout.acting_inputs(obs, start)
+    params = agent.network.init(jax.random.key(1), start["carry"][None], net_obs[None, None],
+                                start["reset"][None, None])
+    return agent, policy._replace(params=params)
+
+
+@pytest.mark.parametrize("brick_map", [False, True])
+def test_the_held_belief_is_the_one_the_q_head_reads(brick_map):
+    """Along an episode of the greedy policy: the filter's held belief is the product of the row
+    and column beliefs it carries after acting; the mapping filter's is the joint belief it carries,
+    whose row and column sums are the marginals the network sows for the Q head."""
+    agent, policy = _untrained(brick_map=brick_map)
+    network, layout = agent.network, agent.layout
+    rows, cols = layout.plan_shape
+    env, env_params = agent.env, agent.env_params
+    obs, state = env.reset(jax.random.key(2), env_params)
+    policy_state = policy.init(None, None)
+
+    @jax.jit
+    def step(policy_state, obs, state, key):
+        held = agent.held_belief(policy.params, policy_state, obs)
+        net_obs = layout.acting_inputs(obs, policy_state)
+        _, sown = network.apply(policy.params, policy_state["carry"][None], net_obs[None, None],
+                                policy_state["reset"][None, None], mutable="intermediates")
+        p_row, p_col = sown["intermediates"]["belief"][0]
+        action, policy_state = policy.act(policy.params, policy_state, obs, key)
+        obs, state, *_ = env.step_env(key, state, action, env_params)
+        return held, (p_row[0, 0], p_col[0, 0]), policy_state, obs, state
+
+    for t in range(6):
+        held, (p_row, p_col), policy_state, obs, state = step(policy_state, obs, state, jax.random.key(10 + t))
+        assert held.shape == (rows, cols)
+        np.testing.assert_allclose(held.sum(), 1.0, atol=1e-5)
+        np.testing.assert_allclose(held.sum(axis=1), p_row, atol=1e-6)
+        np.testing.assert_allclose(held.sum(axis=0), p_col, atol=1e-6)
+        carried = policy_state["carry"][network.rnn_size:]
+        if brick_map:  # the joint the filter carries on (then the map's mean and variance), not a product
+            np.testing.assert_array_equal(held, carried[: rows * cols].reshape(rows, cols))
+        else:
+            np.testing.assert_allclose(held, np.outer(carried[:rows], carried[rows:]), atol=1e-7)
+
+
+RIGHT, DOWN, DROP = 1, 2, 4  # 2D action table: left, right, down, up, drop
+
+
+def _wander_and_drop(params, step, obs, key):
+    """Right, down or drop, drawn from the step's key: episodes that differ by key alone."""
+    return jnp.array([RIGHT, DOWN, DROP], jnp.int32)[jax.random.randint(key, (), 0, 3)], step + 1
+
+
+def _flat_belief(params, step, obs):
+    return jnp.full((20, 20), 1.0 / 400)  # the task's 20 x 20 plan
+
+
+def test_record_plays_the_evaluators_episodes_and_keeps_a_belief_per_state():
+    """A policy that draws its actions from the evaluator's per-step keys: the recorded episodes
+    end where `run_episodes`' do (IoU, length, bricks), which they would not with another key
+    schedule, and the belief is written for each of the length + 1 states and nowhere after."""
+    from snac_jax.policy import Policy
+
+    policy = Policy(lambda key, design: jnp.zeros((), jnp.int32), _wander_and_drop, None, "wander")
+    env, params = make(TASK, max_steps=40)
+    setup = protocol_episodes(TASK, params, 5, episodes_per_test_design=1)
+    scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
+    chosen = np.array([7, 2, 0, 9])
+    recorded = jax.device_get(_record(env, policy.init, policy.act, _flat_belief, None, setup.params,
+                                      setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]), 40))
+    assert len(set(np.asarray(scored.iou)[chosen].tolist())) > 1 and (np.asarray(scored.iou)[chosen] > 0).any()
+    np.testing.assert_array_equal(recorded.iou, np.asarray(scored.iou)[chosen])
+    np.testing.assert_array_equal(recorded.length, np.asarray(scored.length)[chosen])
+    for i, length in enumerate(np.asarray(recorded.length)):
+        assert int(recorded.states.bricks_used[i, length]) == int(scored.bricks_used[chosen[i]])
+        assert np.asarray(recorded.states.time[i, : length + 1]).tolist() == list(range(length + 1))
+        mass = np.asarray(recorded.beliefs[i]).sum(axis=(1, 2))
+        np.testing.assert_allclose(mass[: length + 1], 1.0, rtol=1e-5)
+        assert (mass[length + 1:] == 0).all()
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from agents.driver import train
+    from agents.registry import make_config
+
+    run = tmp_path_factory.mktemp("belief") / "run"
+    train(make_config("pqn-belief", TASK, seeds=1, total_steps=256, chunks=1, **TINY), run, progress=False)
+    return run
+
+
+def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_run, tmp_path):
+    from agents import trained
+    from agents.checkpoint import read_config
+    from agents.registry import build_algorithm
+
+    out = tmp_path / "out"
+    assert main(["--run", str(tiny_run), "--out", str(out), "--episodes", "2", "--worst", "3", "--eval-seed", "7"]) == 0
+    report = json.loads((out / "belief_episodes.json").read_text())
+    assert report["run"] == str(tiny_run) and report["seed_index"] == 0 and report["eval_seed"] == 7
+    assert report["episodes_played"] == 20 and report["belief"] == "row marginal x column marginal"
+    rows = report["episodes"]
+    assert [r["rank"] for r in rows] == [1, 2, 3]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["belief_episodes.json"] + [r["gif"] for r in rows] + [r["png"] for r in rows])
+
+    # the evaluator's own episodes: the three lowest IoUs, and each drawn one ends at its IoU
+    config = read_config(tiny_run)
+    env, params = make(TASK, **config.env_overrides)
+    setup = protocol_episodes(TASK, params, 7, episodes_per_test_design=2)
+    policy = trained.checkpoint_policy(env, tiny_run, 0)
+    scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
+    chosen = worst_episodes(scored.iou, 3)
+    assert [r["episode"] for r in rows] == chosen.tolist()
+    for r in rows:
+        assert r["iou"] == float(scored.iou[r["episode"]]) and r["length"] == int(scored.length[r["episode"]])
+        assert r["design"] == setup.names[int(setup.design_indices[r["episode"]])]
+        assert len(r["p_true"]) == len(r["argmax_distance"]) == r["length"] + 1
+        assert all(0.0 <= p <= 1.0 + 1e-6 for p in r["p_true"]) and all(d >= 0 for d in r["argmax_distance"])
+
+    # the beliefs behind the numbers: each sums to 1, and P(true) is its entry at the true position
+    agent = build_algorithm(config)
+    recorded = jax.device_get(_record(env, policy.init, policy.act, agent.held_belief, policy.params, setup.params,
+                                      setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]), 20))
+    for i, r in enumerate(rows):
+        beliefs = np.asarray(recorded.beliefs[i, : r["length"] + 1])
+        np.testing.assert_allclose(beliefs.sum(axis=(1, 2)), 1.0, atol=1e-5)
+        positions = np.asarray(recorded.states.position[i, : r["length"] + 1])
+        np.testing.assert_allclose(r["p_true"], beliefs[np.arange(len(beliefs)), positions[:, 0], positions[:, 1]],
+                                   rtol=1e-6)
+
+    from PIL import Image
+
+    with Image.open(out / rows[0]["gif"]) as gif:
+        assert gif.n_frames >= 2  # identical consecutive frames may merge; the captions' step counter differs
+        size = gif.size
+    with Image.open(out / rows[0]["png"]) as png:
+        assert png.size == size
+
+
+def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
+    from agents.config import save_config
+    from agents.registry import make_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    save_config(make_config("pqn", TASK, **TINY), run / "config.json")
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out)], capture_output=True,
+                          text=True, cwd=ROOT)
+    assert done.returncode == 2
+    assert done.stderr == (f"belief_episodes.py: error: {run} is a pqn run; only pqn-belief runs carry a belief "
+                           "to draw\n")
+    assert not out.exists()
+
+
+def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_one_line(tmp_path, capsys):
+    from agents import sweep
+    from agents.config import save_config
+    from agents.registry import make_config
+
+    out = tmp_path / "out"
+    missing = tmp_path / "nowhere"
+    assert main(["--run", str(missing), "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"belief_episodes.py: error: {missing} is not a training run directory: "
+                                       "config.json is missing\n")
+    run = tmp_path / "run"
+    run.mkdir()
+    save_config(make_config("pqn-belief", TASK, **TINY), run / "config.json")
+    assert main(["--run", str(run), "--out", str(out), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"belief_episodes.py: error: {run}: no checkpoint under") and err.count("\n") == 1
+    assert main(["--run", str(run), "--out", str(out), "--seed-index", "1"]) == 2
+    assert capsys.readouterr().err == f"belief_episodes.py: error: --seed-index must be in 0..0 for {run}, got 1\n"
+    assert main(["--run", str(run), "--out", str(out), "--episodes", "1", "--worst", "11"]) == 2
+    assert capsys.readouterr().err == ("belief_episodes.py: error: --worst must be in 1..10 (the episodes played), "
+                                       "got 11\n")
+    sweep.save(sweep.Sweep(("lr",), ((1e-3,), (1e-4,))), run)
+    assert main(["--run", str(run), "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"belief_episodes.py: error: {run} is a sweep of 2 arms: --arm must be in "
+                                       "0..1 (none given)\n")
+    assert not out.exists()
