@@ -1,4 +1,4 @@
-"""The worst episodes of a `pqn-belief` policy, drawn with the belief it held at each step (issue 47).
+"""The worst episodes of a `pqn-belief` policy, drawn with the belief it held at each step.
 
     python bench/belief_episodes.py --run runs/x/pqn-belief/2d-dynamic-sparse --out OUT
 
