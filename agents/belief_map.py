@@ -76,10 +76,14 @@ def drop_target(belief: jax.Array, last_action: jax.Array, drops: tuple) -> jax.
 
 def add_drop(mean: jax.Array, var: jax.Array, target: jax.Array, capped: bool) -> tuple[jax.Array, jax.Array]:
     """The map after a brick that landed on each cell with probability `target`: a Bernoulli
-    brick added to the count (mean + p, variance + p (1 - p)); `capped` (the 0/1 grid of 2D):
-    the mean is the chance of a brick, m + (1 - m) p, and its variance m (1 - m)."""
+    brick added to the count (mean + p, variance + p (1 - p)), right in expectation however the
+    drops correlate. `capped` (the 0/1 grid of 2D): the mean is the chance of a brick, max(m, p),
+    and its variance m (1 - m). Drops made under one belief land on one true cell, so their
+    chances do not combine as independent ones (m + (1 - m) p would make every cell of a spread
+    belief certain after a few drops on one spot); the larger of the two is the chance that holds
+    whichever way they correlate."""
     if capped:
-        mean = mean + (1.0 - mean) * target
+        mean = jnp.maximum(mean, target)
         return mean, mean * (1.0 - mean)
     return mean + target, var + target * (1.0 - target)
 

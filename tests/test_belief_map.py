@@ -39,12 +39,22 @@ def test_a_drop_lands_under_the_belief_on_its_target_and_a_move_drops_nothing():
 
 def test_the_map_after_a_drop_by_hand():
     mean, var = jnp.array([0.5, 1.0]), jnp.array([0.25, 0.2])
-    m, v = add_drop(mean, var, jnp.array([0.5, 0.5]), capped=True)  # 0/1 grid: the chance of a brick
-    np.testing.assert_allclose(m, [0.75, 1.0])
-    np.testing.assert_allclose(v, [0.1875, 0.0])
+    m, v = add_drop(mean, var, jnp.array([0.8, 0.5]), capped=True)  # 0/1 grid: the chance of a brick
+    np.testing.assert_allclose(m, [0.8, 1.0])
+    np.testing.assert_allclose(v, [0.16, 0.0])
     m, v = add_drop(mean, var, jnp.array([0.5, 0.5]), capped=False)  # counts: a Bernoulli(0.5) brick added
     np.testing.assert_allclose(m, [1.0, 1.5])
     np.testing.assert_allclose(v, [0.5, 0.45])
+
+
+def test_drops_under_one_spread_belief_do_not_make_its_cells_certain():
+    """Ten drops while the belief stays spread over four cells: the ten bricks went to one of them,
+    so on the 0/1 grid each cell holds a brick with chance 1/4, not 1 - (3/4)^10."""
+    belief = jnp.zeros((1, 2, 2)) + 0.25
+    mean = var = jnp.zeros((1, 2, 2))
+    for _ in range(10):
+        mean, var = add_drop(mean, var, belief, capped=True)
+    np.testing.assert_allclose(mean, 0.25)
 
 
 def test_the_bricks_likelihood_by_hand():
