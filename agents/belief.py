@@ -144,18 +144,25 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         and `(T, B, cols)`. It reads from `obs` the last action and where the window shows
         padding (tests/test_belief.py runs it on real episodes, the move head's part given)."""
         rows, _ = self.layout.plan_shape
-        p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
-        # the last action's one-hot (its last entry "none", at an episode's start) x each action's direction
-        sign = self.layout.split(obs)["last_action"] @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
-        padding = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size]) == PADDING
+        p_cells, _, sign, window = self._filter_inputs(move_logits, obs)
 
         def step(belief, inputs):
             belief = filter_step(belief, *inputs)
             return belief, belief
 
         (b_row, b_col), beliefs = jax.lax.scan(step, (belief[:, :rows], belief[:, rows:]),
-                                               (resets, p_cells, sign, padding))
+                                               (resets, p_cells, sign, window == PADDING))
         return jnp.concatenate([b_row, b_col], axis=-1), beliefs
+
+    def _filter_inputs(self, move_logits: jax.Array, obs: jax.Array):
+        """What a filter reads per step from `(T, B, ...)` inputs: the move head's distribution over
+        the cells moved (no gradient: the move loss alone trains it), the last action's one-hot
+        (its last entry "none", at an episode's start), that action's row and column direction,
+        and the window's raw values."""
+        p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
+        last_action = self.layout.split(obs)["last_action"]
+        sign = last_action @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
+        return p_cells, last_action, sign, self.layout.env.window_cells(obs[..., : self.layout.env_obs_size])
 
 
 class MappingBeliefQNetwork(BeliefQNetwork):
@@ -174,10 +181,7 @@ class MappingBeliefQNetwork(BeliefQNetwork):
 
     def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
         rows, cols = self.layout.plan_shape
-        p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
-        last_action = self.layout.split(obs)["last_action"]
-        sign = last_action @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
-        window = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size])
+        p_cells, last_action, sign, window = self._filter_inputs(move_logits, obs)
         drops = tuple(self.drops)
 
         def step(state, inputs):

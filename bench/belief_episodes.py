@@ -44,10 +44,9 @@ import numpy as np  # noqa: E402
 from flax import struct  # noqa: E402
 
 from bench.landmark_use import run_indices  # noqa: E402
-from snac_jax import design_change, episodes, metrics  # noqa: E402
+from snac_jax import episodes, metrics  # noqa: E402
 from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
-from snac_jax.evaluation import REPORT_EVAL_SEED, protocol_episodes, require_episode_memory, run_episodes  # noqa: E402
-from snac_jax.policy import call_act  # noqa: E402
+from snac_jax.evaluation import REPORT_EVAL_SEED, protocol_decide, protocol_episodes, protocol_start, require_episode_memory, run_episodes  # noqa: E402
 from snac_jax.state import EnvState  # noqa: E402
 from snac_jax.tasks import make, task_spec  # noqa: E402
 
@@ -73,26 +72,21 @@ class Recorded:
 
 @partial(jax.jit, static_argnames=("env", "init", "act", "held", "num_steps"))
 def _record(env, init, act, held, policy_params, env_params, keys, design_indices, num_steps: int) -> Recorded:
-    """`evaluation._run_episodes` with the same use of each episode's key, in a scan of `num_steps`
+    """The protocol's episodes (`protocol_start`, `protocol_decide`), in a scan of `num_steps`
     steps (the step limit) that keeps every state, with the belief `held` reads before each action
     kept in the agent's state at the step's index."""
     config = env.config
     rows, cols = config.plan_shape
 
-    def decide(episode: episodes.Episode, _):
-        key, policy_state, beliefs = episode.agent
-        key, key_act, key_step = jax.random.split(key, 3)
-        beliefs = beliefs.at[episode.state.time].set(held(policy_params, policy_state, episode.obs))
-        action, policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
-        return episodes.Move(action, key=key_step), (key, policy_state, beliefs)
+    def keep_belief(episode: episodes.Episode, action, beliefs):
+        return beliefs.at[episode.state.time].set(held(policy_params, episode.agent[1], episode.obs))
+
+    decide = protocol_decide(act, policy_params, keep_belief)
 
     def run(key, design_index):
-        key_reset, key_init, key_run = jax.random.split(key, 3)
-        obs, state = env.reset_to_design(key_reset, env_params, design_index)
-        if config.design_change is not None:
-            state = design_change.schedule(config, env_params, state, design_index)
         beliefs = jnp.zeros((num_steps + 1, rows, cols), jnp.float32)
-        first = episodes.start(obs, state, (key_run, init(key_init, state.design), beliefs))
+        first = protocol_start(env, env_params, init, key, design_index, beliefs)
+        state = first.state
         final, states = episodes.scan_episode(env, env_params, decide, first, num_steps=num_steps,
                                               record=lambda step: step.state)
         _, policy_state, beliefs = final.agent

@@ -34,11 +34,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from flax import struct  # noqa: E402
 
-from snac_jax import design_change, episodes, landmark_action, metrics  # noqa: E402
+from snac_jax import episodes, landmark_action, metrics  # noqa: E402
 from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
-from snac_jax.evaluation import (REPORT_EVAL_SEED, ProtocolEpisodes, protocol_episodes,  # noqa: E402
+from snac_jax.evaluation import (REPORT_EVAL_SEED, ProtocolEpisodes, protocol_decide, protocol_episodes, protocol_start,  # noqa: E402
                                  require_episode_memory)
-from snac_jax.policy import call_act  # noqa: E402
 from snac_jax.tasks import make, task_spec  # noqa: E402
 
 STATIC_EPISODES = 100
@@ -98,23 +97,15 @@ class LandmarkEpisodes:
 
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _rollout(env, init, act, policy_params, env_params, keys, design_indices) -> LandmarkEpisodes:
-    """`evaluation._run_episodes` with the same use of each episode's key, tallying placements on the way."""
+    """The protocol's episodes (`protocol_start`, `protocol_decide`), tallying placements on the way."""
     config = env.config
     (h, w), (pr, pc) = config.plan_shape, config.pad
 
-    def decide(episode: episodes.Episode, _):
-        key, policy_state, tally = episode.agent
-        key, key_act, key_step = jax.random.split(key, 3)
-        action, policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
-        return episodes.Move(action, key=key_step), (key, policy_state, tally_step(config, tally, episode.state, action))
+    decide = protocol_decide(act, policy_params, lambda episode, action, tally: tally_step(config, tally, episode.state, action))
 
     def run(key, design_index):
-        key_reset, key_init, key_run = jax.random.split(key, 3)
-        obs, state = env.reset_to_design(key_reset, env_params, design_index)
-        if config.design_change is not None:
-            state = design_change.schedule(config, env_params, state, design_index)
-        agent = (key_run, init(key_init, state.design), empty_tally(config.landmark_action))
-        final = episodes.run_to_end(env, env_params, decide, episodes.start(obs, state, agent))
+        first = protocol_start(env, env_params, init, key, design_index, empty_tally(config.landmark_action))
+        final, state = episodes.run_to_end(env, env_params, decide, first), first.state
         new = final.state.landmarks & ~state.landmarks
         return LandmarkEpisodes(
             iou=metrics.iou(final.state),

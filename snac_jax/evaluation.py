@@ -82,21 +82,41 @@ class Episodes:
     invalid_actions: jax.Array  # int32, actions outside 0..num_actions-1 (the env would clamp them)
 
 
+def protocol_start(env, env_params: EnvParams, init, key: jax.Array, design_index, extra) -> episodes.Episode:
+    """Episode `key`'s start as the protocol runs it: the reset, the fixed schedule of design changes
+    (SPEC §15), the policy's `init`, each from its own part of the key; the agent is
+    `(key, policy_state, extra)` for `protocol_decide`. Anything that must replay the protocol's
+    episodes exactly (a tally on the way, a recording) starts them here."""
+    key_reset, key_init, key_run = jax.random.split(key, 3)
+    obs, state = env.reset_to_design(key_reset, env_params, design_index)
+    if env.config.design_change is not None:
+        state = design_change.schedule(env.config, env_params, state, design_index)
+    return episodes.start(obs, state, (key_run, init(key_init, state.design), extra))
+
+
+def protocol_decide(act, policy_params, watch):
+    """The protocol's `decide` for `episodes.run_to_end` / `scan_episode`: each step splits the
+    episode's key into the policy's and the step's; `watch(episode, action, extra) -> extra` sees
+    the episode before the step (the policy state that chose `action`) and keeps what it counts."""
+
+    def decide(episode: episodes.Episode, _):
+        key, policy_state, extra = episode.agent
+        key, key_act, key_step = jax.random.split(key, 3)
+        action, new_policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
+        return episodes.Move(action, key=key_step), (key, new_policy_state, watch(episode, action, extra))
+
+    return decide
+
+
 @partial(jax.jit, static_argnames=("env", "init", "act"))
 def _run_episodes(env, init, act, policy_params, env_params: EnvParams, keys, design_indices) -> Episodes:
-    def decide(episode: episodes.Episode, _):
-        key, policy_state, invalid = episode.agent
-        key, key_act, key_step = jax.random.split(key, 3)
-        action, policy_state = call_act(act, policy_params, policy_state, episode.obs, key_act)
-        invalid = invalid + ((action < 0) | (action >= env.num_actions)).astype(jnp.int32)
-        return episodes.Move(action, key=key_step), (key, policy_state, invalid)
+    def count_invalid(episode, action, invalid):
+        return invalid + ((action < 0) | (action >= env.num_actions)).astype(jnp.int32)
+
+    decide = protocol_decide(act, policy_params, count_invalid)
 
     def run(key, design_index):
-        key_reset, key_init, key_run = jax.random.split(key, 3)
-        obs, state = env.reset_to_design(key_reset, env_params, design_index)
-        if env.config.design_change is not None:  # the protocol's fixed schedule (SPEC §15)
-            state = design_change.schedule(env.config, env_params, state, design_index)
-        first = episodes.start(obs, state, (key_run, init(key_init, state.design), jnp.zeros((), jnp.int32)))
+        first = protocol_start(env, env_params, init, key, design_index, jnp.zeros((), jnp.int32))
         final = episodes.run_to_end(env, env_params, decide, first)
         return Episodes(
             iou=metrics.iou(final.state),
