@@ -64,9 +64,9 @@ class PrivilegedEncoder(nn.Module):
 
     Why flat maps rather than the design encoder's strided convolutions: the critic runs on every
     step the learner trains on, and two convolutional encoders cost more than the rest of training
-    on the 2D and 3D plans (`python bench/table_rates.py --algorithms ppo-privileged --tasks
-    3d-static-dense`: 3.4k env-steps/s with the convolutions, 12.6k flat); one matrix product over
-    the 400 cells of each map keeps every cell's exact height at a fraction of the cost."""
+    on the 2D and 3D plans (`bench/results/ppo.md`, its privileged critic's section); one matrix
+    product over the 400 cells of each map keeps every cell's exact height at a fraction of the
+    cost."""
 
     layout: ObsLayout
     hidden_size: int
