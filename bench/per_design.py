@@ -75,11 +75,6 @@ def cells(results: Path, preset: str, algorithm: str, tasks: list[str] | None) -
     return {t: p for t, p in found.items() if tasks is None or t in tasks}
 
 
-def design_order(name: str) -> tuple:
-    head, _, index = name.rpartition("-test")
-    return (head, int(index)) if index.isdigit() else (name, -1)
-
-
 def compare(task: str, seeds: dict, hand: dict, where: str, hand_where: str) -> list[dict]:
     """One row per test design: the learner's seeds against the handcrafted mean. Refuses where the
     evaluation keys or the design sets differ."""
@@ -92,10 +87,10 @@ def compare(task: str, seeds: dict, hand: dict, where: str, hand_where: str) -> 
             raise refuse(f"{where}: {name!r} is scored with overrides {row.get('overrides')}, {hand_where} with "
                          f"{hand.get('overrides')}; only the same conditions are comparable")
         if set(row["per_design"]) != set(hand["per_design"]):
-            raise refuse(f"{where}: {name!r} has designs {sorted(row['per_design'], key=design_order)}, {hand_where} "
-                         f"has {sorted(hand['per_design'], key=design_order)}; only the same designs are comparable")
+            raise refuse(f"{where}: {name!r} has designs {list(row['per_design'])}, {hand_where} "
+                         f"has {list(hand['per_design'])}; only the same designs are comparable")
     rows = []
-    for design in sorted(hand["per_design"], key=design_order):
+    for design in hand["per_design"]:  # the evaluator writes the designs in their index order
         values = [row["per_design"][design]["mean"] for row in seeds.values()]
         handcrafted = hand["per_design"][design]["mean"]
         mean = sum(values) / len(values)
