@@ -38,6 +38,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from agents import checkpoint
+from agents.chunk_programs import ChunkPrograms
 from agents.config import TrainConfig, save_config
 from agents import sweep, trackers
 from agents.registry import build_algorithm
@@ -304,24 +305,21 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
         _write_arm_metrics(out_dir, swept, config.seeds, history)
 
     sizes = chunk_sizes(config.num_updates, config.chunks)
-    compiled: dict[int, Callable] = {}
+    abstract = jax.tree.map(_abstract, (state, env_params))
 
-    def run_chunk(n: int) -> Callable:
-        """The compiled chunk of n updates (compiled ahead, so chunk timings exclude compiling)."""
-        if n not in compiled:
-            fn = per_run(algorithm, swept, lambda learner, s, p: learner.train_chunk(s, p, n), (0, None))
-            start = time.perf_counter()
-            replicated = NamedSharding(mesh, PartitionSpec())  # metrics: every process reads them
-            jitted = jax.jit(fn, out_shardings=(shardings, replicated), donate_argnums=0)
-            compiled[n] = jitted.lower(state, env_params).compile()
-            bar.write(f"compiled a chunk of {n} updates in {time.perf_counter() - start:.1f} s")
-        return compiled[n]
+    def lower_chunk(n: int):
+        """The chunk of n updates, lowered ahead (so chunk timings exclude compiling)."""
+        fn = per_run(algorithm, swept, lambda learner, s, p: learner.train_chunk(s, p, n), (0, None))
+        replicated = NamedSharding(mesh, PartitionSpec())  # metrics: every process reads them
+        return jax.jit(fn, out_shardings=(shardings, replicated), donate_argnums=0).lower(*abstract)
 
     steps_per_update = config.steps_per_update
     total_steps = sum(sizes) * steps_per_update
     done_steps = sum(sizes[:done_chunks]) * steps_per_update
     wall = history[-1]["wall_s"] if history else 0.0
     bar = _progress_bar(total_steps * runs, done_steps * runs, config, progress and writer)
+    last = len(sizes) if stop_after_chunks is None else min(len(sizes), done_chunks + stop_after_chunks)
+    programs = ChunkPrograms(lower_chunk, sizes[done_chunks:last], bar.write)
     warned = list(history[-1].get("diverged") or []) if history else []  # said once per change
     tracker = trackers.open_tracker(log if writer else None, out_dir, config, config.seeds,
                                     1 if swept is None else swept.num_arms, start_step=done_steps)
@@ -329,7 +327,7 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
         for index in range(done_chunks, len(sizes)):
             if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
                 break
-            chunk_fn = run_chunk(sizes[index])
+            chunk_fn = programs.get(sizes[index])
             start = time.perf_counter()
             state, metrics = chunk_fn(state, env_params)
             metrics = host_value(metrics)
@@ -370,10 +368,16 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
                 postfix["return"] = f"{np.nanmean(record['return']):.1f}"
             bar.set_postfix(postfix)
     finally:
+        programs.close()
         bar.close()
         if tracker is not None:
             tracker.close()
     return algorithm, state
+
+
+def _abstract(leaf):
+    """An array's shape, dtype and sharding, for lowering without reading it."""
+    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=leaf.sharding) if isinstance(leaf, jax.Array) else leaf
 
 
 def _progress_bar(total: int, initial: int, config: TrainConfig, enabled: bool):

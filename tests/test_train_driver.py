@@ -3,8 +3,10 @@ uninterrupted run, a 2-device run, the CLI and the checkpoint policy loader."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -31,6 +33,48 @@ def test_chunk_sizes_cover_the_run():
     assert chunk_sizes(10, 3) == [4, 4, 2]
     assert chunk_sizes(9, 3) == [3, 3, 3]
     assert chunk_sizes(2, 20) == [1, 1]
+
+
+def test_a_shorter_last_chunk_compiles_in_the_background_and_changes_nothing(tmp_path, capsys):
+    """Chunks of 2 and 1 updates: each program compiles once, the 1-update one behind the first
+    chunks' training, and the run ends where one 3-update chunk ends."""
+    config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=3 * 16 * 8, chunks=2, **TINY)
+    _, chunked = train(config, tmp_path / "chunked", progress=False)
+    printed = capsys.readouterr()
+    printed = printed.out + printed.err
+    assert printed.count("compiled a chunk of 2 updates in") == 1
+    assert printed.count("compiled a chunk of 1 updates in") == 1
+    assert re.search(r"compiled a chunk of 1 updates in [0-9.]+ s \(in the background\)", printed)
+    _, whole = train(dataclasses.replace(config, chunks=1), tmp_path / "whole", progress=False)
+    assert _leaves_equal(chunked, whole)
+
+
+def test_chunk_programs_compile_the_later_sizes_on_another_thread():
+    import threading
+
+    from agents.chunk_programs import ChunkPrograms
+
+    started, release, threads, written = threading.Event(), threading.Event(), {}, []
+
+    class Lowered:
+        def __init__(self, n):
+            self.n = n
+
+        def compile(self):
+            threads[self.n] = threading.current_thread().name
+            if self.n == 1:  # the background compile holds until the test lets it go
+                started.set()
+                assert release.wait(10)
+            return f"program {self.n}"
+
+    programs = ChunkPrograms(Lowered, [2, 2, 1], written.append)
+    assert programs.get(2) == "program 2"  # returns while the 1-update compile is still under way
+    assert started.wait(10) and threads[2] == threading.current_thread().name and threads[1] != threads[2]
+    release.set()
+    assert programs.get(1) == "program 1" and programs.get(2) == "program 2"
+    programs.close()
+    assert [w.split(" in ")[0] for w in written] == ["compiled a chunk of 2 updates", "compiled a chunk of 1 updates"]
+    assert written[1].endswith("(in the background)") and not written[0].endswith("(in the background)")
 
 
 def test_checkpoint_round_trip(tmp_path):
