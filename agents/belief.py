@@ -173,6 +173,7 @@ class MappingBeliefQNetwork(BeliefQNetwork):
 
     drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0)
     capped: bool = True  # the 0/1 grid of 2D (SPEC §5)
+    evidence_weight: float = 1.0  # the bricks' log-likelihood's weight (`mapping_filter_step`)
 
     @property
     def carry_size(self) -> int:
@@ -185,7 +186,8 @@ class MappingBeliefQNetwork(BeliefQNetwork):
         drops = tuple(self.drops)
 
         def step(state, inputs):
-            state = mapping_filter_step(state, *inputs, drops=drops, capped=self.capped)
+            state = mapping_filter_step(state, *inputs, drops=drops, capped=self.capped,
+                                        evidence_weight=self.evidence_weight)
             return state, (state[0].sum(axis=2), state[0].sum(axis=1))
 
         state = tuple(part.reshape(-1, rows, cols) for part in jnp.split(belief, 3, axis=-1))
@@ -220,6 +222,9 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     brick_map: bool = option(False, "the filter also maps the bricks it laid under its belief and weighs positions by "
                              "how well the window's bricks match the map, with a joint belief over rows and columns "
                              "(agents/belief_map.py)")
+    brick_evidence: float = option(1.0, "with brick_map, the weight of the window's bricks as evidence of the "
+                                   "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
+                                   "tempers it, as the window shows the same bricks step after step)", low=0, high=1)
 
     def check(self) -> None:
         super().check()
@@ -230,6 +235,8 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
         if self.belief_filter and not self.previous_step:
             raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
                              "before the last action and the action")
+        if self.brick_evidence != 1.0 and not self.brick_map:
+            raise ValueError(f"brick_evidence={self.brick_evidence} needs brick_map=True: it weighs the map's evidence")
         if self.brick_map and not self.belief_filter:
             raise ValueError("pqn-belief with brick_map needs belief_filter=True: the map is the filter's")
         if self.view_radius:
@@ -283,7 +290,8 @@ class PQNBelief(PQNAux):
         )
         if config.brick_map:
             self.network = MappingBeliefQNetwork(**fields, drops=drop_table(self.env.config),
-                                                 capped=self.env.config.dim == 2)
+                                                 capped=self.env.config.dim == 2,
+                                                 evidence_weight=config.brick_evidence)
         else:
             self.network = BeliefQNetwork(**fields)
 
@@ -314,6 +322,23 @@ class PQNBelief(PQNAux):
             return carry[0, network.rnn_size : network.rnn_size + rows * cols].reshape(rows, cols)
         p_row, p_col = sown["intermediates"]["belief"][0]
         return p_row[0, 0][:, None] * p_col[0, 0][None, :]
+
+    def filter_inputs(self, params, policy_state: dict, obs: jax.Array) -> tuple:
+        """What the filter reads at this step when the greedy policy acts on `obs` with
+        `policy_state` (one world, unbatched): `(reset, p_cells, sign, last_action, window)` as
+        `mapping_filter_step` takes them for a batch of one (the move head's distribution over the
+        cells moved, the last action's one-hot and direction, the window's raw values). A filter
+        run beside the policy on these sees what the policy's own filter saw
+        (bench/filter_replay.py)."""
+        network = self.network
+        if network.moves is None:
+            raise ValueError("filter_inputs needs pqn-belief with belief_filter=True: the learned belief has no filter")
+        net_obs = self.layout.acting_inputs(obs, policy_state)[None, None]
+        _, sown = network.apply(params, policy_state["carry"][None], net_obs, policy_state["reset"][None, None],
+                                mutable="intermediates")
+        move_logits = sown["intermediates"]["auxiliary"][0]["move"]
+        p_cells, last_action, sign, window = network._filter_inputs(move_logits, net_obs)
+        return policy_state["reset"][None], p_cells[0], sign[0], last_action[0], window[0]
 
     def _fixed_design(self) -> tuple:
         """A static task's design as nested tuples (a hashable module field)."""

@@ -123,18 +123,22 @@ def correct_joint(belief: jax.Array, padding: jax.Array, log_likelihood: jax.Arr
 
 
 def mapping_filter_step(state: tuple[jax.Array, jax.Array, jax.Array], reset: jax.Array, p_cells: jax.Array,
-                        sign: jax.Array, last_action: jax.Array, window: jax.Array, drops: tuple, capped: bool):
+                        sign: jax.Array, last_action: jax.Array, window: jax.Array, drops: tuple, capped: bool,
+                        evidence_weight: float = 1.0):
     """One step: `state = (belief, mean, var)`, each `(B, rows, cols)`. The last action's brick goes
     into the map under the belief it was dropped with; where `reset` everything starts over
     (the corner, an empty map); the belief moves by the last action; then it is corrected by the
-    window (`window (B, wr, wc)`, raw values): its padding and its bricks against the map."""
+    window (`window (B, wr, wc)`, raw values): its padding and its bricks against the map, the
+    bricks' log-likelihood times `evidence_weight` (1: Bayes' rule as if each step's window were
+    new evidence; below 1 tempers it, as the window shows the same bricks step after step, and a
+    map error repeats with them; bench/filter_replay.py compares weights)."""
     belief, mean, var = state
     _, rows, cols = belief.shape
     mean, var = add_drop(mean, var, drop_target(belief, last_action, drops), capped)
     empty = jnp.zeros_like(mean)
     belief = jnp.where(reset[:, None, None], start_joint(rows, cols), move_joint(belief, p_cells, sign))
     mean, var = jnp.where(reset[:, None, None], empty, mean), jnp.where(reset[:, None, None], empty, var)
-    belief = correct_joint(belief, window == PADDING, brick_log_likelihood(window, mean, var))
+    belief = correct_joint(belief, window == PADDING, evidence_weight * brick_log_likelihood(window, mean, var))
     return belief, mean, var
 
 
