@@ -659,11 +659,15 @@ def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused
     assert start.adopts_record
     with pytest.raises(AssertionError, match="trained or evaluated"):
         table_run.run_cell(start, progress=False)
-    # A directory without checkpoints whose cell.json names no record is refused as before.
+    # Its cell.json naming no record: this cell's own files back without checkpoints, finished, so
+    # done; without its eval.json, refused (nothing is left to evaluate it with).
     cell = json.loads((cut.directory / "cell.json").read_text())
     del cell["adopted_record"]
     (cut.directory / "cell.json").write_text(json.dumps(cell))
-    with pytest.raises(ValueError, match="holds files that no start of this cell left there"):
+    [back] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    assert back.status == "done"
+    (cut.directory / "eval.json").unlink()
+    with pytest.raises(ValueError, match="holds this cell's files without checkpoints and no finished eval.json"):
         make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
 
 

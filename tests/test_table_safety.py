@@ -130,25 +130,48 @@ def test_two_table_processes_the_second_refused_the_first_finishes_a_clean_cell(
 
 
 def test_a_cell_directory_holding_another_runs_files_is_refused_not_deleted(tmp_path, no_training):
-    """A committed cell's files written back as a runs directory's (a finished cell's files and no
-    checkpoints): the plan refuses such a cell, naming it, before anything runs."""
+    """A directory holding files that are not this cell's (a config.json of its own, no cell.json,
+    no checkpoint): the plan refuses the cell, naming it, before anything runs."""
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 
     runs = tmp_path / "runs"
-    unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic.json", runs / "paper" / "ppo" / "1d-dynamic")
     mine = runs / "smoke" / "ppo" / "1d-static-sin"
     mine.mkdir(parents=True)
     (mine / "config.json").write_text('{"mine": true}\n')
     before = _tree(runs)
-    for preset, task in (("paper", "1d-dynamic"), ("smoke", "1d-static-sin")):
-        with pytest.raises(ValueError, match=rf"{task} holds files that no start of this cell left there \(.*config.json"
-                                             r".*\) and no checkpoint; the table deletes nothing it did not make: move"):
-            cells = make_plan(PRESETS[preset], ["ppo"], [task], None, runs, rates={})
-            table_run.run_cells(cells, progress=False)
+    with pytest.raises(ValueError, match=r"1d-static-sin holds files that no start of this cell left there \(config.json"
+                                         r"\) and no checkpoint; the table deletes nothing it did not make: move"):
+        table_run.run_cells(make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={}), progress=False)
     with pytest.raises(ValueError, match="deletes nothing it did not make"):
-        _run_cli(["--preset", "paper", "--algorithms", "ppo", "--tasks", "1d-dynamic", "--runs-dir", str(runs)])
+        _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
     assert _tree(runs) == before
+
+
+def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_its_eval_is_refused(tmp_path,
+                                                                                                   no_training):
+    """A cell trained on another machine and copied back with its files but not its checkpoints (a
+    committed cell's files written back as a runs directory's) is done: planned so, never trained
+    or evaluated again, its files untouched. Without a finished eval.json nothing is left to
+    evaluate it with, and the plan says so in one line."""
+    from agents.table import run as table_run
+    from agents.table.plan import make_plan
+
+    runs = tmp_path / "runs"
+    cell_dir = runs / "paper" / "ppo" / "1d-dynamic"
+    unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic.json", cell_dir)
+    before = _tree(runs)
+    [cell] = make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, runs, rates={})
+    assert cell.status == "done"
+    assert table_run.run_cells([cell], progress=False) == 1  # finished cells counted, none trained
+    assert _run_cli(["--preset", "paper", "--algorithms", "ppo", "--tasks", "1d-dynamic", "--runs-dir", str(runs),
+                     "--no-progress"]) == 0
+    after = {name: data for name, data in _tree(runs).items() if not name.endswith(checkpoint.LOCK_FILE)}
+    assert after == before
+    (cell_dir / "eval.json").unlink()
+    with pytest.raises(ValueError, match=r"^\S+1d-dynamic holds this cell's files without checkpoints and no finished "
+                                         r"eval.json: nothing is left to evaluate; move that directory away$"):
+        make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, runs, rates={})
 
 
 def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path, monkeypatch):

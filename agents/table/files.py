@@ -6,7 +6,8 @@ with `cell.json` beside it. A runner deletes nothing and starts no run over file
 make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
 short before its first checkpoint (which it trains again from the start), or it is refused,
 named, before anything runs. A cell copied from another preset's raw copy (`record_copy`) holds
-that run's files but its checkpoints: finished, never trained or evaluated again. The report
+that run's files but its checkpoints: finished, never trained or evaluated again; so is a cell
+whose files came back without checkpoints from the machine it trained on (`own_files`). The report
 (`agents.table.raw`) reads finished cells with `read_cell`, and their one-file copies under
 `bench/results/table/` with `read_raw`; both refuse a damaged cell naming the file and the field
 instead of leaving it out.
@@ -186,6 +187,14 @@ def record_copy(directory: Path, owner: tuple) -> dict | None:
     `directory` holds one of the cell `owner` (its preset, algorithm, task, arm or None), whole or
     cut short (a subset of `COPY_FILES` with its cell.json, which the copy writes first); None for
     any other directory, which the table treats as any directory without checkpoints."""
+    cell = own_files(directory, owner)
+    return cell if cell is not None and RECORD_FIELD in cell else None
+
+
+def own_files(directory: Path, owner: tuple) -> dict | None:
+    """The cell.json where `directory` holds the cell `owner`'s files but its checkpoints (a subset
+    of `COPY_FILES` with its cell.json): a raw copy's copy (`record_copy`), or a cell that trained
+    on another machine and came back without its checkpoints. None for any other directory."""
     if directory.is_symlink() or not (directory / CELL_FILE).is_file():
         return None
     entries = {p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE}
@@ -195,5 +204,4 @@ def record_copy(directory: Path, owner: tuple) -> dict | None:
         cell = schemas.load(directory / CELL_FILE, schemas.CELL_JSON)
     except (OSError, ValueError):
         return None
-    mine = (cell["preset"], cell["algorithm"], cell["task"], cell.get("variant")) == tuple(owner)
-    return cell if mine and RECORD_FIELD in cell else None
+    return cell if (cell["preset"], cell["algorithm"], cell["task"], cell.get("variant")) == tuple(owner) else None

@@ -22,7 +22,7 @@ from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
 from agents.table.files import (EVAL_FILE, RECORD_FIELD, eval_is_valid, expected_episodes, new_cell_leftovers,
-                                 read_record, record_copy, record_path)
+                                 own_files, read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
@@ -209,6 +209,24 @@ def own_copy(cell: Cell) -> dict | None:
     return record_copy(cell.directory, (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name))
 
 
+def _finished_elsewhere(cell: Cell) -> bool:
+    """Whether the cell's directory holds its own finished files but no checkpoints (trained on
+    another machine, copied back without them: `files.own_files`) with the cell's settings. Its
+    eval.json must be a finished result of it, or it is refused: nothing is left to evaluate."""
+    owner = (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name)
+    if own_files(cell.directory, owner) is None or not (cell.directory / checkpoint.CONFIG_FILE).is_file():
+        return False
+    try:
+        if not _continues(cell, checkpoint.read_config(cell.directory)):
+            return False  # another run's files where this cell goes: refused as such (`new_cell_leftovers`)
+    except ValueError:
+        return False
+    if not eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, expected_episodes(cell.task, cell.preset.protocol)):
+        raise ValueError(f"{cell.directory} holds this cell's files without checkpoints and no finished "
+                         f"{EVAL_FILE}: nothing is left to evaluate; move that directory away")
+    return True
+
+
 def cell_state(cell: Cell) -> None:
     """Fill in the cell's status and the env steps per seed its run has done. A new cell's
     directory must hold nothing the table did not make (`files.new_cell_leftovers`). A cell copied
@@ -228,6 +246,9 @@ def cell_state(cell: Cell) -> None:
         return
     if checkpoint.latest_chunk(cell.directory) is None:
         cell.status, cell.done_steps = "new", 0
+        if _finished_elsewhere(cell):
+            cell.status, cell.done_steps = "done", cell.total_steps
+            return
         new_cell_leftovers(cell.directory, lambda config: _continues(cell, config))
         return
     _check_same_config(cell)
