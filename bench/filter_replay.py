@@ -16,9 +16,10 @@ is scored on the same steps.
 Scored per variant, over every step t of every episode (t = 0 to the episode's length: the
 belief after reading observation t): the mean of -log P(true position) (P floored at 1e-6),
 the share of steps whose argmax is the true position, and both over the thirds of the step
-limit (the bricks accumulate along an episode). The policy's own belief (`held`, the product
-of its filter's row and column marginals, or a `brick_map` run's joint belief) is scored the
-same way. Default key: the tuning key (`TUNING_EVAL_SEED`), as this chooses a setting.
+limit (the bricks accumulate along an episode) and per training seed. The policy's own belief
+(`held`, the product of its filter's row and column marginals, or a `brick_map` run's joint
+belief) is scored the same way. Default key: the tuning key (`TUNING_EVAL_SEED`), as this
+chooses a setting.
 
 Writes only `--out`/filter_replay.json; prints a table.
 """
@@ -177,10 +178,18 @@ def replay(args: argparse.Namespace) -> dict:
     inputs = jax.tree.map(lambda *parts: np.concatenate(parts), *inputs)
     position, length = np.concatenate(positions), np.concatenate(lengths)
 
-    variants = {"held": score(np.concatenate(held_p), np.concatenate(held_hit), length, num_steps)}
+    seed_of = np.repeat([s for s, _ in indices], [len(part) for part in lengths])
+
+    def scored(p_true, hit) -> dict:
+        """`score` over every episode, and per training seed (its "all" part)."""
+        per_seed = {str(s): score(p_true[seed_of == s], hit[seed_of == s], length[seed_of == s], num_steps)["all"]
+                    for s, _ in indices}
+        return {**score(p_true, hit, length, num_steps), "per_seed": per_seed}
+
+    variants = {"held": scored(np.concatenate(held_p), np.concatenate(held_hit))}
     for weight in args.weights:
         p_true, hit = jax.device_get(_observe(inputs, position, jnp.float32(weight), rows, cols, drops, capped))
-        variants[f"mapping, weight {weight:g}"] = score(p_true, hit, length, num_steps)
+        variants[f"mapping, weight {weight:g}"] = scored(np.asarray(p_true), np.asarray(hit))
     report = {
         "run": str(args.run), "task": config.task, "switches": config.switches, "brick_map": algorithm.config.brick_map,
         "seed_indices": [s for s, _ in indices], "arm": args.arm, "eval_seed": args.eval_seed,
@@ -196,10 +205,15 @@ def replay(args: argparse.Namespace) -> dict:
 
 
 def table(report: dict) -> str:
-    lines = ["| belief | NLL | argmax on the truth | NLL by third of the step limit |", "|---|---:|---:|---|"]
+    lines = ["| belief | NLL | NLL per seed | argmax on the truth | per seed | NLL by third of the step limit |",
+             "|---|---:|---|---:|---|---|"]
     for name, row in report["variants"].items():
         thirds = ", ".join("—" if t is None else f"{t['nll']:.2f}" for t in row["thirds"])
-        lines.append(f"| {name} | {row['all']['nll']:.2f} | {row['all']['argmax_hit']:.3f} | {thirds} |")
+        seeds = list(row["per_seed"].values())
+        nll = ", ".join(format(s["nll"], ".2f") for s in seeds)
+        hit = ", ".join(format(s["argmax_hit"], ".3f") for s in seeds)
+        whole = row["all"]
+        lines.append(f"| {name} | {whole['nll']:.2f} | {nll} | {whole['argmax_hit']:.3f} | {hit} | {thirds} |")
     return "\n".join(lines)
 
 

@@ -115,6 +115,8 @@ def test_a_tiny_run_is_replayed_for_each_weight_into_one_json(tiny_run, tmp_path
     report = json.loads((out / "filter_replay.json").read_text())
     assert not report["brick_map"] and report["seed_indices"] == [1] and report["eval_seed"] == 5
     assert report["episodes"] == 10 and list(report["variants"]) == ["held", "mapping, weight 0", "mapping, weight 0.5"]
+    for row in report["variants"].values():  # one seed: its own score is the whole
+        assert list(row["per_seed"]) == ["1"] and row["per_seed"]["1"] == row["all"]
     printed = capsys.readouterr().out
     assert "| mapping, weight 0.5 |" in printed and printed.startswith("10 episodes (mean IoU ")
 
