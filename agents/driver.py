@@ -38,7 +38,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from agents import checkpoint
-from agents.chunk_programs import ChunkPrograms
+from agents.chunk_programs import ChunkPrograms, compiles_ahead
 from agents.config import TrainConfig, save_config
 from agents import sweep, trackers
 from agents.registry import build_algorithm
@@ -308,7 +308,8 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
     abstract = jax.tree.map(_abstract, (state, env_params))
 
     def lower_chunk(n: int):
-        """The chunk of n updates, lowered ahead (so chunk timings exclude compiling)."""
+        """The chunk of n updates, lowered for `ChunkPrograms` (compiled before its chunk's timing
+        starts)."""
         fn = per_run(algorithm, swept, lambda learner, s, p: learner.train_chunk(s, p, n), (0, None))
         replicated = NamedSharding(mesh, PartitionSpec())  # metrics: every process reads them
         return jax.jit(fn, out_shardings=(shardings, replicated), donate_argnums=0).lower(*abstract)
@@ -319,7 +320,7 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
     wall = history[-1]["wall_s"] if history else 0.0
     bar = _progress_bar(total_steps * runs, done_steps * runs, config, progress and writer)
     last = len(sizes) if stop_after_chunks is None else min(len(sizes), done_chunks + stop_after_chunks)
-    programs = ChunkPrograms(lower_chunk, sizes[done_chunks:last], bar.write)
+    programs = ChunkPrograms(lower_chunk, sizes[done_chunks:last], bar.write, background=compiles_ahead())
     warned = list(history[-1].get("diverged") or []) if history else []  # said once per change
     tracker = trackers.open_tracker(log if writer else None, out_dir, config, config.seeds,
                                     1 if swept is None else swept.num_arms, start_step=done_steps)
@@ -368,16 +369,21 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
                 postfix["return"] = f"{np.nanmean(record['return']):.1f}"
             bar.set_postfix(postfix)
     finally:
-        programs.close()
-        bar.close()
-        if tracker is not None:
-            tracker.close()
+        try:
+            bar.close()
+            if tracker is not None:
+                tracker.close()
+        finally:
+            programs.close()
     return algorithm, state
 
 
 def _abstract(leaf):
     """An array's shape, dtype and sharding, for lowering without reading it."""
-    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=leaf.sharding) if isinstance(leaf, jax.Array) else leaf
+    if not isinstance(leaf, jax.Array):
+        return leaf
+    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=leaf.sharding,
+                                weak_type=getattr(leaf, "weak_type", False))  # a key array has none
 
 
 def _progress_bar(total: int, initial: int, config: TrainConfig, enabled: bool):

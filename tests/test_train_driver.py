@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import re
+import time
 import subprocess
 import sys
 import textwrap
@@ -35,46 +36,108 @@ def test_chunk_sizes_cover_the_run():
     assert chunk_sizes(2, 20) == [1, 1]
 
 
-def test_a_shorter_last_chunk_compiles_in_the_background_and_changes_nothing(tmp_path, capsys):
+@pytest.mark.parametrize("ahead", [True, False])
+def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_nothing(tmp_path, capsys, monkeypatch,
+                                                                                    ahead):
     """Chunks of 2 and 1 updates: each program compiles once, the 1-update one behind the first
-    chunks' training, and the run ends where one 3-update chunk ends."""
+    chunks' training where the driver compiles ahead (an accelerator; forced here) and when its
+    chunk comes on a CPU; the run ends where one 3-update chunk ends."""
+    import agents.driver as driver
+
+    monkeypatch.setattr(driver, "compiles_ahead", lambda: ahead)
     config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=3 * 16 * 8, chunks=2, **TINY)
     _, chunked = train(config, tmp_path / "chunked", progress=False)
     printed = capsys.readouterr()
     printed = printed.out + printed.err
     assert printed.count("compiled a chunk of 2 updates in") == 1
     assert printed.count("compiled a chunk of 1 updates in") == 1
-    assert re.search(r"compiled a chunk of 1 updates in [0-9.]+ s \(in the background\)", printed)
+    assert bool(re.search(r"compiled a chunk of 1 updates in [0-9.]+ s \(in the background\)", printed)) == ahead
     _, whole = train(dataclasses.replace(config, chunks=1), tmp_path / "whole", progress=False)
     assert _leaves_equal(chunked, whole)
 
 
-def test_chunk_programs_compile_the_later_sizes_on_another_thread():
+def test_the_driver_compiles_ahead_on_accelerators_only():
+    from agents.chunk_programs import compiles_ahead
+
+    assert compiles_ahead() == (jax.default_backend() != "cpu")
+
+
+class _Lowered:
+    """A stand-in for a lowered chunk: `compile` records its thread, and holds on `gates[n]` or
+    raises `failures[n]` where given."""
+
+    def __init__(self, n, threads, gates=None, failures=None):
+        self.n, self.threads, self.gates, self.failures = n, threads, gates or {}, failures or {}
+
+    def compile(self):
+        import threading
+
+        self.threads.append((self.n, threading.current_thread().name))
+        if self.n in self.gates:
+            started, release = self.gates[self.n]
+            started.set()
+            assert release.wait(10)
+        if self.failures.pop(self.n, None):
+            raise RuntimeError("RESOURCE_EXHAUSTED: out of memory\nmore")
+        return f"program {self.n}"
+
+
+def test_chunk_programs_compile_the_later_sizes_on_another_thread_and_say_so_when_closing_on_one():
     import threading
 
     from agents.chunk_programs import ChunkPrograms
 
-    started, release, threads, written = threading.Event(), threading.Event(), {}, []
-
-    class Lowered:
-        def __init__(self, n):
-            self.n = n
-
-        def compile(self):
-            threads[self.n] = threading.current_thread().name
-            if self.n == 1:  # the background compile holds until the test lets it go
-                started.set()
-                assert release.wait(10)
-            return f"program {self.n}"
-
-    programs = ChunkPrograms(Lowered, [2, 2, 1], written.append)
+    started, release, threads, written = threading.Event(), threading.Event(), [], []
+    gates = {1: (started, release)}
+    programs = ChunkPrograms(lambda n: _Lowered(n, threads, gates), [2, 2, 1], written.append, background=True)
     assert programs.get(2) == "program 2"  # returns while the 1-update compile is still under way
-    assert started.wait(10) and threads[2] == threading.current_thread().name and threads[1] != threads[2]
+    assert started.wait(10)
+    main = threading.current_thread().name
+    assert threads[0] == (2, main) and threads[1][0] == 1 and threads[1][1] != main
+    closer = threading.Thread(target=programs.close)
+    closer.start()  # an interrupted run: it waits for the compile under way, and says so
+    time.sleep(0.2)
+    assert closer.is_alive() and written[-1].startswith("waiting for a chunk's compile under way")
     release.set()
-    assert programs.get(1) == "program 1" and programs.get(2) == "program 2"
+    closer.join(10)
+    assert not closer.is_alive()
+
+    threads, written = [], []
+    programs = ChunkPrograms(lambda n: _Lowered(n, threads), [2, 2, 1], written.append, background=True)
+    assert programs.get(2) == "program 2" and programs.get(1) == "program 1" and programs.get(2) == "program 2"
     programs.close()
     assert [w.split(" in ")[0] for w in written] == ["compiled a chunk of 2 updates", "compiled a chunk of 1 updates"]
     assert written[1].endswith("(in the background)") and not written[0].endswith("(in the background)")
+
+
+def test_a_failed_background_compile_is_warned_about_and_compiled_again_in_the_foreground():
+    import threading
+
+    from agents.chunk_programs import ChunkPrograms
+
+    threads, written, failures = [], [], {1: True}  # the first compile of 1 fails, the second succeeds
+    programs = ChunkPrograms(lambda n: _Lowered(n, threads, failures=failures), [2, 1], written.append, background=True)
+    programs.get(2)
+    assert programs.get(1) == "program 1"
+    programs.close()
+    assert [n for n, _ in threads] == [2, 1, 1] and threads[2][1] == threading.current_thread().name
+    assert written[1] == ("warning: compiling the chunk of 1 updates in the background failed (RuntimeError: "
+                          "RESOURCE_EXHAUSTED: out of memory); compiling it now")
+    assert written[2].startswith("compiled a chunk of 1 updates in ") and "background" not in written[2]
+
+
+def test_without_compiling_ahead_every_program_compiles_on_the_callers_thread_when_first_needed():
+    import threading
+
+    from agents.chunk_programs import ChunkPrograms
+
+    threads, written = [], []
+    programs = ChunkPrograms(lambda n: _Lowered(n, threads), [2, 2, 1], written.append, background=False)
+    programs.get(2)
+    assert [n for n, _ in threads] == [2]
+    programs.get(1)
+    programs.close()
+    assert threads == [(2, threading.current_thread().name), (1, threading.current_thread().name)]
 
 
 def test_checkpoint_round_trip(tmp_path):
