@@ -144,7 +144,7 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         and `(T, B, cols)`. It reads from `obs` the last action and where the window shows
         padding (tests/test_belief.py runs it on real episodes, the move head's part given)."""
         rows, _ = self.layout.plan_shape
-        p_cells, _, sign, window = self._filter_inputs(move_logits, obs)
+        p_cells, _, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
 
         def step(belief, inputs):
             belief = filter_step(belief, *inputs)
@@ -154,7 +154,7 @@ class BeliefQNetwork(AuxiliaryQNetwork):
                                                (resets, p_cells, sign, window == PADDING))
         return jnp.concatenate([b_row, b_col], axis=-1), beliefs
 
-    def _filter_inputs(self, move_logits: jax.Array, obs: jax.Array):
+    def filter_inputs_from_move_logits(self, move_logits: jax.Array, obs: jax.Array):
         """What a filter reads per step from `(T, B, ...)` inputs: the move head's distribution over
         the cells moved (no gradient: the move loss alone trains it), the last action's one-hot
         (its last entry "none", at an episode's start), that action's row and column direction,
@@ -182,7 +182,7 @@ class MappingBeliefQNetwork(BeliefQNetwork):
 
     def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
         rows, cols = self.layout.plan_shape
-        p_cells, last_action, sign, window = self._filter_inputs(move_logits, obs)
+        p_cells, last_action, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
         drops = tuple(self.drops)
 
         def step(state, inputs):
@@ -337,7 +337,7 @@ class PQNBelief(PQNAux):
         _, sown = network.apply(params, policy_state["carry"][None], net_obs, policy_state["reset"][None, None],
                                 mutable="intermediates")
         move_logits = sown["intermediates"]["auxiliary"][0]["move"]
-        p_cells, last_action, sign, window = network._filter_inputs(move_logits, net_obs)
+        p_cells, last_action, sign, window = network.filter_inputs_from_move_logits(move_logits, net_obs)
         return policy_state["reset"][None], p_cells[0], sign[0], last_action[0], window[0]
 
     def _fixed_design(self) -> tuple:

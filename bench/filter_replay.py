@@ -3,9 +3,9 @@
 
     python bench/filter_replay.py --run runs/x/pqn-belief/2d-dynamic-sparse --out OUT
 
-Why: trained with the mapping filter (`brick_map`), pqn-belief's belief got worse as its policy
-built (beyond.md). That mixes two causes: the filter itself going wrong as bricks accumulate,
-and the training that the filter's belief steers. Here the policy is fixed (the run's greedy
+Why: where a run trained with the mapping filter (`brick_map`) holds a poor belief, two causes
+are mixed: the filter itself going wrong as bricks accumulate, and the training that the
+filter's belief steers. Here the policy is fixed (the run's greedy
 policy, with its own belief, plays the evaluation protocol's episodes, SPEC §8) and the mapping
 filter runs beside it on exactly what the policy's filter read at each step
 (`PQNBelief.filter_inputs`: the move head's distribution, the last action, the window), once per

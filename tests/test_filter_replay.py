@@ -117,6 +117,15 @@ def test_a_tiny_run_is_replayed_for_each_weight_into_one_json(tiny_run, tmp_path
     assert report["episodes"] == 10 and list(report["variants"]) == ["held", "mapping, weight 0", "mapping, weight 0.5"]
     for row in report["variants"].values():  # one seed: its own score is the whole
         assert list(row["per_seed"]) == ["1"] and row["per_seed"]["1"] == row["all"]
+    both = tmp_path / "both"
+    assert main(["--run", str(tiny_run), "--out", str(both), "--episodes", "1", "--weights", "0.5"]) == 0
+    report = json.loads((both / "filter_replay.json").read_text())
+    assert report["seed_indices"] == [0, 1] and report["episodes"] == 20
+    for row in report["variants"].values():  # the seeds' scores, weighted by their steps, make the whole
+        seeds = [row["per_seed"][s] for s in ("0", "1")]
+        assert sum(s["steps"] for s in seeds) == row["all"]["steps"]
+        for name in ("nll", "argmax_hit"):
+            assert sum(s[name] * s["steps"] for s in seeds) / row["all"]["steps"] == pytest.approx(row["all"][name])
     printed = capsys.readouterr().out
     assert "| mapping, weight 0.5 |" in printed and printed.startswith("10 episodes (mean IoU ")
 

@@ -152,26 +152,53 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
                                                                                                    no_training):
     """A cell trained on another machine and copied back with its files but not its checkpoints (a
     committed cell's files written back as a runs directory's) is done: planned so, never trained
-    or evaluated again, its files untouched. Without a finished eval.json nothing is left to
-    evaluate it with, and the plan says so in one line."""
+    or evaluated again, its files untouched. Files of another cell or other settings are refused as
+    foreign; this cell's without a finished eval.json or a finished training are refused in one
+    line, as nothing is left to evaluate or resume them from."""
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 
     runs = tmp_path / "runs"
-    cell_dir = runs / "paper" / "ppo" / "1d-dynamic"
-    unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "ppo" / "1d-dynamic.json", cell_dir)
+    cell_dir = runs / "paper" / "dqn" / "1d-dynamic"
+    unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "dqn" / "1d-dynamic.json", cell_dir)
     before = _tree(runs)
-    [cell] = make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, runs, rates={})
+    [cell] = make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs, rates={})
     assert cell.status == "done"
     assert table_run.run_cells([cell], progress=False) == 1  # finished cells counted, none trained
-    assert _run_cli(["--preset", "paper", "--algorithms", "ppo", "--tasks", "1d-dynamic", "--runs-dir", str(runs),
+    assert _run_cli(["--preset", "paper", "--algorithms", "dqn", "--tasks", "1d-dynamic", "--runs-dir", str(runs),
                      "--no-progress"]) == 0
     after = {name: data for name, data in _tree(runs).items() if not name.endswith(checkpoint.LOCK_FILE)}
     assert after == before
-    (cell_dir / "eval.json").unlink()
+
+    def plan_with(edit):
+        """The plan of the cell after `edit(cell_dir)` on a fresh copy of its files."""
+        shutil.rmtree(cell_dir)
+        unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "dqn" / "1d-dynamic.json", cell_dir)
+        edit(cell_dir)
+        return make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs, rates={})
+
+    def edit_json(name, change):
+        return lambda d: (d / name).write_text(json.dumps(change(json.loads((d / name).read_text()))))
+
+    # Not this cell's files: another preset's cell.json, or this cell's with other settings.
+    foreign = "holds files that no start of this cell left there"
+    with pytest.raises(ValueError, match=foreign):
+        plan_with(edit_json("cell.json", lambda c: {**c, "preset": "tuned"}))
+    with pytest.raises(ValueError, match=foreign):
+        plan_with(edit_json("config.json", lambda c: {**c, "learning_rate": c["learning_rate"] * 2}))
+    # This cell's, but not a finished run: nothing is left to resume or evaluate it from.
     with pytest.raises(ValueError, match=r"^\S+1d-dynamic holds this cell's files without checkpoints and no finished "
                                          r"eval.json: nothing is left to evaluate; move that directory away$"):
-        make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, runs, rates={})
+        plan_with(lambda d: (d / "eval.json").unlink())
+    for cut, recorded in ((lambda d: (d / "metrics.jsonl").unlink(), 0),
+                          (lambda d: (d / "metrics.jsonl").write_text("".join(
+                              (d / "metrics.jsonl").read_text().splitlines(True)[:3])), 3)):
+        with pytest.raises(ValueError, match=rf"1d-dynamic holds this cell's files without checkpoints, and its "
+                                             rf"metrics.jsonl records {recorded} of the run's \d+ chunks: its training "
+                                             "did not finish"):
+            plan_with(cut)
+    with pytest.raises(ValueError, match=foreign):  # a cell.json naming another task is another cell's
+        plan_with(edit_json("cell.json", lambda c: {**c, "task": "1d-static-sin"}))
 
 
 def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path, monkeypatch):

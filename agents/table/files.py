@@ -99,6 +99,25 @@ def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) ->
     return True
 
 
+def check_finished_without_checkpoints(directory: Path, config, episodes: int) -> None:
+    """A cell's own files back without checkpoints (`own_files`) with the cell's settings `config`
+    must be a finished run: an eval.json that is a finished result of the cell (`episodes` per
+    seed), a metrics.jsonl through the run's last chunk, and files that agree with each other
+    (`read_cell`). Else a `ValueError`: nothing is left to resume or evaluate the run from."""
+    from agents.driver import chunk_sizes
+
+    where = f"{directory} holds this cell's files without checkpoints"
+    if not eval_is_valid(directory / EVAL_FILE, config.seeds, episodes):
+        raise ValueError(f"{where} and no finished {EVAL_FILE}: nothing is left to evaluate; move that directory away")
+    records = checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)
+    chunks = len(chunk_sizes(config.num_updates, config.chunks))
+    if not records or records[-1]["chunk"] != chunks - 1:
+        raise ValueError(f"{where}, and its {checkpoint.METRICS_FILE} records {len(records)} of the run's {chunks} "
+                         "chunks: its training did not finish, and nothing is left to resume it from; move that "
+                         "directory away")
+    read_cell(directory)
+
+
 def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, cell_where: str, eval_where: str,
                config_where: str) -> None:
     """The checks between a cell's parts, each already read against its schema: `cell` and the

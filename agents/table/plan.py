@@ -21,8 +21,8 @@ from typing import Any
 from agents import checkpoint
 from agents.config import TrainConfig
 from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
-from agents.table.files import (EVAL_FILE, RECORD_FIELD, eval_is_valid, expected_episodes, new_cell_leftovers,
-                                 own_files, read_record, record_copy, record_path)
+from agents.table.files import (EVAL_FILE, RECORD_FIELD, check_finished_without_checkpoints, eval_is_valid,
+                                 expected_episodes, new_cell_leftovers, own_files, read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import load_rates, measured
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
@@ -210,9 +210,9 @@ def own_copy(cell: Cell) -> dict | None:
 
 
 def _finished_elsewhere(cell: Cell) -> bool:
-    """Whether the cell's directory holds its own finished files but no checkpoints (trained on
-    another machine, copied back without them: `files.own_files`) with the cell's settings. Its
-    eval.json must be a finished result of it, or it is refused: nothing is left to evaluate."""
+    """Whether the cell's directory holds its own files but no checkpoints (trained on another
+    machine, copied back without them: `files.own_files`) with the cell's settings. They must be a
+    finished run (`files.check_finished_without_checkpoints`), or the cell is refused."""
     owner = (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name)
     if own_files(cell.directory, owner) is None or not (cell.directory / checkpoint.CONFIG_FILE).is_file():
         return False
@@ -221,9 +221,7 @@ def _finished_elsewhere(cell: Cell) -> bool:
             return False  # another run's files where this cell goes: refused as such (`new_cell_leftovers`)
     except ValueError:
         return False
-    if not eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, expected_episodes(cell.task, cell.preset.protocol)):
-        raise ValueError(f"{cell.directory} holds this cell's files without checkpoints and no finished "
-                         f"{EVAL_FILE}: nothing is left to evaluate; move that directory away")
+    check_finished_without_checkpoints(cell.directory, cell.config, expected_episodes(cell.task, cell.preset.protocol))
     return True
 
 
@@ -231,7 +229,8 @@ def cell_state(cell: Cell) -> None:
     """Fill in the cell's status and the env steps per seed its run has done. A new cell's
     directory must hold nothing the table did not make (`files.new_cell_leftovers`). A cell copied
     from a raw copy (no checkpoints) is done once its eval.json, which the copy writes last, is
-    there; before that it is new, and running it completes the copy."""
+    there; before that it is new, and running it completes the copy. A cell's own finished files
+    back without checkpoints are done (`_finished_elsewhere`)."""
     if (copied := own_copy(cell)) is not None:
         if (cell.directory / checkpoint.CONFIG_FILE).is_file():
             _check_same_config(cell)
