@@ -5,6 +5,12 @@ PQN-RNN is measured with the second command).
 
     python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
     python bench/train_throughput.py --algorithm pqn --tasks 1d-static-sin 1d-dynamic
+    python bench/train_throughput.py --algorithm pqn-belief --tasks 3d-dynamic-sparse \
+        --variant design_encoder=false --variant view_radius=7,design_encoder=false
+
+`--variant` adds a row per set of settings over the tuned ones, timed in the same run as the
+tuned row: what a setting costs is read as the ratio of two rows, not against another day's
+number.
 
 Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
 over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
@@ -23,6 +29,7 @@ are close, the learner is compute-bound and only a smaller network or fewer epoc
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import time
@@ -30,8 +37,10 @@ import time
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algorithm", choices=("ppo", "pqn"), default="ppo",
-                        help="the on-policy learner to time (both train from rollouts of many worlds)")
+    parser.add_argument("--algorithm", choices=("ppo", "pqn", "pqn-belief"), default="ppo",
+                        help="the on-policy learner to time (each trains from rollouts of many worlds)")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE...]",
+                        help="settings over the tuned ones, timed as a row more (repeatable; the tuned row is always timed)")
     parser.add_argument("--tasks", nargs="+", default=["1d-static-sin", "2d-static-dense"])
     parser.add_argument("--recurrent", choices=("yes", "no", "both"), default="yes")
     parser.add_argument("--updates", type=int, default=10, help="timed updates per repeat")
@@ -44,6 +53,10 @@ def main() -> None:
     for name in ("updates", "repeats", "devices"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    try:
+        variants = [{}] + [_variant_settings(text, args.algorithm) for text in args.variant]
+    except ValueError as error:
+        parser.error(str(error))
 
     from snac_jax import devices
 
@@ -54,7 +67,7 @@ def main() -> None:
     from agents.registry import build_algorithm, make_config
     from agents.networks import param_count
 
-    variants = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
+    networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
     print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
           f"median of {args.repeats} repeats of {args.updates} updates")
     print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
@@ -62,10 +75,10 @@ def main() -> None:
           "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |")
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for task in args.tasks:
-        for recurrent in variants:
+        for recurrent, settings in itertools.product(networks, variants):
             config = make_config(args.algorithm, task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
                                  rnn_size=args.rnn_size, update_epochs=args.update_epochs,
-                                 num_minibatches=args.num_minibatches, rollout_steps=args.rollout_steps)
+                                 num_minibatches=args.num_minibatches, rollout_steps=args.rollout_steps, **settings)
             algorithm = build_algorithm(config)
             mesh = devices.env_mesh(args.devices, config.num_envs)
             state = initial_state(algorithm, mesh)
@@ -92,10 +105,44 @@ def main() -> None:
             width = config.rnn_size if recurrent else config.hidden_size
             matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
             kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
-            print(f"| {task} | {kind}, hidden {config.hidden_size} | {config.num_envs} | {config.rollout_steps} x "
+            kind += f", hidden {config.hidden_size}" + "".join(f"; {name}={value}" for name, value in settings.items())
+            print(f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
                   f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
                   f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
                   f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+
+
+OWN_FLAGS = ("recurrent", "num_envs", "hidden_size", "rnn_size", "update_epochs", "num_minibatches", "rollout_steps")
+
+
+def _variant_settings(text: str, algorithm: str) -> dict:
+    """`NAME=VALUE[,NAME=VALUE...]` as the settings it names, each value of its option's type; a
+    one-line `ValueError` naming the algorithm's settings otherwise (their values are checked when
+    the config is made)."""
+    from agents.config import field_specs
+    from agents.registry import config_class
+
+    fields = {name: spec for name, spec in field_specs(config_class(algorithm)).items() if spec.cli}
+    settings = {}
+    for item in text.split(","):
+        name, sep, value = (part.strip() for part in item.partition("="))
+        name = name.replace("-", "_")
+        if not sep or not value or name not in fields:
+            raise ValueError(f"--variant takes NAME=VALUE[,NAME=VALUE...] with NAME one of {algorithm}'s settings "
+                             f"({', '.join(fields)}), got {item!r}")
+        if name in OWN_FLAGS:
+            raise ValueError(f"--variant: {name} has its own flag (--{name.replace('_', '-')}), which sets it for every row")
+        kind = fields[name].kind
+        if kind is bool:
+            if value.lower() not in ("true", "false"):
+                raise ValueError(f"--variant {name}: true or false, got {value!r}")
+            settings[name] = value.lower() == "true"
+        else:
+            try:
+                settings[name] = kind(value)
+            except ValueError:
+                raise ValueError(f"--variant {name}: {fields[name].describe()}, got {value!r}") from None
+    return settings
 
 
 def _gflops_text(gflops: float) -> str:

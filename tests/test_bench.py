@@ -93,6 +93,28 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm):
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
 
 
+def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
+    """A setting's cost is read off two rows of one run: the tuned row and the variant's, whose
+    network cell names the settings it changed (and whose parameter count they change)."""
+    script = ROOT / "bench" / "train_throughput.py"
+    done = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--tasks", "2d-dynamic-sparse",
+                           "--updates", "1", "--repeats", "1", "--num-envs", "4", "--rollout-steps", "4", "--hidden-size", "8",
+                           "--rnn-size", "8", "--variant", "view_radius=3,design_encoder=false"],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in done.stdout.splitlines()
+            if line.startswith("| 2d-dynamic-sparse")]
+    assert [row[1] for row in rows] == ["GRU 8, hidden 8", "GRU 8, hidden 8; view_radius=3; design_encoder=False"]
+    assert rows[0][4] != rows[1][4]  # the tuned row (view 7, no encoder) and the variant are different networks
+    for variant, message in (("view_radius", "--variant takes NAME=VALUE"), ("no_such=1", "got 'no_such=1'"),
+                             ("design_encoder=maybe", "--variant design_encoder: true or false, got 'maybe'"),
+                             ("view_radius=x", "--variant view_radius: an int"),
+                             ("num_envs=8", "--variant: num_envs has its own flag (--num-envs)")):
+        bad = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--variant", variant],
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert bad.returncode == 2 and message in bad.stderr, (variant, bad.stderr[-500:])
+
+
 @pytest.mark.slow
 def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
     committed = _committed_results()
