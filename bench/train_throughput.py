@@ -6,7 +6,7 @@ PQN-RNN is measured with the second command).
     python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
     python bench/train_throughput.py --algorithm pqn --tasks 1d-static-sin 1d-dynamic
     python bench/train_throughput.py --algorithm pqn-belief --tasks 3d-dynamic-sparse \
-        --variant design_encoder=false --variant view_radius=7,design_encoder=false
+        --variant view_radius=0,design_encoder=true
 
 `--variant` adds a row per set of settings over the tuned ones, timed in the same run as the
 tuned row: what a setting costs is read as the ratio of two rows, not against another day's
@@ -74,42 +74,47 @@ def main() -> None:
           "env-steps/s with learning | acting only (same run) | learning's share of the time | "
           "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |")
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
-    for task in args.tasks:
-        for recurrent, settings in itertools.product(networks, variants):
-            config = make_config(args.algorithm, task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
-                                 rnn_size=args.rnn_size, update_epochs=args.update_epochs,
-                                 num_minibatches=args.num_minibatches, rollout_steps=args.rollout_steps, **settings)
-            algorithm = build_algorithm(config)
-            mesh = devices.env_mesh(args.devices, config.num_envs)
-            state = initial_state(algorithm, mesh)
-            steps = args.updates * config.steps_per_update
+    rows = []  # every configuration made (and so checked) before the first is compiled
+    for task, recurrent, settings in itertools.product(args.tasks, networks, variants):
+        try:
+            rows.append((task, recurrent, settings, make_config(
+                args.algorithm, task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
+                rnn_size=args.rnn_size, update_epochs=args.update_epochs, num_minibatches=args.num_minibatches,
+                rollout_steps=args.rollout_steps, **settings)))
+        except ValueError as error:
+            parser.error(f"{task}: {error}")
+    for task, recurrent, settings, config in rows:
+        algorithm = build_algorithm(config)
+        mesh = devices.env_mesh(args.devices, config.num_envs)
+        state = initial_state(algorithm, mesh)
+        steps = args.updates * config.steps_per_update
 
-            def acting_only(s, p):  # the baseline: the same rollouts, no learning
-                return jax.lax.scan(lambda s, _: (algorithm.rollout(s, p)[0], None), s, None, length=args.updates)[0]
+        def acting_only(s, p):  # the baseline: the same rollouts, no learning
+            return jax.lax.scan(lambda s, _: (algorithm.rollout(s, p)[0], None), s, None, length=args.updates)[0]
 
-            train = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates)[0], in_axes=(0, None)))
-            act = jax.jit(jax.vmap(acting_only, in_axes=(0, None)))
-            start = time.perf_counter()
-            train = train.lower(state, algorithm.env_params).compile()
-            compile_s = time.perf_counter() - start
-            act = act.lower(state, algorithm.env_params).compile()
-            state = jax.block_until_ready(train(state, algorithm.env_params))  # warm-up
-            load = os.getloadavg()
-            rates = {"train": [], "act": []}
-            for _ in range(args.repeats):
-                for name, fn in (("train", train), ("act", act)):
-                    rates[name].append(steps / _seconds(fn, state, algorithm.env_params))
-            rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
-            params = param_count(jax.tree.map(lambda x: x[0], state.params))
-            network_gflops = rate * 2 * params * (1 + 3 * config.update_epochs) / 1e9
-            width = config.rnn_size if recurrent else config.hidden_size
-            matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
-            kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
-            kind += f", hidden {config.hidden_size}" + "".join(f"; {name}={value}" for name, value in settings.items())
-            print(f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
-                  f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
-                  f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
-                  f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+        train = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates)[0], in_axes=(0, None)))
+        act = jax.jit(jax.vmap(acting_only, in_axes=(0, None)))
+        start = time.perf_counter()
+        train = train.lower(state, algorithm.env_params).compile()
+        compile_s = time.perf_counter() - start
+        act = act.lower(state, algorithm.env_params).compile()
+        state = jax.block_until_ready(train(state, algorithm.env_params))  # warm-up
+        load = os.getloadavg()
+        rates = {"train": [], "act": []}
+        for _ in range(args.repeats):
+            for name, fn in (("train", train), ("act", act)):
+                rates[name].append(steps / _seconds(fn, state, algorithm.env_params))
+        rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
+        params = param_count(jax.tree.map(lambda x: x[0], state.params))
+        network_gflops = rate * 2 * params * (1 + 3 * config.update_epochs) / 1e9
+        width = config.rnn_size if recurrent else config.hidden_size
+        matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
+        kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
+        kind += f", hidden {config.hidden_size}" + "".join(f"; {name}={value}" for name, value in settings.items())
+        print(f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
+              f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
+              f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
+              f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
 
 
 OWN_FLAGS = ("recurrent", "num_envs", "hidden_size", "rnn_size", "update_epochs", "num_minibatches", "rollout_steps")
@@ -118,7 +123,7 @@ OWN_FLAGS = ("recurrent", "num_envs", "hidden_size", "rnn_size", "update_epochs"
 def _variant_settings(text: str, algorithm: str) -> dict:
     """`NAME=VALUE[,NAME=VALUE...]` as the settings it names, each value of its option's type; a
     one-line `ValueError` naming the algorithm's settings otherwise (their values are checked when
-    the config is made)."""
+    `main` makes every row's config, before the first compiles)."""
     from agents.config import field_specs
     from agents.registry import config_class
 
