@@ -23,7 +23,7 @@ from snac_jax.tasks import TASKS
 DEFAULT_TASK = "1d-static-sin"
 
 
-def _flag_type(spec):
+def flag_type(spec):
     """An argparse type that parses a field's value and checks it against its declaration."""
     def parse(text: str):
         try:
@@ -53,7 +53,7 @@ def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, 
         if spec.kind is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
         else:
-            parser.add_argument(flag, type=_flag_type(spec), default=None, metavar=spec.kind.__name__.upper(),
+            parser.add_argument(flag, type=flag_type(spec), default=None, metavar=spec.kind.__name__.upper(),
                                 help=help_text)
         names.append(spec.name)
     return tuple(names)

@@ -54,7 +54,7 @@ def main() -> None:
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     try:
-        variants = [{}] + [_variant_settings(text, args.algorithm) for text in args.variant]
+        variants = [{}] + [_variant_settings(text, args.algorithm, set(vars(args))) for text in args.variant]
     except ValueError as error:
         parser.error(str(error))
 
@@ -117,13 +117,12 @@ def main() -> None:
               f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
 
 
-OWN_FLAGS = ("recurrent", "num_envs", "hidden_size", "rnn_size", "update_epochs", "num_minibatches", "rollout_steps")
-
-
-def _variant_settings(text: str, algorithm: str) -> dict:
+def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
     """`NAME=VALUE[,NAME=VALUE...]` as the settings it names, each value of its option's type; a
     one-line `ValueError` naming the algorithm's settings otherwise (their values are checked when
-    `main` makes every row's config, before the first compiles)."""
+    `main` makes every row's config, before the first compiles). A setting that is one of
+    `own_flags` (this script's own options, e.g. --num-envs) is refused: its flag sets every row."""
+    from agents.cli import flag_type
     from agents.config import field_specs
     from agents.registry import config_class
 
@@ -135,7 +134,7 @@ def _variant_settings(text: str, algorithm: str) -> dict:
         if not sep or not value or name not in fields:
             raise ValueError(f"--variant takes NAME=VALUE[,NAME=VALUE...] with NAME one of {algorithm}'s settings "
                              f"({', '.join(fields)}), got {item!r}")
-        if name in OWN_FLAGS:
+        if name in own_flags:
             raise ValueError(f"--variant: {name} has its own flag (--{name.replace('_', '-')}), which sets it for every row")
         kind = fields[name].kind
         if kind is bool:
@@ -144,9 +143,9 @@ def _variant_settings(text: str, algorithm: str) -> dict:
             settings[name] = value.lower() == "true"
         else:
             try:
-                settings[name] = kind(value)
-            except ValueError:
-                raise ValueError(f"--variant {name}: {fields[name].describe()}, got {value!r}") from None
+                settings[name] = flag_type(fields[name])(value)  # `snac train`'s parsing and check of the flag
+            except argparse.ArgumentTypeError as error:
+                raise ValueError(f"--variant {name}: {error}") from None
     return settings
 
 

@@ -108,7 +108,7 @@ def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
     assert rows[0][4] != rows[1][4]  # the tuned row (view 7, no encoder) and the variant are different networks
     for variant, message in (("view_radius", "--variant takes NAME=VALUE"), ("no_such=1", "got 'no_such=1'"),
                              ("design_encoder=maybe", "--variant design_encoder: true or false, got 'maybe'"),
-                             ("view_radius=x", "--variant view_radius: an int"),
+                             ("view_radius=x", "--variant view_radius: must be an int"),
                              ("num_envs=8", "--variant: num_envs has its own flag (--num-envs)"),
                              ("view_radius=1", "1d-static-sin: view_radius must be 0 or in 2..29 on 1d-static-sin, got 1")):
         bad = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--variant", variant],
