@@ -1,7 +1,7 @@
 """Training throughput: env steps per second of an on-policy learner *including learning*
 (rollout, returns and the update epochs), per task and network, with its tuned defaults
-(`agents/tuned/<algorithm>.toml`, else its config class's): PPO, or PQN (issue 19's target for
-PQN-RNN is measured with the second command).
+(`agents/tuned/<algorithm>.toml`, else its config class's): PPO, PQN or pqn-belief (issue 19's
+target for PQN-RNN is measured with the second command).
 
     python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
     python bench/train_throughput.py --algorithm pqn --tasks 1d-static-sin 1d-dynamic
@@ -53,14 +53,13 @@ def main() -> None:
     for name in ("updates", "repeats", "devices"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    from snac_jax import devices
+
+    devices.use_cpu_devices(args.devices)  # before anything starts JAX's backend (the variants' imports do)
     try:
         variants = [{}] + [_variant_settings(text, args.algorithm, set(vars(args))) for text in args.variant]
     except ValueError as error:
         parser.error(str(error))
-
-    from snac_jax import devices
-
-    devices.use_cpu_devices(args.devices)
     import jax
 
     from agents.driver import initial_state
@@ -68,7 +67,8 @@ def main() -> None:
     from agents.networks import param_count
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
-    print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s); "
+    print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s) "
+          f"({jax.devices()[0].device_kind}; {os.cpu_count()} CPU cores); "
           f"median of {args.repeats} repeats of {args.updates} updates")
     print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
           "env-steps/s with learning | acting only (same run) | learning's share of the time | "
@@ -134,6 +134,8 @@ def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
         if not sep or not value or name not in fields:
             raise ValueError(f"--variant takes NAME=VALUE[,NAME=VALUE...] with NAME one of {algorithm}'s settings "
                              f"({', '.join(fields)}), got {item!r}")
+        if name in settings:
+            raise ValueError(f"--variant: {name} is named twice in {text!r}")
         if name in own_flags:
             raise ValueError(f"--variant: {name} has its own flag (--{name.replace('_', '-')}), which sets it for every row")
         kind = fields[name].kind

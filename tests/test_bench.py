@@ -110,10 +110,13 @@ def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
                              ("design_encoder=maybe", "--variant design_encoder: true or false, got 'maybe'"),
                              ("view_radius=x", "--variant view_radius: must be an int"),
                              ("num_envs=8", "--variant: num_envs has its own flag (--num-envs)"),
+                             ("view_radius=3,view_radius=4", "--variant: view_radius is named twice"),
                              ("view_radius=1", "1d-static-sin: view_radius must be 0 or in 2..29 on 1d-static-sin, got 1")):
-        bad = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--variant", variant],
-                             capture_output=True, text=True, cwd=ROOT, timeout=120)
+        # two CPU devices: the variants are read after the device count is set, not before
+        bad = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--devices", "2",
+                              "--variant", variant], capture_output=True, text=True, cwd=ROOT, timeout=120)
         assert bad.returncode == 2 and message in bad.stderr, (variant, bad.stderr[-500:])
+        assert "| 1d-static-sin" not in bad.stdout  # refused before any row was timed
 
 
 @pytest.mark.slow
