@@ -18,8 +18,9 @@ At each step the belief is the one the Q head reads when the policy acts
 else the product of its row and column marginals. The actions are the policy's own `act`.
 
 Writes only under `--out`, per drawn episode `worst<rank>_episode<index>.gif` (every step) and
-`.png` (its last frame), and `belief_episodes.json`. A frame is the world (`snac_jax.rendering`)
-beside a heat map of the belief over the plan (colour: probability over the frame's largest; a
+`.png` (its last frame), and `belief_episodes.json`, which also counts how the played episodes
+ended (bricks spent, step limit, stuck): a tail of early endings is told apart. A frame is the
+world (`snac_jax.rendering`) beside a heat map of the belief over the plan (colour: probability over the frame's largest; a
 cyan box: the true position; a green dot: the argmax), with a caption: step, IoU so far,
 P(true position) under the belief, and the argmax's distance from the truth in cells (|row
 difference| + |column difference|: the moves between them). Entry t of a frame sequence (and of
@@ -100,6 +101,16 @@ def _record(env, init, act, held, policy_params, env_params, keys, design_indice
 def worst_episodes(iou: np.ndarray, count: int) -> np.ndarray:
     """Indices of the `count` lowest IoUs, lowest first; among equal IoUs the lower index first."""
     return np.argsort(np.asarray(iou), kind="stable")[:count]
+
+
+def episode_endings(length, bricks_used, max_bricks, max_steps: int) -> dict[str, int]:
+    """How many episodes ended each way (SPEC §4-5), from per-episode steps taken, bricks laid and
+    the design's brick budget: its bricks spent (terminated), else the step limit (truncated),
+    else stuck (terminated with bricks and steps left: the obstacle rule's only other ending).
+    Fixed budgets only: a design changed within the episode (SPEC §15) moves its budget."""
+    spent = np.asarray(bricks_used) >= np.asarray(max_bricks)
+    limit = ~spent & (np.asarray(length) >= max_steps)
+    return {"bricks spent": int(spent.sum()), "step limit": int(limit.sum()), "stuck": int((~spent & ~limit).sum())}
 
 
 def belief_numbers(belief: np.ndarray, position) -> tuple[float, int, tuple[int, int]]:
@@ -241,6 +252,9 @@ def analyse(args: argparse.Namespace) -> dict:
         "arm_settings": None if swept is None else swept.arm_settings(args.arm),
         "eval_seed": args.eval_seed, "episodes_per_design": count, "episodes_played": setup.num_episodes,
         "mean_iou": float(np.mean(scored.iou)),
+        "endings": None if env.config.design_change is not None else episode_endings(
+            scored.length, scored.bricks_used, np.asarray(setup.params.design_max_bricks)[np.asarray(scored.design_index)],
+            int(setup.params.max_steps_in_episode)),
         "belief": "joint over plan positions (brick_map)" if brick_map else "row marginal x column marginal",
         "steps": "entry t: after t steps; entries 0..length-1 chose the actions, entry length read the final "
                  "observation",
@@ -258,8 +272,10 @@ def main(argv=None) -> int:
     except ValueError as error:
         print(f"belief_episodes.py: error: {error}", file=sys.stderr)
         return 2
+    endings = report["endings"]
+    ended = "" if endings is None else "; ended: " + ", ".join(f"{name} {count}" for name, count in endings.items())
     print(f"{len(report['episodes'])} of {report['episodes_played']} episodes drawn (mean IoU "
-          f"{report['mean_iou']:.3f}); wrote {args.out}/belief_episodes.json and a GIF and PNG per episode")
+          f"{report['mean_iou']:.3f}{ended}); wrote {args.out}/belief_episodes.json and a GIF and PNG per episode")
     return 0
 
 

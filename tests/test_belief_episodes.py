@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bench.belief_episodes import HEAT_ANCHORS, _record, belief_numbers, heat_colours, main, worst_episodes
+from bench.belief_episodes import HEAT_ANCHORS, _record, belief_numbers, episode_endings, heat_colours, main, worst_episodes
 from snac_jax.evaluation import protocol_episodes, run_episodes
 from snac_jax.tasks import make
 
@@ -167,6 +167,10 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = worst_episodes(scored.iou, 3)
     assert [r["episode"] for r in rows] == chosen.tolist()
+    # 2D has no obstacle rule, so no episode ends stuck: each ran to the step limit or spent its bricks
+    limit = int(setup.params.max_steps_in_episode)
+    assert report["endings"] == {"bricks spent": int((np.asarray(scored.length) < limit).sum()),
+                                 "step limit": int((np.asarray(scored.length) == limit).sum()), "stuck": 0}
     for r in rows:
         assert r["iou"] == float(scored.iou[r["episode"]]) and r["length"] == int(scored.length[r["episode"]])
         assert r["design"] == setup.names[int(setup.design_indices[r["episode"]])]
@@ -191,6 +195,14 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
         size = gif.size
     with Image.open(out / rows[0]["png"]) as png:
         assert png.size == size
+
+
+def test_endings_are_told_apart_by_bricks_then_steps_then_stuck():
+    # budgets 10, 10, 10, 5; step limit 100: spent (a drop at the limit counts as spent), at the
+    # limit, stuck early, spent early
+    endings = episode_endings(length=[100, 100, 37, 40], bricks_used=[10, 3, 7, 5], max_bricks=[10, 10, 10, 5],
+                              max_steps=100)
+    assert endings == {"bricks spent": 2, "step limit": 1, "stuck": 1}
 
 
 def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
