@@ -22,7 +22,7 @@ part of the task, and the bootstrap reads a state (the count at the limit) no up
 DRQN and Rainbow treat the limit so.
 
 The module forks alone: besides `snac_jax` it reads only the library modules `agents.config`,
-`agents.inputs`, `agents.networks` and `agents.targets`.
+`agents.inputs`, `agents.networks`, `agents.safe_drops` and `agents.targets`.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from flax import struct
 from agents.config import TrainConfig, option
 from agents.inputs import ObsLayout
 from agents.networks import LayerNormQNetwork
+from agents.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
 from agents.targets import q_lambda, truncation_values
 from snac_jax.policy import Policy
 
@@ -73,8 +74,12 @@ class PQNConfig(TrainConfig):
                                    "as a termination does: the observation holds the step count")
     stagger_starts: bool = option(True, "start each world a random number (up to an episode) of random steps in, "
                                   "so that the worlds' rollouts hold different parts of their episodes")
+    safe_drops: bool = option(False, "never drop on the robot's last free neighbour, read from the window: that drop "
+                              "walls it in under the obstacle rule (agents.safe_drops)")
 
     def check(self) -> None:
+        if self.safe_drops:
+            require_obstacles(self.env_config(), self.task)
         if self.num_envs % self.num_minibatches:
             raise ValueError(
                 f"num_envs ({self.num_envs}) must be a multiple of num_minibatches ({self.num_minibatches}): "
@@ -201,6 +206,14 @@ class PQN:
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
 
+    def allowed(self, net_obs: jax.Array) -> jax.Array | None:
+        """`(..., num_actions)` the actions open to the policy on `net_obs` (which starts with the
+        window, `ObsLayout`): all but the drops that wall the robot in with `safe_drops`; None
+        (all of them) without it."""
+        if not self.config.safe_drops:
+            return None
+        return allowed_actions(self.env.config, net_obs[..., : self.layout.window_size])
+
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         """`rollout_steps` epsilon-greedy steps in every world, no learning."""
         n, num_actions = self.config.num_envs, self.env.num_actions
@@ -212,8 +225,10 @@ class PQN:
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
             new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            allowed = self.allowed(net_obs)
+            q = masked_q(q[0], allowed)
             explore = jax.random.uniform(key_explore, (n,)) < epsilon
-            action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, num_actions), jnp.argmax(q[0], -1))
+            action = jnp.where(explore, random_allowed(key_random, allowed, (n,), num_actions), jnp.argmax(q, -1))
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )
@@ -221,7 +236,7 @@ class PQN:
             episode_return = worlds.episode_return + reward
             final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
             transition = Transition(
-                obs=net_obs, reset=worlds.reset, action=action, value=q[0].max(-1), reward=reward,
+                obs=net_obs, reset=worlds.reset, action=action, value=q.max(-1), reward=reward,
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
@@ -236,12 +251,13 @@ class PQN:
     def targets(self, params, batch: Transition, worlds: Worlds) -> jax.Array:
         """`(T, B)` Q(lambda) returns of a rollout; `worlds` is where the rollout stopped."""
         cfg = self.config
-        _, last_q = self.network.apply(params, worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
-        next_values = jnp.concatenate([batch.value[1:], last_q.max(-1)], axis=0)
+        last_obs = self._network_obs(worlds)
+        _, last_q = self.network.apply(params, worlds.carry, last_obs[None], worlds.reset[None])
+        next_values = jnp.concatenate([batch.value[1:], masked_q(last_q[0], self.allowed(last_obs)).max(-1)[None]], axis=0)
 
         def score(carry, obs):
             _, q = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
-            return q[0].max(-1)
+            return masked_q(q[0], self.allowed(obs)).max(-1)
 
         if cfg.time_limit_ends:
             terminated, truncated = batch.terminated | batch.truncated, jnp.zeros_like(batch.truncated)
@@ -299,7 +315,7 @@ class PQN:
 
     def policy(self, params) -> Policy:
         """The greedy policy (argmax Q) for one environment (vmap it for a batch)."""
-        network, layout = self.network, self.layout
+        network, layout, allowed = self.network, self.layout, self.allowed
 
         def init(key, design):
             return {"carry": network.initial_carry(1)[0], **layout.episode_start_memory()}
@@ -307,7 +323,7 @@ class PQN:
         def act(params, policy_state, obs, key):
             net_obs = layout.acting_inputs(obs, policy_state)
             carry, q = network.apply(params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None])
-            action = jnp.argmax(q[0, 0]).astype(jnp.int32)
+            action = jnp.argmax(masked_q(q[0, 0], allowed(net_obs))).astype(jnp.int32)
             return action, {"carry": carry[0], **layout.remember(obs, action)}
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"

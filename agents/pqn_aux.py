@@ -17,6 +17,7 @@ from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_
 from agents.config import option
 from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
 from agents.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
+from agents.safe_drops import masked_q, random_allowed
 
 
 
@@ -116,8 +117,10 @@ class PQNAux(StrideCurriculum, PQN):
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
             new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            allowed = self.allowed(net_obs)
+            q = masked_q(q[0], allowed)
             explore = jax.random.uniform(key_explore, (n,)) < epsilon
-            action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, num_actions), jnp.argmax(q[0], -1))
+            action = jnp.where(explore, random_allowed(key_random, allowed, (n,), num_actions), jnp.argmax(q, -1))
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )
@@ -125,7 +128,7 @@ class PQNAux(StrideCurriculum, PQN):
             episode_return = worlds.episode_return + reward
             final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
             transition = AuxiliaryTransition(
-                obs=net_obs, reset=worlds.reset, action=action, value=q[0].max(-1), reward=reward,
+                obs=net_obs, reset=worlds.reset, action=action, value=q.max(-1), reward=reward,
                 terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
                 auxiliary=self.auxiliary_targets(worlds.env_state, env_params),
             )
