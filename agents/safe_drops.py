@@ -10,6 +10,10 @@ holds bricks already, or toward the padding, frees nothing and blocks nothing ne
 drop on the last free neighbour keeps the robot from ever being stuck. The window shows the four
 neighbours, so the refusal reads the observation alone: the acting policy stays honest.
 
+The price: a drop that would have walled the robot in and still scored (it lands, SPEC §4) is
+never taken, so an episode that would have ended stuck goes on instead, toward the step limit or
+the brick budget.
+
 A free neighbour is one a move may enter: 0 in the window, or a landmark (SPEC §9: the grid holds
 0 there and the window shows `LANDMARK_VALUE`). A drop on a landmark spends the brick and changes
 nothing, so it closes nothing and is never refused.
@@ -68,4 +72,4 @@ def random_allowed(key: jax.Array, allowed: jax.Array | None, shape: tuple[int, 
     """A uniformly random allowed action per world (`allowed` None: any action), for exploration."""
     if allowed is None:
         return jax.random.randint(key, shape, 0, num_actions)
-    return jax.random.categorical(key, jnp.where(allowed, 0.0, -jnp.inf), axis=-1)
+    return jax.random.categorical(key, jnp.where(allowed, 0.0, -jnp.inf), axis=-1, shape=shape)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from agents.pqn import PQN, PQNConfig
+from agents.pqn_aux import PQNAux, PQNAuxConfig
 from agents.safe_drops import allowed_actions, neighbour_drop_targets
 from snac_jax import make
 from snac_jax.observation import LANDMARK_VALUE
@@ -84,3 +85,34 @@ def test_the_greedy_policy_never_takes_a_refused_drop(safe_drops):
     action, _ = policy.act(params, memory, obs, jax.random.key(3))
     assert (int(action) != 6) if safe_drops else (int(action) == 6)
 
+
+
+def with_drop_down_first(params):
+    """The Q head's bias for action 6 (drop down) raised far above every other action."""
+    head = params["params"]["Dense_0"]
+    return {"params": {**params["params"], "Dense_0": {**head, "bias": head["bias"].at[6].add(1e3)}}}
+
+
+@pytest.mark.parametrize("learner, config", [(PQN, PQNConfig), (PQNAux, PQNAuxConfig)])
+@pytest.mark.parametrize("safe_drops", [True, False])
+def test_the_greedy_rollout_and_its_bootstrap_skip_the_refused_drop(learner, config, safe_drops):
+    # Greedy (epsilon 0) from staggered starts, the head preferring the drop down everywhere: where
+    # down is the last free neighbour, the rollout must act otherwise and bootstrap from the best
+    # allowed action, not from the refused drop's 1e3 (pqn-aux's rollout is its own: both checked).
+    pqn = learner(config(task="3d-static-dense", num_envs=32, num_minibatches=2, rollout_steps=64, hidden_size=8,
+                         rnn_size=8, eps_start=0.0, eps_end=0.0, stagger_starts=True, safe_drops=safe_drops))
+    state = pqn.init(jax.random.key(0))
+    state = state.replace(params=with_drop_down_first(state.params))
+    after, batch, _ = jax.jit(pqn.rollout)(state, pqn.env_params)
+    window = pqn.layout.window_size
+    refused = ~allowed_actions(pqn.env.config, batch.obs[..., :window])[..., 6]
+    assert refused.any()
+    if not safe_drops:
+        assert (batch.action[refused] == 6).all()
+        return
+    assert not (batch.action[refused] == 6).any()
+    assert batch.value[refused].max() < 100
+    refused_last = ~allowed_actions(pqn.env.config, after.worlds.obs[..., :window])[..., 6]
+    assert refused_last.any()
+    targets = pqn.targets(state.params, batch, after.worlds)
+    assert targets[-1][refused_last & ~(batch.terminated[-1] | batch.truncated[-1])].max() < 100
