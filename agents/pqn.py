@@ -206,6 +206,16 @@ class PQN:
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
 
+    def epsilon_greedy(self, key_explore: jax.Array, key_random: jax.Array, q: jax.Array, net_obs: jax.Array,
+                       epsilon: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Each world's action `(B,)`, epsilon-greedy over the actions `allowed` on `net_obs`, and
+        the Q-values `(B, A)` with the refused ones at -inf: their max is what the targets bootstrap
+        from. The rollouts of the PQN learners all act through it."""
+        allowed = self.allowed(net_obs)
+        q = masked_q(q, allowed)
+        explore = jax.random.uniform(key_explore, q.shape[:1]) < epsilon
+        return jnp.where(explore, random_allowed(key_random, allowed, q.shape[:1], q.shape[-1]), jnp.argmax(q, -1)), q
+
     def allowed(self, net_obs: jax.Array) -> jax.Array | None:
         """`(..., num_actions)` the actions open to the policy on `net_obs` (which starts with the
         window, `ObsLayout`): all but the drops that wall the robot in with `safe_drops`; None
@@ -216,7 +226,7 @@ class PQN:
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, Transition, dict]:
         """`rollout_steps` epsilon-greedy steps in every world, no learning."""
-        n, num_actions = self.config.num_envs, self.env.num_actions
+        n = self.config.num_envs
         step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
         epsilon = self.epsilon(state.update)
 
@@ -225,10 +235,7 @@ class PQN:
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
             new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
-            allowed = self.allowed(net_obs)
-            q = masked_q(q[0], allowed)
-            explore = jax.random.uniform(key_explore, (n,)) < epsilon
-            action = jnp.where(explore, random_allowed(key_random, allowed, (n,), num_actions), jnp.argmax(q, -1))
+            action, q = self.epsilon_greedy(key_explore, key_random, q[0], net_obs, epsilon)
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )

@@ -17,7 +17,6 @@ from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_
 from agents.config import option
 from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
 from agents.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
-from agents.safe_drops import masked_q, random_allowed
 
 
 
@@ -108,7 +107,7 @@ class PQNAux(StrideCurriculum, PQN):
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, AuxiliaryTransition, dict]:
         """PQN's rollout, recording each step's auxiliary targets."""
-        n, num_actions = self.config.num_envs, self.env.num_actions
+        n = self.config.num_envs
         step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
         epsilon = self.epsilon(state.update)
 
@@ -117,10 +116,7 @@ class PQNAux(StrideCurriculum, PQN):
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
             new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
-            allowed = self.allowed(net_obs)
-            q = masked_q(q[0], allowed)
-            explore = jax.random.uniform(key_explore, (n,)) < epsilon
-            action = jnp.where(explore, random_allowed(key_random, allowed, (n,), num_actions), jnp.argmax(q, -1))
+            action, q = self.epsilon_greedy(key_explore, key_random, q[0], net_obs, epsilon)
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
             )
