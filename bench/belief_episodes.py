@@ -23,10 +23,10 @@ ended (bricks spent, step limit, stuck): a tail of early endings is told apart. 
 world (`snac_jax.rendering`) beside a heat map of the belief over the plan (colour: probability
 over the frame's largest; a cyan box: the true position; a green dot: the argmax), with a
 caption: step, IoU so far, P(true position) under the belief, and the argmax's distance from the
-truth in cells (|row difference| + |column difference|: the moves between them). Entry t of a frame sequence (and of
-the JSON's per-step lists) is the world after t steps and the belief after reading its
-observation: entries 0..length-1 are the beliefs that chose the episode's actions, the last
-(t = length) the belief after the final observation, on which no action is taken.
+truth in cells (|row difference| + |column difference|: the moves between them). Entry t of a
+frame sequence (and of the JSON's per-step lists) is the world after t steps and the belief after
+reading its observation: entries 0..length-1 are the beliefs that chose the episode's actions, the
+last (t = length) the belief after the final observation, on which no action is taken.
 """
 
 from __future__ import annotations
