@@ -81,7 +81,8 @@ CELL_JSON = Object(
         "budget": Object({"env_steps": Int(1), "requested": Int(1), "source": Str(), "capped": Bool()}),
         "eval_seed": Int(0, MAX_SEED), "protocol": PROTOCOL,
     },
-    {"variant": Str(), "paper_variant": Str(), "switches": Str(), "settings": MapOf(Anything()), "adopted_from": Str(),
+    {"variant": Str(), "paper_variant": Str(), "switches": Str(), "settings": MapOf(Anything()),
+     "evaluation": MapOf(Anything()), "adopted_from": Str(),
      "adopted_record": Str()},
 )
 

@@ -157,7 +157,7 @@ def test_cheap_seeds_below_seeds_is_refused(tmp_path):
              r"cheap_seeds \(2\) must be at least seeds \(3\)")
 
 def test_evaluation_estimates_scale_with_the_episodes():
-    from agents.table.plan import eval_seconds
+    from agents.table.rates import eval_seconds
 
     rates = {"dqn": {"1d-static-sin": {"eval_s": 10.0}}}
     # Another learner's figure for the nearest task; 10 x 200 episodes against the 500 it was timed on.

@@ -64,9 +64,11 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
                 paper_arm = paper.get(task, {}).get(files["cell"]["paper_variant"], {}) if ablated else {}
                 row = {**statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
                        "paper_variant": files["cell"]["paper_variant"],
-                       "changes": arm_changes(files["cell"]["switches"], files["cell"].get("settings", {})),
+                       "changes": arm_changes(files["cell"]["switches"], files["cell"].get("settings", {}),
+                                                  files["cell"].get("evaluation")),
                        "budget": budget_record([files]), "paper": paper_arm.get("avg"),
-                       "adopted_from": files["cell"].get("adopted_from")}
+                       "adopted_from": files["cell"].get("adopted_from"),
+                       **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {})}
                 if arm != BASE:  # the paper's value of an arm is its change from the base
                     row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
                                     if base is not None else None)
@@ -83,11 +85,19 @@ def _interval(value: float, ci: list[float], signed: bool = False) -> str:
     return f"{value:{sign}.3f} [{ci[0]:{sign}.3f}, {ci[1]:{sign}.3f}]"
 
 
+def _scored_otherwise(table: dict) -> bool:
+    """Whether an arm of the section acts with settings of its own when scored (`Variant.evaluation`)."""
+    return any(row.get("evaluation") for tasks in table["ablation"].values() for rows in tasks.values()
+               for row in rows.values())
+
+
 def section(table: dict, description: str) -> list[str]:
     """table.md's section of an ablation preset."""
     lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
-             "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings. The paper's value of the base arm is its "
-             "IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
+             "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings"
+             + ("; an arm whose settings say \"at evaluation\" trains as the base arm (taking over its run) and its "
+                "greedy policy acts with them when scored" if _scored_otherwise(table) else "")
+             + ". The paper's value of the base arm is its IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
              "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
              "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
              "for two arms of three normal draws and no true difference it holds 0 only about four times in "

@@ -24,8 +24,9 @@ from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
 from agents.table.files import (EVAL_FILE, RECORD_FIELD, check_finished_without_checkpoints, eval_is_valid,
                                  expected_episodes, new_cell_leftovers, own_files, read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks
-from agents.table.rates import load_rates, measured
-from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, REPORT_EVAL_SEED, STATIC_EPISODES
+from agents.table.rates import eval_seconds, load_rates, measured
+from agents.table.scoring import check_scored_as, scoring_config
+from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.tasks import task_spec
 
 TRAIN_SEED = 1
@@ -34,20 +35,6 @@ chose the tuned settings trained from base seed 0, so no table run repeats one o
 
 
 # --- rates and estimates -------------------------------------------------------------------------
-
-
-def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
-    """Seconds of the preset's protocol for one seed, and where the figure comes from: measured
-    (the full protocol) for the algorithm, else for any algorithm (the protocol's cost is mostly
-    the environment's), on the task or its kin, scaled by the episode counts."""
-    for source in [algorithm, *sorted(set(rates) - {algorithm})]:
-        found = measured(rates, source, task, "eval_s")
-        if found is not None:
-            seconds, measured_on = found
-            full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
-            scale = expected_episodes(task, preset.protocol) / expected_episodes(measured_on, full)
-            return seconds * scale, measured_on if source == algorithm else f"{source}'s {measured_on}"
-    return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,6 +104,8 @@ def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: di
         if fits < requested:
             steps, capped = max(fits, config.steps_per_update), True
     config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
+    if variant is not None and variant.evaluation:
+        scoring_config(config, variant.evaluation)  # an option the learner refuses fails here, before training
     return config, Budget(env_steps=steps, requested=requested, source=source, capped=capped)
 
 
@@ -144,6 +133,11 @@ class Cell:
     adopts_record: bool = False  # adopts_from is that run's raw copy in the record, not a run directory
 
     @property
+    def evaluation(self) -> dict[str, Any]:
+        """The arm's evaluation-only settings (empty: the cell acts as it trained)."""
+        return {} if self.variant is None else self.variant.evaluation
+
+    @property
     def total_steps(self) -> int:
         """Env steps per seed the run will have trained (whole updates)."""
         return self.config.num_updates * self.config.steps_per_update
@@ -151,7 +145,8 @@ class Cell:
     def record(self) -> dict[str, Any]:
         """cell.json: what the table needs beside config.json and eval.json."""
         arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
-                                                "switches": self.variant.switches, "settings": self.variant.settings}
+                                                "switches": self.variant.switches, "settings": self.variant.settings,
+                                                **({"evaluation": self.evaluation} if self.evaluation else {})}
         adopted = {} if self.adopts_from is None else {"adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.task}"}
         if self.adopts_record:
             adopted[RECORD_FIELD] = str(self.adopts_from)
@@ -242,17 +237,20 @@ def cell_state(cell: Cell) -> None:
                                  f"copied from {copied[RECORD_FIELD]}, has no checkpoints to evaluate again: move "
                                  "that directory away")
             cell.status, cell.done_steps = "done", cell.total_steps
+            check_scored_as(cell.directory, cell.evaluation)
         return
     if checkpoint.latest_chunk(cell.directory) is None:
         cell.status, cell.done_steps = "new", 0
         if _finished_elsewhere(cell):
             cell.status, cell.done_steps = "done", cell.total_steps
+            check_scored_as(cell.directory, cell.evaluation)
             return
         new_cell_leftovers(cell.directory, lambda config: _continues(cell, config))
         return
     _check_same_config(cell)
     if eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, expected_episodes(cell.task, cell.preset.protocol)):
         cell.status, cell.done_steps = "done", cell.total_steps
+        check_scored_as(cell.directory, cell.evaluation)
         return
     records = checkpoint.read_metrics_lines(cell.directory / checkpoint.METRICS_FILE)
     last_chunk = checkpoint.latest_chunk(cell.directory)
@@ -268,7 +266,7 @@ def find_twin(cell: Cell, runs_dir: str | Path, results_dir: str | Path | None =
     if cell.preset.adopts is None:
         return None
     twin = _run_twin(cell, runs_dir)
-    if twin is None and results_dir is not None:
+    if twin is None and results_dir is not None and not cell.evaluation:  # a raw copy has no policy to score again
         path = record_path(results_dir, cell.preset.adopts, cell.algorithm, cell.task)
         cell.adopts_record = record_twin(cell, path) is not None
         twin = path if cell.adopts_record else None
@@ -305,6 +303,11 @@ def estimate(cell: Cell, rates: dict) -> None:
     if cell.adopts_from is not None:
         twin = f"the record {cell.adopts_from}" if cell.adopts_record else cell.adopts_from
         cell.estimate_s, cell.estimate_from = 0.0, f"adopts {twin}, finished with the same settings"
+        if cell.evaluation:  # the adopted policy is scored again, acting with the arm's settings
+            evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
+            cell.estimate_s = cell.config.seeds * (evaluation[0] if evaluation else 0.0)
+            cell.estimate_from += (f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation
+                                   else ", scored again: eval not measured")
         return
     seeds = cell.config.seeds
     remaining = (cell.total_steps - cell.done_steps) * seeds

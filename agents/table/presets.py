@@ -23,20 +23,24 @@ _PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_li
 @dataclasses.dataclass(frozen=True)
 class Variant:
     """An ablation's arm: the environment switches its cells train and are scored with, the
-    learner settings it changes (an ingredient of a learner switched off), its tasks, and its
-    name in the paper's ablation table ("" where the paper has no such arm)."""
+    learner settings it changes (an ingredient of a learner switched off), the learner settings
+    its greedy policy acts with only when scored (`evaluation`: it trains as without them, so
+    it can take over the base arm's run and score it again), its tasks, and its name in the
+    paper's ablation table ("" where the paper has no such arm)."""
 
     name: str
     paper: str
     switches: str
     tasks: tuple[str, ...]
     settings: dict[str, Any] = dataclasses.field(default_factory=dict)
+    evaluation: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-
-def arm_changes(switches: str, settings: dict[str, Any]) -> str:
-    """An ablation arm's changes as the table prints them: its switches, then its settings."""
-    return ", ".join(([switches] if switches else []) + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())])
+def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
+    """An ablation arm's changes as the table prints them: its switches, its settings, then its
+    evaluation-only settings."""
+    return ", ".join(([switches] if switches else []) + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
+                     + [f"{k}={json.dumps(v)} at evaluation" for k, v in sorted((evaluation or {}).items())])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,24 +150,28 @@ def _same_as(path, tables: dict, preset: str, algorithm: str, budget: dict) -> d
 
 def _variant(path, preset: str, name: str, table: dict) -> Variant:
     where = f"{path}: [{preset}.variants.{name}]"
-    unknown = sorted(set(table) - {"paper", "switches", "settings", "tasks"})
+    unknown = sorted(set(table) - {"paper", "switches", "settings", "evaluation", "tasks"})
     if unknown or "tasks" not in table:
-        raise ValueError(f"{where} must give tasks, and may give paper, switches and settings"
+        raise ValueError(f"{where} must give tasks, and may give paper, switches, settings and evaluation"
                          + (f"; unknown key(s) {unknown}" if unknown else ""))
-    settings = table.get("settings", {})
-    if not isinstance(settings, dict):
-        raise ValueError(f"{where}: settings must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
-    reserved = sorted(set(settings) & _PLANNED_OPTIONS)
-    if reserved:
-        raise ValueError(f"{where}: settings may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))} "
-                         "(give an environment change as switches)")
+    settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
+    for key, options in (("settings", settings), ("evaluation", evaluation)):
+        if not isinstance(options, dict):
+            raise ValueError(f"{where}: {key} must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
+        reserved = sorted(set(options) & _PLANNED_OPTIONS)
+        if reserved:
+            raise ValueError(f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))} "
+                             "(give an environment change as switches)")
+    if evaluation and (settings or table.get("switches")):
+        raise ValueError(f"{where}: an arm with evaluation settings trains as the base arm (it scores the base's run "
+                         "again), so it may not give settings or switches")
     try:
         parse_switches(table.get("switches", ""))
         tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
     return Variant(name=name, paper=table.get("paper", ""), switches=table.get("switches", ""), tasks=tasks,
-                   settings=settings)
+                   settings=settings, evaluation=evaluation)
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:

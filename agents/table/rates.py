@@ -1,12 +1,19 @@
 """Measured training rates and evaluation times (`rates.json`, written by `bench/table_rates.py`)
-that `snac table` estimates a cell's wall time and its wall-capped budget from."""
+that `snac table` estimates a cell's wall time and its wall-capped budget from, and a preset's
+protocol's seconds per seed scaled from them (`eval_seconds`)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from agents.table.files import expected_episodes
+from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES
 from snac_jax.tasks import TASKS, task_spec
+
+if TYPE_CHECKING:
+    from agents.table.presets import Preset
 
 RATES_FILE = Path(__file__).parent / "rates.json"
 
@@ -31,4 +38,18 @@ def measured(rates: dict, algorithm: str, task: str, field: str) -> tuple[float,
     for near in _kin(task):
         if field in entries.get(near, {}):
             return float(entries[near][field]), near
+    return None
+
+
+def eval_seconds(rates: dict, algorithm: str, task: str, preset: Preset) -> tuple[float, str] | None:
+    """Seconds of the preset's protocol for one seed, and where the figure comes from: measured
+    (the full protocol) for the algorithm, else for any algorithm (the protocol's cost is mostly
+    the environment's), on the task or its kin, scaled by the episode counts."""
+    for source in [algorithm, *sorted(set(rates) - {algorithm})]:
+        found = measured(rates, source, task, "eval_s")
+        if found is not None:
+            seconds, measured_on = found
+            full = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
+            scale = expected_episodes(task, preset.protocol) / expected_episodes(measured_on, full)
+            return seconds * scale, measured_on if source == algorithm else f"{source}'s {measured_on}"
     return None

@@ -2,7 +2,8 @@
 started one resumes from its last checkpoint), then its learning curve and the reporting
 protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped, and a
 cell whose preset adopts another's finished run with the same settings copies that run instead,
-or that run's raw copy in the record (`adopt_record`)."""
+or that run's raw copy in the record (`adopt_record`); an arm that only acts otherwise when scored
+(`Variant.evaluation`) copies the run and scores its policy again, acting with the arm's settings."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from agents import checkpoint
 from agents.config import save_config
 from agents.table.files import CELL_FILE, EVAL_FILE
 from agents.table.plan import Cell, cell_state, own_copy, record_twin
+from agents.table.scoring import scoring_config
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
@@ -31,6 +33,7 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     process made since the plan is trained over, and a cell finished meanwhile is left as it is."""
     from agents.cli import evaluate_run
     from agents.driver import chunk_sizes, train
+    from agents.registry import build_algorithm
     from snac_jax import devices
 
     if cell.status == "done":
@@ -45,7 +48,9 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
             return True
         if cell.status == "new" and cell.adopts_from is not None and not started:
             adopt(cell)
-            return True
+            if not cell.evaluation:
+                return True
+            started = True  # the twin's finished run, to be scored again acting with the arm's settings
         algorithm, state = train(cell.config, cell.directory, resume=started, progress=progress,
                                  stop_after_chunks=stop_after_chunks,
                                  mesh=devices.env_mesh(num_devices, cell.config.num_envs))
@@ -55,6 +60,8 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
             cell.status = "partial"
             return False
         _plot_curve(cell, cell.directory)
+        if cell.evaluation:
+            algorithm = build_algorithm(scoring_config(algorithm.config, cell.evaluation))  # the trained params, acting so
         evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
     cell.status = "done"
     return True
@@ -66,12 +73,17 @@ def adopt(cell: Cell) -> None:
     cell. The copy is assembled in a folder of its own under `<algorithm>/.adopting/`, then moved
     into the cell's (locked, empty) directory one entry at a time with eval.json last: a kill
     leaves either no eval.json (a run with every checkpoint, which the next plan resumes and
-    evaluates) or the whole cell."""
+    evaluates) or the whole cell. An arm that scores the policy again acting otherwise
+    (`Cell.evaluation`) takes everything but eval.json: the run, for `run_cell` to score."""
+    skipped = [checkpoint.LOCK_FILE] + ([EVAL_FILE] if cell.evaluation else [])
+
     def copy(staging: Path) -> None:
         shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
-                        ignore=shutil.ignore_patterns(checkpoint.LOCK_FILE))
+                        ignore=shutil.ignore_patterns(*skipped))
 
     _assemble(cell, copy, cell_json_first=False)
+    if cell.evaluation:
+        cell.status = "partial"  # a finished run, not yet scored as this arm
 
 
 def adopt_record(cell: Cell) -> None:

@@ -1,0 +1,174 @@
+"""`snac table`'s arms that change only how a trained policy acts when scored
+(`Variant.evaluation`, `agents.table.scoring`): checked where the preset is loaded and planned,
+never adopted from a raw copy (no policy to score), refused when a finished cell was scored
+otherwise, printed "at evaluation" in the report, and (slow) taking over a finished run without
+training it, scoring its own params again with the arm's settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from agents.table import ablation
+from agents.table.plan import make_plan
+from agents.table.presets import Variant, load_presets
+from agents.table.raw import raw_text
+from agents.table.scoring import scoring_config
+from snac_jax.evaluation import REPORT_EVAL_SEED
+from tests.table_cells import cell_files
+
+PRESETS = load_presets()
+SMOKE_TASK = "1d-static-sin"
+
+
+def _scored_again(**evaluation) -> Variant:
+    return Variant(name="acting", paper="", switches="", tasks=(SMOKE_TASK,), evaluation=evaluation)
+
+
+def _abl(evaluation: dict) -> object:
+    """An ablation of the smoke preset whose base arm is the smoke cell, and an arm scored acting
+    with `evaluation`."""
+    arms = (Variant(name="base", paper="base", switches="", tasks=(SMOKE_TASK,)), _scored_again(**evaluation))
+    return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms, adopts="smoke")
+
+
+def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_mask(tmp_path):
+    cells = {c.variant.name: c for c in make_plan(PRESETS["safe-drops"], ["pqn-belief"], ["3d-dynamic-sparse"], None,
+                                                  tmp_path, rates={})}
+    assert list(cells) == ["base", "safe", "at-evaluation"]
+    acting = cells["at-evaluation"]
+    assert acting.config == cells["base"].config and not acting.config.safe_drops  # the same training
+    assert acting.evaluation == {"safe_drops": True} and cells["safe"].evaluation == {}
+    assert scoring_config(acting.config, acting.evaluation) == dataclasses.replace(acting.config, safe_drops=True)
+    assert acting.record()["evaluation"] == {"safe_drops": True} and "evaluation" not in cells["base"].record()
+
+
+def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
+    arm = '[a]\nseeds = 1\nalgorithms = ["pqn"]\n[a.variants.base]\ntasks = ["2d-static-dense"]\n[a.variants.b]\n'
+    for name, lines, message in [
+        ("both", 'evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n',
+         r"\[a.variants.b\]: an arm with evaluation settings trains as the base arm .* may not give settings or switches"),
+        ("switches", 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n', "may not give settings or switches"),
+        ("table", 'evaluation = "safe_drops"\n', r"evaluation must be a table of learner options"),
+        ("planned", 'evaluation = { seeds = 2 }\n', r"evaluation may not set \['seeds'\]"),
+    ]:
+        (tmp_path / f"{name}.toml").write_text(arm + lines + 'tasks = ["2d-static-dense"]\n')
+        with pytest.raises(ValueError, match=message):
+            load_presets(tmp_path / f"{name}.toml")
+    # What the learner refuses is refused when planned, before anything trains: an unknown option,
+    # and the mask on a task without the obstacle rule.
+    for lines, message in [('evaluation = { no_such_option = 1 }\n', r"unknown pqn option\(s\) \['no_such_option'\]"),
+                           ('evaluation = { safe_drops = true }\n', "obstacle")]:
+        (tmp_path / "learner.toml").write_text(arm + lines + 'tasks = ["2d-static-dense"]\n')
+        with pytest.raises(ValueError, match=message):
+            make_plan(load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
+
+
+def _record(results: Path, cell) -> Path:
+    """The raw copy the report keeps of `cell` finished, written by hand (no checkpoints)."""
+    row = {"min": 0.1, "std": 0.1, "episodes": 2, "mean_length": 40.0, "mean_bricks_used": 3.0, "mean_return": 1.0,
+           "per_design": {}, "seed": REPORT_EVAL_SEED, "wall_s": 1.0, "ci95": [0.4, 0.6]}
+    evaluation = {f"{cell.task} (seed {i})": {"task": f"{cell.task} (seed {i})", "mean": 0.5, **row}
+                  for i in range(cell.config.seeds)}
+    path = results / "table" / cell.preset.name / cell.algorithm / f"{cell.task}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(raw_text({"cell": cell.record(), "config": cell.config.to_json(), "eval": evaluation,
+                              "metrics": [{"chunk": 0, "env_steps": 2048, "wall_s": 2.0}]}))
+    return path
+
+
+def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path):
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    path = _record(results, source)
+    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results)
+    assert (base.adopts_from, base.adopts_record) == (path, True)
+    assert (acting.adopts_from, acting.status) == (None, "new")  # it trains its own run, then scores it acting so
+
+
+def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path):
+    runs = tmp_path / "runs"
+    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    acting.directory.mkdir(parents=True)
+    evaluation = {f"{SMOKE_TASK} (seed {i})": {"task": f"{SMOKE_TASK} (seed {i})", "mean": 0.5, "min": 0.1, "std": 0.1,
+                                               "ci95": [0.4, 0.6], "episodes": 2, "mean_length": 40.0,
+                                               "mean_bricks_used": 3.0, "mean_return": 1.0, "per_design": {},
+                                               "seed": REPORT_EVAL_SEED, "wall_s": 1.0}
+                  for i in range(acting.config.seeds)}
+    record = {k: v for k, v in acting.record().items() if k != "evaluation"}  # scored as it trained
+    for name, content in (("config.json", acting.config.to_json()), ("cell.json", record), ("eval.json", evaluation)):
+        (acting.directory / name).write_text(json.dumps(content))
+    (acting.directory / "metrics.jsonl").write_text("".join(json.dumps({"chunk": i, "env_steps": 512 * (i + 1),
+                                                                        "wall_s": 1.0 + i}) + "\n" for i in range(4)))
+    with pytest.raises(ValueError, match=r"abl/ppo/1d-static-sin.acting was scored acting with its training settings, "
+                                         r"the arm now asks \{'gamma': 0.5\}; move its eval.json away"):
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    (acting.directory / "cell.json").write_text(json.dumps(acting.record()))
+    [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    assert again.status == "done"
+
+
+def test_the_report_prints_an_arms_settings_at_evaluation():
+    files = cell_files("pqn-belief", "3d-dynamic-sparse", [0.5, 0.6, 0.55], 1000)
+    files["cell"].update(task="3d-dynamic-sparse", variant="at-evaluation", paper_variant="", switches="",
+                         settings={}, evaluation={"safe_drops": True})
+    table = ablation.build({"pqn-belief": {"3d-dynamic-sparse.at-evaluation": files}}, arms=["base", "at-evaluation"],
+                           reps=200)
+    text = "\n".join(ablation.section(table, "test"))
+    assert "| pqn-belief | 3d-dynamic-sparse | at-evaluation | `safe_drops=true at evaluation` | 0.550" in text
+    assert "an arm whose settings say \"at evaluation\" trains as the base arm" in text
+    del files["cell"]["evaluation"]  # a section without such an arm does not explain them
+    table = ablation.build({"pqn-belief": {"3d-dynamic-sparse.at-evaluation": files}}, arms=["base"], reps=200)
+    assert "at evaluation" not in "\n".join(ablation.section(table, "test"))
+
+
+@pytest.mark.slow  # one tiny training and two evaluations
+def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting_so(tmp_path, monkeypatch):
+    import jax
+    import numpy as np
+
+    import agents.cli
+    import agents.driver
+    from agents import checkpoint
+    from agents.table import run as table_run
+    from agents.trained import load_trained
+
+    runs = tmp_path / "runs"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    assert table_run.run_cell(source, progress=False)
+    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    assert base.adopts_from == acting.adopts_from == source.directory
+    assert "scored again" in acting.estimate_from
+
+    scored, trained = [], []
+    real_evaluate, real_train = agents.cli.evaluate_run, agents.driver.train
+
+    def evaluate_spy(algorithm, state, out_dir, *args, **kwargs):
+        scored.append((algorithm.config, state.params))
+        return real_evaluate(algorithm, state, out_dir, *args, **kwargs)
+
+    def train_spy(config, out_dir, **kwargs):
+        trained.append(kwargs["resume"])
+        return real_train(config, out_dir, **kwargs)
+
+    monkeypatch.setattr(agents.cli, "evaluate_run", evaluate_spy)
+    monkeypatch.setattr(agents.driver, "train", train_spy)
+    assert table_run.run_cell(acting, progress=False)
+    # Restored, never trained: the twin's chunks and metrics, the twin's params, scored with gamma 0.5.
+    assert trained == [True] and len(scored) == 1
+    assert checkpoint.read_metrics_lines(acting.directory / "metrics.jsonl") == checkpoint.read_metrics_lines(
+        source.directory / "metrics.jsonl")
+    config, params = scored[0]
+    assert config == dataclasses.replace(source.config, gamma=0.5)
+    _, twin, _ = load_trained(source.directory)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(twin.params)))
+    cell = json.loads((acting.directory / "cell.json").read_text())
+    assert (cell["evaluation"], cell["adopted_from"]) == ({"gamma": 0.5}, "smoke/ppo/1d-static-sin")
+    evals = json.loads((acting.directory / "eval.json").read_text())
+    assert {r["seed"] for r in evals.values()} == {REPORT_EVAL_SEED}
+    assert json.loads((acting.directory / "config.json").read_text()) == source.config.to_json()  # as it trained
+    [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    assert again.status == "done"
