@@ -208,6 +208,7 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
+    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence")  # the filter has no params
 
     position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
                                   "(trains the learned belief; 0: off, allowed with the filter)", low=0)

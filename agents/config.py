@@ -109,6 +109,9 @@ class TrainConfig:
     # the algorithm whose tuned file (agents/tuned/<name>.toml) this one trains with; a variant that
     # adds training signals to a base learner reads the base's, so a comparison isolates the signals
     tuned_as: ClassVar[str | None] = None
+    # options that change only how a trained policy acts, not its parameters, its world or its
+    # training alone: what a table arm may switch on when scored (`Variant.evaluation`)
+    acting_options: ClassVar[tuple[str, ...]] = ()
 
     task: str = option("1d-static-sin", "the task to train on", cli=False)
     total_steps: int = option(2_000_000, "env steps per seed", low=1)

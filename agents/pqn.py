@@ -51,6 +51,7 @@ class PQNConfig(TrainConfig):
 
     algorithm: ClassVar[str] = "pqn"
     paper_method: ClassVar[str] = "pqn"  # the paper has no PQN row: its columns stay empty
+    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops",)
 
     recurrent: bool = option(True, "GRU Q-network (PQN-RNN) instead of a feed-forward one")
     total_steps: int = option(10_000_000, "env steps per seed", low=1)

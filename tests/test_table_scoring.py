@@ -1,8 +1,9 @@
 """`snac table`'s arms that change only how a trained policy acts when scored
-(`Variant.evaluation`, `agents.table.scoring`): checked where the preset is loaded and planned,
-never adopted from a raw copy (no policy to score), refused when a finished cell was scored
-otherwise, printed "at evaluation" in the report, and (slow) taking over a finished run without
-training it, scoring its own params again with the arm's settings."""
+(`Variant.evaluation`, `agents.table.scoring`): checked where the preset is loaded and planned
+(acting options only; a base to score), never taking a raw copy (no params to score), refused
+when a finished cell was scored otherwise, printed "at evaluation" in the report, and (slow)
+taking over a finished run without training it, scoring its own params again with the arm's
+settings, its adoption kept across a kill before scoring."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from agents.table import ablation
-from agents.table.plan import make_plan
+from agents.table.plan import cell_config, make_plan
 from agents.table.presets import Variant, load_presets
 from agents.table.raw import raw_text
 from agents.table.scoring import scoring_config
@@ -22,6 +23,15 @@ from tests.table_cells import cell_files
 
 PRESETS = load_presets()
 SMOKE_TASK = "1d-static-sin"
+
+
+@pytest.fixture
+def gamma_acts(monkeypatch):
+    """PPO, the cheapest learner, has no acting option; the tests of the table's mechanics give it
+    one (gamma, which changes nothing at evaluation) rather than train a learner that has one."""
+    from agents.ppo import PPOConfig
+
+    monkeypatch.setattr(PPOConfig, "acting_options", ("gamma",))
 
 
 def _scored_again(**evaluation) -> Variant:
@@ -36,35 +46,53 @@ def _abl(evaluation: dict) -> object:
 
 
 def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_mask(tmp_path):
-    cells = {c.variant.name: c for c in make_plan(PRESETS["safe-drops"], ["pqn-belief"], ["3d-dynamic-sparse"], None,
-                                                  tmp_path, rates={})}
-    assert list(cells) == ["base", "safe", "at-evaluation"]
-    acting = cells["at-evaluation"]
-    assert acting.config == cells["base"].config and not acting.config.safe_drops  # the same training
-    assert acting.evaluation == {"safe_drops": True} and cells["safe"].evaluation == {}
-    assert scoring_config(acting.config, acting.evaluation) == dataclasses.replace(acting.config, safe_drops=True)
-    assert acting.record()["evaluation"] == {"safe_drops": True} and "evaluation" not in cells["base"].record()
+    preset = PRESETS["safe-drops"]
+    assert [v.name for v in preset.variants] == ["base", "safe", "at-evaluation"]
+    arms = {v.name: v for v in preset.variants}
+    (base, _), (acting, _) = (cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, {}, arms[name])
+                              for name in ("base", "at-evaluation"))
+    assert acting == base and not acting.safe_drops  # the same training
+    assert arms["at-evaluation"].evaluation == {"safe_drops": True} and arms["safe"].evaluation == {}
+    assert scoring_config(acting, arms["at-evaluation"].evaluation) == dataclasses.replace(acting, safe_drops=True)
+    # Planned where the beyond run is not there, it is refused: it has no params to score.
+    with pytest.raises(ValueError, match="train it first"):
+        make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, rates={})
+    cells = make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, rates={}, arms=["base", "safe"])
+    assert [c.evaluation for c in cells] == [{}, {}] and "evaluation" not in cells[0].record()
 
 
 def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
-    arm = '[a]\nseeds = 1\nalgorithms = ["pqn"]\n[a.variants.base]\ntasks = ["2d-static-dense"]\n[a.variants.b]\n'
-    for name, lines, message in [
-        ("both", 'evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n',
+    head = '[beyond]\nseeds = 1\n[a]\nseeds = 1\nadopts = "beyond"\nalgorithms = ["pqn"]\n'
+    base = '[a.variants.base]\ntasks = ["2d-static-dense"]\n'
+    arm = '[a.variants.b]\ntasks = ["2d-static-dense"]\n'
+    for name, text, message in [
+        ("both", head + base + arm + 'evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n',
          r"\[a.variants.b\]: an arm with evaluation settings trains as the base arm .* may not give settings or switches"),
-        ("switches", 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n', "may not give settings or switches"),
-        ("table", 'evaluation = "safe_drops"\n', r"evaluation must be a table of learner options"),
-        ("planned", 'evaluation = { seeds = 2 }\n', r"evaluation may not set \['seeds'\]"),
+        ("switches", head + base + arm + 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n',
+         "may not give settings or switches"),
+        ("table", head + base + arm + 'evaluation = "safe_drops"\n', r"evaluation must be a table of learner options"),
+        ("planned", head + base + arm + 'evaluation = { seeds = 2 }\n', r"evaluation may not set \['seeds'\]: the plan sets"
+         r" seed, seeds, switches, task, total_steps$"),
+        ("no adopts", head.replace('adopts = "beyond"\n', "") + base + arm + 'evaluation = { safe_drops = true }\n',
+         r"\[a\] has an arm with evaluation settings.*must adopt another's runs"),
+        ("base settings", head + base + 'settings = { gamma = 0.9 }\n' + arm + 'evaluation = { safe_drops = true }\n',
+         "its base arm give no settings, switches or evaluation"),
+        ("base scored", head + base + 'evaluation = { safe_drops = true }\n',
+         "its base arm give no settings, switches or evaluation"),
     ]:
-        (tmp_path / f"{name}.toml").write_text(arm + lines + 'tasks = ["2d-static-dense"]\n')
+        (tmp_path / f"{name}.toml").write_text(text)
         with pytest.raises(ValueError, match=message):
             load_presets(tmp_path / f"{name}.toml")
-    # What the learner refuses is refused when planned, before anything trains: an unknown option,
-    # and the mask on a task without the obstacle rule.
-    for lines, message in [('evaluation = { no_such_option = 1 }\n', r"unknown pqn option\(s\) \['no_such_option'\]"),
+    # What the learner refuses is refused when planned, before anything trains: an option that is
+    # not one of its acting options, and the mask on a task without the obstacle rule.
+    for lines, message in [('evaluation = { gamma = 0.5 }\n', r"pqn cannot act with \['gamma'\] at evaluation: .*"
+                                                              r"pqn's: safe_drops$"),
                            ('evaluation = { safe_drops = true }\n', "obstacle")]:
-        (tmp_path / "learner.toml").write_text(arm + lines + 'tasks = ["2d-static-dense"]\n')
+        (tmp_path / "learner.toml").write_text(head + base + arm + lines)
         with pytest.raises(ValueError, match=message):
             make_plan(load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
+    with pytest.raises(ValueError, match=r"ppo cannot act with \['gamma'\] at evaluation: .* ppo's: none$"):
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path, rates={})
 
 
 def _record(results: Path, cell) -> Path:
@@ -80,34 +108,41 @@ def _record(results: Path, cell) -> Path:
     return path
 
 
-def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path):
+def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
     path = _record(results, source)
-    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results)
+    [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results,
+                       arms=["base"])
     assert (base.adopts_from, base.adopts_record) == (path, True)
-    assert (acting.adopts_from, acting.status) == (None, "new")  # it trains its own run, then scores it acting so
+    with pytest.raises(ValueError, match=r"arm 'acting' of preset 'abl' scores the policy of smoke/ppo/1d-static-sin "
+                                         r"again: .* train it first \(snac table --preset smoke --tasks 1d-static-sin\) "
+                                         r"or leave the arm out \(--arms\)"):
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results)
 
 
-def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path):
-    runs = tmp_path / "runs"
-    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
-    acting.directory.mkdir(parents=True)
-    evaluation = {f"{SMOKE_TASK} (seed {i})": {"task": f"{SMOKE_TASK} (seed {i})", "mean": 0.5, "min": 0.1, "std": 0.1,
-                                               "ci95": [0.4, 0.6], "episodes": 2, "mean_length": 40.0,
-                                               "mean_bricks_used": 3.0, "mean_return": 1.0, "per_design": {},
-                                               "seed": REPORT_EVAL_SEED, "wall_s": 1.0}
-                  for i in range(acting.config.seeds)}
-    record = {k: v for k, v in acting.record().items() if k != "evaluation"}  # scored as it trained
-    for name, content in (("config.json", acting.config.to_json()), ("cell.json", record), ("eval.json", evaluation)):
-        (acting.directory / name).write_text(json.dumps(content))
-    (acting.directory / "metrics.jsonl").write_text("".join(json.dumps({"chunk": i, "env_steps": 512 * (i + 1),
-                                                                        "wall_s": 1.0 + i}) + "\n" for i in range(4)))
+def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_acts):
+    """Its own files back without checkpoints; the branch of a run with its checkpoints is the
+    slow test's."""
+    runs, preset = tmp_path / "runs", _abl({"gamma": 0.5})
+    config, budget = cell_config(preset, "ppo", SMOKE_TASK, 2, {}, preset.variants[1])
+    directory = runs / "abl" / "ppo" / f"{SMOKE_TASK}.acting"
+    directory.mkdir(parents=True)
+    row = {"min": 0.1, "std": 0.1, "ci95": [0.4, 0.6], "episodes": 2, "mean_length": 40.0, "mean_bricks_used": 3.0,
+           "mean_return": 1.0, "per_design": {}, "seed": REPORT_EVAL_SEED, "wall_s": 1.0}
+    evaluation = {f"{SMOKE_TASK} (seed {i})": {"task": f"{SMOKE_TASK} (seed {i})", "mean": 0.5, **row} for i in range(2)}
+    record = {"preset": "abl", "algorithm": "ppo", "column": "1d-static", "task": SMOKE_TASK,
+              "budget": dataclasses.asdict(budget), "eval_seed": REPORT_EVAL_SEED, "protocol": preset.protocol,
+              "variant": "acting", "paper_variant": "", "switches": "", "settings": {}}  # scored as it trained
+    for name, content in (("config.json", config.to_json()), ("cell.json", record), ("eval.json", evaluation)):
+        (directory / name).write_text(json.dumps(content))
+    (directory / "metrics.jsonl").write_text("".join(json.dumps({"chunk": i, "env_steps": 512 * (i + 1),
+                                                                 "wall_s": 1.0 + i}) + "\n" for i in range(4)))
     with pytest.raises(ValueError, match=r"abl/ppo/1d-static-sin.acting was scored acting with its training settings, "
-                                         r"the arm now asks \{'gamma': 0.5\}; move its eval.json away"):
-        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
-    (acting.directory / "cell.json").write_text(json.dumps(acting.record()))
-    [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+                                         r"the arm now asks \{'gamma': 0.5\}; move that directory away"):
+        make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    (directory / "cell.json").write_text(json.dumps({**record, "evaluation": {"gamma": 0.5}}))
+    [again] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
     assert again.status == "done"
 
 
@@ -126,7 +161,7 @@ def test_the_report_prints_an_arms_settings_at_evaluation():
 
 
 @pytest.mark.slow  # one tiny training and two evaluations
-def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting_so(tmp_path, monkeypatch):
+def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting_so(tmp_path, monkeypatch, gamma_acts):
     import jax
     import numpy as np
 
@@ -148,6 +183,8 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
 
     def evaluate_spy(algorithm, state, out_dir, *args, **kwargs):
         scored.append((algorithm.config, state.params))
+        if len(scored) == 1:
+            raise KeyboardInterrupt  # killed after the copy, before scoring
         return real_evaluate(algorithm, state, out_dir, *args, **kwargs)
 
     def train_spy(config, out_dir, **kwargs):
@@ -156,12 +193,17 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
 
     monkeypatch.setattr(agents.cli, "evaluate_run", evaluate_spy)
     monkeypatch.setattr(agents.driver, "train", train_spy)
+    with pytest.raises(KeyboardInterrupt):
+        table_run.run_cell(acting, progress=False)
+    assert not (acting.directory / "eval.json").exists()  # the twin's scores were never copied
+    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    assert (acting.status, acting.adopts_from) == ("partial", None)  # the twin's whole run, not yet scored
     assert table_run.run_cell(acting, progress=False)
     # Restored, never trained: the twin's chunks and metrics, the twin's params, scored with gamma 0.5.
-    assert trained == [True] and len(scored) == 1
+    assert trained == [True, True] and len(scored) == 2
     assert checkpoint.read_metrics_lines(acting.directory / "metrics.jsonl") == checkpoint.read_metrics_lines(
         source.directory / "metrics.jsonl")
-    config, params = scored[0]
+    config, params = scored[1]
     assert config == dataclasses.replace(source.config, gamma=0.5)
     _, twin, _ = load_trained(source.directory)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(twin.params)))
@@ -172,3 +214,5 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     assert json.loads((acting.directory / "config.json").read_text()) == source.config.to_json()  # as it trained
     [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
     assert again.status == "done"
+    with pytest.raises(ValueError, match=r"was scored acting with \{'gamma': 0.5\}, the arm now asks \{'gamma': 0.9\}"):
+        make_plan(_abl({"gamma": 0.9}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])

@@ -25,7 +25,7 @@ from agents.table.files import (EVAL_FILE, RECORD_FIELD, check_finished_without_
                                  expected_episodes, new_cell_leftovers, own_files, read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import eval_seconds, load_rates, measured
-from agents.table.scoring import check_scored_as, scoring_config
+from agents.table.scoring import check_scored_as, missing_run, scoring_config, scoring_estimate
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.tasks import task_spec
 
@@ -104,8 +104,7 @@ def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: di
         if fits < requested:
             steps, capped = max(fits, config.steps_per_update), True
     config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
-    if variant is not None and variant.evaluation:
-        scoring_config(config, variant.evaluation)  # an option the learner refuses fails here, before training
+    scoring_config(config, {} if variant is None else variant.evaluation)  # a refused option fails before training
     return config, Budget(env_steps=steps, requested=requested, source=source, capped=capped)
 
 
@@ -225,7 +224,8 @@ def cell_state(cell: Cell) -> None:
     directory must hold nothing the table did not make (`files.new_cell_leftovers`). A cell copied
     from a raw copy (no checkpoints) is done once its eval.json, which the copy writes last, is
     there; before that it is new, and running it completes the copy. A cell's own finished files
-    back without checkpoints are done (`_finished_elsewhere`)."""
+    back without checkpoints are done (`_finished_elsewhere`). A done cell scored acting otherwise
+    than its arm now asks is refused (`scoring.check_scored_as`)."""
     if (copied := own_copy(cell)) is not None:
         if (cell.directory / checkpoint.CONFIG_FILE).is_file():
             _check_same_config(cell)
@@ -262,7 +262,8 @@ def find_twin(cell: Cell, runs_dir: str | Path, results_dir: str | Path | None =
     """The finished run of the preset `cell.preset.adopts` with the cell's settings and protocol
     (in `<runs_dir>/<that preset>/<algorithm>/<task>/`), else, with `results_dir`, that run's raw
     copy there (`record_twin`; then `cell.adopts_record`), which the cell takes over instead of
-    training the same thing again; None where there is none."""
+    training the same thing again; None where there is none. An arm scored acting otherwise
+    (`Cell.evaluation`) takes a run only: a raw copy has no params to score again."""
     if cell.preset.adopts is None:
         return None
     twin = _run_twin(cell, runs_dir)
@@ -304,10 +305,7 @@ def estimate(cell: Cell, rates: dict) -> None:
         twin = f"the record {cell.adopts_from}" if cell.adopts_record else cell.adopts_from
         cell.estimate_s, cell.estimate_from = 0.0, f"adopts {twin}, finished with the same settings"
         if cell.evaluation:  # the adopted policy is scored again, acting with the arm's settings
-            evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
-            cell.estimate_s = cell.config.seeds * (evaluation[0] if evaluation else 0.0)
-            cell.estimate_from += (f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation
-                                   else ", scored again: eval not measured")
+            cell.estimate_s, cell.estimate_from = scoring_estimate(cell, rates)
         return
     seeds = cell.config.seeds
     remaining = (cell.total_steps - cell.done_steps) * seeds
@@ -380,6 +378,8 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
             if not cell.adopts_record and (copied := own_copy(cell)) is not None:
                 raise ValueError(f"{cell.directory} holds a copy of {copied[RECORD_FIELD]} cut short, which this plan "
                                  "does not adopt (another --results-dir, or the record changed): move that directory away")
+            if cell.evaluation and cell.adopts_from is None:
+                raise ValueError(missing_run(cell, runs_dir))
         estimate(cell, rates)
     return cells
 

@@ -24,9 +24,10 @@ _PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_li
 class Variant:
     """An ablation's arm: the environment switches its cells train and are scored with, the
     learner settings it changes (an ingredient of a learner switched off), the learner settings
-    its greedy policy acts with only when scored (`evaluation`: it trains as without them, so
-    it can take over the base arm's run and score it again), its tasks, and its name in the
-    paper's ablation table ("" where the paper has no such arm)."""
+    its greedy policy acts with only when scored (`evaluation`: the arm trains as the base arm,
+    so it takes over the run the base arm adopts, checkpoints and all, and scores those params
+    again), its tasks, and its name in the paper's ablation table ("" where the paper has no
+    such arm)."""
 
     name: str
     paper: str
@@ -118,8 +119,14 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
         if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
             raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
                              f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
-        if presets[name].variants and "base" not in [v.name for v in presets[name].variants]:
+        arms = {v.name: v for v in presets[name].variants}
+        if arms and "base" not in arms:
             raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
+        if any(v.evaluation for v in arms.values()) and (arms["base"].evaluation or arms["base"].settings
+                                                          or arms["base"].switches or "adopts" not in table):
+            raise ValueError(f"{path}: [{name}] has an arm with evaluation settings, which scores the base arm's run "
+                             "again: the preset must adopt another's runs, and its base arm give no settings, switches "
+                             "or evaluation")
     for name, preset in presets.items():
         plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
         if preset.adopts is not None and preset.adopts not in plain:
@@ -160,8 +167,8 @@ def _variant(path, preset: str, name: str, table: dict) -> Variant:
             raise ValueError(f"{where}: {key} must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
         reserved = sorted(set(options) & _PLANNED_OPTIONS)
         if reserved:
-            raise ValueError(f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))} "
-                             "(give an environment change as switches)")
+            raise ValueError(f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))}"
+                             + (" (give an environment change as switches)" if key == "settings" else ""))
     if evaluation and (settings or table.get("switches")):
         raise ValueError(f"{where}: an arm with evaluation settings trains as the base arm (it scores the base's run "
                          "again), so it may not give settings or switches")

@@ -17,7 +17,7 @@ from agents import checkpoint
 from agents.config import save_config
 from agents.table.files import CELL_FILE, EVAL_FILE
 from agents.table.plan import Cell, cell_state, own_copy, record_twin
-from agents.table.scoring import scoring_config
+from agents.table.scoring import adoption_kept, scoring_config
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
@@ -51,10 +51,12 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
             if not cell.evaluation:
                 return True
             started = True  # the twin's finished run, to be scored again acting with the arm's settings
+        elif cell.status == "new":  # a start cut before its first checkpoint (a copy's, too) trains afresh
+            cell.adopts_from, cell.adopts_record = None, False
         algorithm, state = train(cell.config, cell.directory, resume=started, progress=progress,
                                  stop_after_chunks=stop_after_chunks,
                                  mesh=devices.env_mesh(num_devices, cell.config.num_envs))
-        atomic_write_json(cell.directory / CELL_FILE, cell.record())
+        atomic_write_json(cell.directory / CELL_FILE, adoption_kept(cell.directory, cell.record()))
         last = checkpoint.latest_chunk(cell.directory)
         if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
             cell.status = "partial"

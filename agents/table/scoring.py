@@ -1,17 +1,20 @@
 """An ablation arm that changes only how its trained policy acts when scored (`Variant.evaluation`,
-e.g. `safe_drops` on a policy trained without it): the config its greedy policy is scored with,
-and the check that a finished cell was scored with the arm's settings. Such an arm trains as the
-base arm does, so it takes over the base's run (`plan.find_twin`) and scores that policy again."""
+e.g. `safe_drops` on a policy trained without it): the config its greedy policy is scored with
+(only a learner's `acting_options`), the check that a finished cell was scored with the arm's
+settings, and its adoption kept across a resume. Such an arm trains as the base arm does, so it
+takes over the finished run the base arm adopts, checkpoints and all (`plan.find_twin`; the plan
+refuses it where that run is not there), and scores those params again."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
+from agents import schemas
 from agents.config import TrainConfig
 from agents.registry import make_config
-from agents.table.files import CELL_FILE
+from agents.table.files import CELL_FILE, RECORD_FIELD
+from agents.table.rates import eval_seconds
 
 
 def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConfig:
@@ -20,6 +23,12 @@ def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConf
     as `safe_drops` without the obstacle rule, is its one-line error)."""
     if not evaluation:
         return config
+    other = sorted(set(evaluation) - set(config.acting_options))
+    if other:
+        allowed = ", ".join(config.acting_options) or "none"
+        raise ValueError(f"{config.algorithm} cannot act with {other} at evaluation: an option there may change only how "
+                         f"the trained policy acts, not its network, its world or its training; {config.algorithm}'s: "
+                         f"{allowed}")
     trained = {k: v for k, v in config.to_json().items() if k not in ("algorithm", "task")}
     return make_config(config.algorithm, config.task, **{**trained, **evaluation})
 
@@ -28,7 +37,38 @@ def check_scored_as(directory: Path, evaluation: dict[str, Any]) -> None:
     """A finished cell must have been scored acting with its arm's evaluation-only settings
     (its cell.json's `evaluation`), as its run must have trained with the cell's settings."""
     path = directory / CELL_FILE
-    scored = json.loads(path.read_text()).get("evaluation", {}) if path.is_file() else {}
+    scored = schemas.load(path, schemas.CELL_JSON).get("evaluation", {}) if path.is_file() else {}
     if scored != evaluation:
         raise ValueError(f"{directory} was scored acting with {scored or 'its training settings'}, the arm now asks "
-                         f"{evaluation or 'its training settings'}; move its eval.json away to score it again")
+                         f"{evaluation or 'its training settings'}; move that directory away to score the run again")
+
+
+def adoption_kept(directory: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """A cell's record (`Cell.record`) with the adoption its own cell.json in `directory` names
+    where this plan no longer knows it: a cell that took over another run and was stopped
+    before it was scored is planned as a partial run, and is still that run."""
+    path = directory / CELL_FILE
+    if not path.is_file():
+        return record
+    before = schemas.load(path, schemas.CELL_JSON)
+    kept = {k: before[k] for k in ("adopted_from", RECORD_FIELD) if k in before and k not in record}
+    return {**record, **kept}
+
+
+def missing_run(cell, runs_dir) -> str:
+    """The error of an arm scored acting otherwise (`plan.Cell`) whose base run is not there to
+    take over: it has no params of its own to score, and training some would not be the base's."""
+    preset = cell.preset
+    return (f"arm {cell.variant.name!r} of preset {preset.name!r} scores the policy of {preset.adopts}/{cell.algorithm}/"
+            f"{cell.task} again: that run, finished with its checkpoints and this arm's training settings, is not "
+            f"under {runs_dir}; train it first (snac table --preset {preset.adopts} --tasks {cell.task}) or leave the "
+            "arm out (--arms)")
+
+
+def scoring_estimate(cell, rates: dict) -> tuple[float | None, str]:
+    """Seconds left for an adopted arm scored acting otherwise (`plan.Cell`): its seeds' evaluation
+    alone (None where no evaluation was measured), and where the figure comes from."""
+    evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
+    if evaluation is None:
+        return None, cell.estimate_from + ", scored again: eval not measured"
+    return cell.config.seeds * evaluation[0], cell.estimate_from + f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})"
