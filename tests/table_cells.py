@@ -68,3 +68,23 @@ def unpack_raw(path, directory) -> None:
     for key, name in (("cell", "cell.json"), ("config", "config.json"), ("eval", "eval.json")):
         (directory / name).write_text(json.dumps(record[key], indent=2) + "\n")
     (directory / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in record["curve"]))
+
+
+def write_record(results, cell, means=(0.5, 0.7), episodes: int = 2, seed: int = REPORT_EVAL_SEED):
+    """The raw copy the report would keep of `cell` finished (4 chunks, scored over `episodes`
+    episodes with evaluation key `seed`), written by hand: {"cell", "config", "eval", "curve"}."""
+    from pathlib import Path
+
+    from agents.table.raw import raw_text
+
+    row = {"min": 0.1, "std": 0.1, "episodes": episodes, "mean_length": 40.0, "mean_bricks_used": 3.0,
+           "mean_return": 1.0, "per_design": {}, "seed": seed, "wall_s": 1.0}
+    evaluation = {f"{cell.task} (seed {i})": {"task": f"{cell.task} (seed {i})", "mean": m, **row,
+                                              "ci95": [m - 0.05, m + 0.05]} for i, m in enumerate(means)}
+    curve = [{"chunk": i, "env_steps": 512 * (i + 1), "wall_s": 2.0 * (i + 1), "iou": [0.1 * i, 0.2 * i],
+              "return": [1.0, None]} for i in range(4)]
+    path = Path(results) / "table" / cell.preset.name / cell.algorithm / f"{cell.task}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(raw_text({"cell": {**cell.record(), "eval_seed": seed}, "config": cell.config.to_json(), "eval": evaluation,
+                              "metrics": curve}))
+    return path

@@ -19,6 +19,7 @@ from agents.table.plan_format import format_plan
 from agents.table.presets import Variant, expand_tasks, load_presets
 from agents.table.report import build, markdown
 from tests.table_cells import cell_files as _files
+from tests.table_cells import write_record
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 
 PRESETS = load_presets()
@@ -532,24 +533,6 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
 # --- a twin kept only in the record --------------------------------------------------------------
 
 
-def _write_record(results: Path, cell, means=(0.5, 0.7), episodes: int = 2, seed: int = REPORT_EVAL_SEED) -> Path:
-    """The raw copy the report would keep of `cell` finished (4 chunks, scored over `episodes`
-    episodes with evaluation key `seed`), written by hand: {"cell", "config", "eval", "curve"}."""
-    from agents.table.raw import raw_text
-
-    row = {"min": 0.1, "std": 0.1, "episodes": episodes, "mean_length": 40.0, "mean_bricks_used": 3.0,
-           "mean_return": 1.0, "per_design": {}, "seed": seed, "wall_s": 1.0}
-    evaluation = {f"{cell.task} (seed {i})": {"task": f"{cell.task} (seed {i})", "mean": m, **row,
-                                              "ci95": [m - 0.05, m + 0.05]} for i, m in enumerate(means)}
-    curve = [{"chunk": i, "env_steps": 512 * (i + 1), "wall_s": 2.0 * (i + 1), "iou": [0.1 * i, 0.2 * i],
-              "return": [1.0, None]} for i in range(4)]
-    path = results / "table" / cell.preset.name / cell.algorithm / f"{cell.task}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(raw_text({"cell": {**cell.record(), "eval_seed": seed}, "config": cell.config.to_json(), "eval": evaluation,
-                              "metrics": curve}))
-    return path
-
-
 def _abl(**changes):
     """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
     arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
@@ -578,7 +561,7 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
 
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
-    path = _write_record(results, source)
+    path = write_record(results, source)
     record = json.loads(path.read_text())
     assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={})[0].adopts_from is None  # runs only
 
@@ -634,7 +617,7 @@ def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused
 
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
-    path = _write_record(results, source)
+    path = write_record(results, source)
     [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
     assert table_run.run_cell(base, progress=False)
     whole = {p.name: p.read_bytes() for p in base.directory.iterdir() if p.is_file()}
@@ -680,16 +663,16 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
         return base
 
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs, rates={})
-    _write_record(results, source, means=(0.5, 0.6, 0.7))
+    write_record(results, source, means=(0.5, 0.6, 0.7))
     assert adopted().adopts_from is None  # 3 seeds there, 2 here
     [source] = make_plan(dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None,
                          runs, rates={})
-    _write_record(results, source, episodes=3)
+    write_record(results, source, episodes=3)
     assert adopted().adopts_from is None  # its protocol's 3 episodes, this cell's has 2
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
-    _write_record(results, source, seed=TUNING_EVAL_SEED)
+    write_record(results, source, seed=TUNING_EVAL_SEED)
     assert adopted().adopts_from is None  # scored with the tuning key
-    path = _write_record(results, source)
+    path = write_record(results, source)
     assert adopted().adopts_from == path
     # A budget alone differing: adopted only as a wall-capped one, taking the record's budget.
     longer = _abl(settings={**PRESETS["smoke"].settings, "total_steps": 4096})
@@ -707,7 +690,7 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
 def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, damage, field):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
-    path = _write_record(results, source)
+    path = write_record(results, source)
     path.write_text(damage(path.read_text()))
     with pytest.raises(ValueError, match=re.escape(str(path)) + ".*" + field):
         make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
@@ -719,7 +702,7 @@ def test_the_cli_finds_record_twins_under_results_dir(tmp_path, capsys):
     the record under --results-dir when --runs-dir keeps no run of it; its other arm trains."""
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs, rates={})
-    path = _write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
+    path = write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
     argv = ["--preset", "landmark-action", "--algorithms", "pqn-belief", "--tasks", "2d-static-sparse",
             "--runs-dir", str(runs), "--dry-run"]
     assert _run_cli([*argv, "--results-dir", str(results)]) == 0

@@ -19,7 +19,7 @@ from agents.table.presets import Variant, load_presets
 from agents.table.raw import raw_text
 from agents.table.scoring import scoring_config
 from snac_jax.evaluation import REPORT_EVAL_SEED
-from tests.table_cells import cell_files
+from tests.table_cells import cell_files, write_record
 
 PRESETS = load_presets()
 SMOKE_TASK = "1d-static-sin"
@@ -95,23 +95,10 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path, rates={})
 
 
-def _record(results: Path, cell) -> Path:
-    """The raw copy the report keeps of `cell` finished, written by hand (no checkpoints)."""
-    row = {"min": 0.1, "std": 0.1, "episodes": 2, "mean_length": 40.0, "mean_bricks_used": 3.0, "mean_return": 1.0,
-           "per_design": {}, "seed": REPORT_EVAL_SEED, "wall_s": 1.0, "ci95": [0.4, 0.6]}
-    evaluation = {f"{cell.task} (seed {i})": {"task": f"{cell.task} (seed {i})", "mean": 0.5, **row}
-                  for i in range(cell.config.seeds)}
-    path = results / "table" / cell.preset.name / cell.algorithm / f"{cell.task}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(raw_text({"cell": cell.record(), "config": cell.config.to_json(), "eval": evaluation,
-                              "metrics": [{"chunk": 0, "env_steps": 2048, "wall_s": 2.0}]}))
-    return path
-
-
 def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
-    path = _record(results, source)
+    path = write_record(results, source)
     [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results,
                        arms=["base"])
     assert (base.adopts_from, base.adopts_record) == (path, True)
