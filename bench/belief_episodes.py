@@ -19,7 +19,9 @@ else the product of its row and column marginals. The actions are the policy's o
 
 Writes only under `--out`, per drawn episode `worst<rank>_episode<index>.gif` (every step) and
 `.png` (its last frame), and `belief_episodes.json`, which also counts how the played episodes
-ended (bricks spent, step limit, stuck): a tail of early endings is told apart. A frame is the
+ended (bricks spent, step limit, stuck): a tail of early endings is told apart. It tallies every
+played episode's drops too (`drop_tally`): a brick off the design is lost localisation only where
+the belief that dropped it thought it on the design. A frame is the
 world (`snac_jax.rendering`) beside a heat map of the belief over the plan (colour: probability
 over the frame's largest; a cyan box: the true position; a green dot: the argmax), with a
 caption: step, IoU so far, P(true position) under the belief, and the argmax's distance from the
@@ -111,6 +113,47 @@ def episode_endings(length, bricks_used, max_bricks, max_steps: int) -> dict[str
     spent = np.asarray(bricks_used) >= np.asarray(max_bricks)
     limit = ~spent & (np.asarray(length) >= max_steps)
     return {"bricks spent": int(spent.sum()), "step limit": int(limit.sum()), "stuck": int((~spent & ~limit).sum())}
+
+
+OFF_DESIGN = 0.5  # a drop the belief itself calls off the design: P(its target is a design cell) below this
+EARLY = 20  # the first steps, near the start corner where the filter knows the position
+TALLY_BATCH = 50  # episodes recorded at once for the drops' tally (each keeps every state)
+
+
+def episode_drops(grids, positions, bricks_used, beliefs, design, pad, length: int) -> np.ndarray:
+    """Each counted drop of one episode (SPEC §5) as a row `(step, on_design, p_design)`: the step
+    it was taken at (1-based), whether its brick changed a cell the design fills (-1: it changed no
+    cell, a 2D drop on a brick already there), and the chance the belief that chose it gave its
+    target being a design cell: the belief over positions moved by the drop's offset from the
+    robot (its own cell, or a neighbour in 3D), off the plan counting as off the design."""
+    rows, cols = design.shape
+    filled = np.zeros((rows + 2, cols + 2), bool)  # one cell of margin: a neighbour drop's offset
+    filled[1:-1, 1:-1] = np.asarray(design) > 0
+    out = []
+    for t in range(1, length + 1):
+        if bricks_used[t] == bricks_used[t - 1]:
+            continue
+        changed = np.argwhere(grids[t] != grids[t - 1])
+        if len(changed) == 0:
+            out.append((t, -1, float("nan")))
+            continue
+        cell = changed[0] - np.asarray(pad)
+        d_row, d_col = (int(v) for v in cell - positions[t - 1])
+        moved = filled[1 + d_row: 1 + d_row + rows, 1 + d_col: 1 + d_col + cols]
+        out.append((t, int(filled[1 + cell[0], 1 + cell[1]]), float((beliefs[t - 1] * moved).sum())))
+    return np.asarray(out, np.float64).reshape(-1, 3)
+
+
+def drop_tally(drops: list[np.ndarray]) -> dict[str, int]:
+    """The counted drops of many episodes (`episode_drops` rows): how many bricks missed the
+    design, how many of those the belief itself placed off the design (`OFF_DESIGN`), how many
+    fell in the first `EARLY` steps, and how many on-design drops the belief placed off it."""
+    rows = np.concatenate([d for d in drops if len(d)] or [np.zeros((0, 3))])
+    off, on = rows[rows[:, 1] == 0], rows[rows[:, 1] == 1]
+    return {"drops": len(rows), "on a brick already there": int((rows[:, 1] == -1).sum()),
+            "off the design": len(off), "off the design, believed off": int((off[:, 2] < OFF_DESIGN).sum()),
+            f"off the design, in the first {EARLY} steps": int((off[:, 0] <= EARLY).sum()),
+            "on the design, believed off": int((on[:, 2] < OFF_DESIGN).sum())}
 
 
 def belief_numbers(belief: np.ndarray, position) -> tuple[float, int, tuple[int, int]]:
@@ -216,6 +259,16 @@ def analyse(args: argparse.Namespace) -> dict:
 
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = worst_episodes(scored.iou, args.worst)
+    drops = []
+    for start in range(0, setup.num_episodes, TALLY_BATCH):  # every played episode's drops, against its belief
+        batch = np.arange(start, min(start + TALLY_BATCH, setup.num_episodes))
+        played = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
+                                        setup.params, setup.keys[batch], jnp.asarray(setup.design_indices[batch]),
+                                        int(setup.params.max_steps_in_episode)))
+        for i in range(len(batch)):
+            drops.append(episode_drops(played.states.grid[i], played.states.position[i], played.states.bricks_used[i],
+                                       played.beliefs[i], played.states.design[i, 0], env.config.pad,
+                                       int(played.length[i])))
     require_episode_memory(env, setup.params, policy, len(chosen))
     recorded = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
                                       setup.params, setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]),
@@ -255,6 +308,9 @@ def analyse(args: argparse.Namespace) -> dict:
         "endings": None if env.config.design_change is not None else episode_endings(
             scored.length, scored.bricks_used, np.asarray(setup.params.design_max_bricks)[np.asarray(scored.design_index)],
             int(setup.params.max_steps_in_episode)),
+        "drops": drop_tally(drops),
+        "drops_note": f"every counted drop of the played episodes; believed off: the belief that chose it gave "
+                      f"its target under {OFF_DESIGN} chance of being a design cell",
         "belief": "joint over plan positions (brick_map)" if brick_map else "row marginal x column marginal",
         "steps": "entry t: after t steps; entries 0..length-1 chose the actions, entry length read the final "
                  "observation",
@@ -274,6 +330,7 @@ def main(argv=None) -> int:
         return 2
     endings = report["endings"]
     ended = "" if endings is None else "; ended: " + ", ".join(f"{name} {count}" for name, count in endings.items())
+    print("drops: " + ", ".join(f"{name} {count}" for name, count in report["drops"].items()))
     print(f"{len(report['episodes'])} of {report['episodes_played']} episodes drawn (mean IoU "
           f"{report['mean_iou']:.3f}{ended}); wrote {args.out}/belief_episodes.json and a GIF and PNG per episode")
     return 0

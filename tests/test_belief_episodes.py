@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bench.belief_episodes import HEAT_ANCHORS, _record, belief_numbers, episode_endings, heat_colours, main, worst_episodes
+from bench.belief_episodes import (HEAT_ANCHORS, _record, belief_numbers, drop_tally, episode_drops, episode_endings,
+                                   heat_colours, main, worst_episodes)
 from snac_jax.evaluation import protocol_episodes, run_episodes
 from snac_jax.tasks import make
 
@@ -37,6 +38,32 @@ def test_the_belief_numbers_by_hand():
     assert belief_numbers(belief, (2, 3)) == (0.5, 0, (2, 3))
     tied = np.full((2, 2), 0.25)
     assert belief_numbers(tied, (1, 1)) == (0.25, 2, (0, 0))  # the first largest in row-major order
+
+
+def test_drops_against_the_belief_by_hand():
+    # a 2x3 plan, padding 1 all round; the design fills (0, 1) and (1, 1)
+    design = np.array([[0, 1, 0], [0, 1, 0]])
+    empty = np.full((4, 5), -1)
+    empty[1:3, 1:4] = 0
+    grids = np.stack([empty] * 4)
+    grids[1:, 1, 1] = 1  # step 1: a brick on (0, 0), off the design
+    grids[2:, 2, 2] = 1  # step 2: a brick on (1, 1), on the design
+    positions = np.array([[0, 0], [1, 1], [1, 1], [1, 1]])  # the robot on (0, 0) for the first drop, on (1, 1) for the others
+    bricks_used = np.array([0, 1, 2, 3])  # step 3: a drop on (1, 1) again, which changes no cell
+    beliefs = np.zeros((4, 2, 3))
+    beliefs[0, 0, 0], beliefs[0, 0, 1] = 0.7, 0.3  # P(on a design cell) 0.3 when the first brick dropped
+    beliefs[1, 1, 1], beliefs[1, 1, 2] = 0.4, 0.6  # 0.4 for the second: on the design, believed off
+    rows = episode_drops(grids, positions, bricks_used, beliefs, design, (1, 1), 3)
+    np.testing.assert_allclose(rows[:2], [[1, 0, 0.3], [2, 1, 0.4]])
+    assert rows[2, 0] == 3 and rows[2, 1] == -1 and np.isnan(rows[2, 2])
+    # a neighbour drop (3D): the robot at (0, 0) drops on (0, 1); the belief is moved one column
+    grids_3d = np.stack([empty, empty.copy()])
+    grids_3d[1, 1, 2] = 1
+    rows = episode_drops(grids_3d, np.array([[0, 0], [0, 0]]), np.array([0, 1]), beliefs[:2], design, (1, 1), 1)
+    np.testing.assert_allclose(rows, [[1, 1, 0.7]])  # P 0.7 at (0, 0) moves to (0, 1); 0.3 at (0, 1) to (0, 2)
+    tally = drop_tally([episode_drops(grids, positions, bricks_used, beliefs, design, (1, 1), 3), np.zeros((0, 3))])
+    assert tally == {"drops": 3, "on a brick already there": 1, "off the design": 1, "off the design, believed off": 1,
+                     "off the design, in the first 20 steps": 1, "on the design, believed off": 1}
 
 
 def test_heat_colours_run_from_the_first_anchor_to_the_last():
@@ -171,6 +198,10 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
     limit = int(setup.params.max_steps_in_episode)
     assert report["endings"] == {"bricks spent": int((np.asarray(scored.length) < limit).sum()),
                                  "step limit": int((np.asarray(scored.length) == limit).sum()), "stuck": 0}
+    # every counted drop of every played episode is tallied once, each in one of the three kinds
+    drops = report["drops"]
+    assert drops["drops"] == int(np.asarray(scored.bricks_used).sum())
+    assert drops["off the design, believed off"] <= drops["off the design"] <= drops["drops"]
     for r in rows:
         assert r["iou"] == float(scored.iou[r["episode"]]) and r["length"] == int(scored.length[r["episode"]])
         assert r["design"] == setup.names[int(setup.design_indices[r["episode"]])]
