@@ -120,15 +120,14 @@ EARLY = 20  # the first steps, near the start corner where the filter knows the 
 TALLY_BATCH = 50  # episodes recorded at once for the drops' tally (each keeps every state)
 
 
-def episode_drops(grids, positions, bricks_used, beliefs, design, pad, length: int) -> np.ndarray:
+def episode_drops(grids, positions, bricks_used, beliefs, designs, pad, length: int) -> np.ndarray:
     """Each counted drop of one episode (SPEC §5) as a row `(step, on_design, p_design)`: the step
-    it was taken at (1-based), whether its brick changed a cell the design fills (-1: it changed no
-    cell, a 2D drop on a brick already there), and the chance the belief that chose it gave its
-    target being a design cell: the belief over positions moved by the drop's offset from the
-    robot (its own cell, or a neighbour in 3D), off the plan counting as off the design."""
-    rows, cols = design.shape
-    filled = np.zeros((rows + 2, cols + 2), bool)  # one cell of margin: a neighbour drop's offset
-    filled[1:-1, 1:-1] = np.asarray(design) > 0
+    it was taken at (1-based), whether its brick changed a cell the design in force fills (-1: it
+    changed no cell, a 2D drop on a brick already there), and the chance the belief that chose it
+    gave its target being a design cell: the belief over positions moved by the drop's offset from
+    the robot (its own cell, or a neighbour in 3D), off the plan counting as off the design.
+    Index t of every per-step input is after t steps."""
+    rows, cols = designs.shape[1:]
     out = []
     for t in range(1, length + 1):
         if bricks_used[t] == bricks_used[t - 1]:
@@ -137,6 +136,8 @@ def episode_drops(grids, positions, bricks_used, beliefs, design, pad, length: i
         if len(changed) == 0:
             out.append((t, -1, float("nan")))
             continue
+        filled = np.zeros((rows + 2, cols + 2), bool)  # one cell of margin: a neighbour drop's offset
+        filled[1:-1, 1:-1] = np.asarray(designs[t - 1]) > 0  # the design a change (SPEC §15) put in force
         cell = changed[0] - np.asarray(pad)
         d_row, d_col = (int(v) for v in cell - positions[t - 1])
         moved = filled[1 + d_row: 1 + d_row + rows, 1 + d_col: 1 + d_col + cols]
@@ -267,7 +268,7 @@ def analyse(args: argparse.Namespace) -> dict:
                                         int(setup.params.max_steps_in_episode)))
         for i in range(len(batch)):
             drops.append(episode_drops(played.states.grid[i], played.states.position[i], played.states.bricks_used[i],
-                                       played.beliefs[i], played.states.design[i, 0], env.config.pad,
+                                       played.beliefs[i], played.states.design[i], env.config.pad,
                                        int(played.length[i])))
     require_episode_memory(env, setup.params, policy, len(chosen))
     recorded = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,

@@ -53,15 +53,20 @@ def test_drops_against_the_belief_by_hand():
     beliefs = np.zeros((4, 2, 3))
     beliefs[0, 0, 0], beliefs[0, 0, 1] = 0.7, 0.3  # P(on a design cell) 0.3 when the first brick dropped
     beliefs[1, 1, 1], beliefs[1, 1, 2] = 0.4, 0.6  # 0.4 for the second: on the design, believed off
-    rows = episode_drops(grids, positions, bricks_used, beliefs, design, (1, 1), 3)
+    rows = episode_drops(grids, positions, bricks_used, beliefs, np.stack([design] * 4), (1, 1), 3)
     np.testing.assert_allclose(rows[:2], [[1, 0, 0.3], [2, 1, 0.4]])
     assert rows[2, 0] == 3 and rows[2, 1] == -1 and np.isnan(rows[2, 2])
     # a neighbour drop (3D): the robot at (0, 0) drops on (0, 1); the belief is moved one column
     grids_3d = np.stack([empty, empty.copy()])
     grids_3d[1, 1, 2] = 1
-    rows = episode_drops(grids_3d, np.array([[0, 0], [0, 0]]), np.array([0, 1]), beliefs[:2], design, (1, 1), 1)
+    rows = episode_drops(grids_3d, np.array([[0, 0], [0, 0]]), np.array([0, 1]), beliefs[:2],
+                         np.stack([design] * 2), (1, 1), 1)
     np.testing.assert_allclose(rows, [[1, 1, 0.7]])  # P 0.7 at (0, 0) moves to (0, 1); 0.3 at (0, 1) to (0, 2)
-    tally = drop_tally([episode_drops(grids, positions, bricks_used, beliefs, design, (1, 1), 3), np.zeros((0, 3))])
+    # the design changed after the first step (SPEC §15): the second brick is judged by the new one, off it
+    changed = np.stack([design, 1 - design, 1 - design, 1 - design])
+    assert episode_drops(grids, positions, bricks_used, beliefs, changed, (1, 1), 3)[:2, 1].tolist() == [0, 0]
+    tally = drop_tally([episode_drops(grids, positions, bricks_used, beliefs, np.stack([design] * 4), (1, 1), 3),
+                        np.zeros((0, 3))])
     assert tally == {"drops": 3, "on a brick already there": 1, "off the design": 1, "off the design, believed off": 1,
                      "off the design, in the first 20 steps": 1, "on the design, believed off": 1}
 
