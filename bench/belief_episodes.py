@@ -260,13 +260,15 @@ def analyse(args: argparse.Namespace) -> dict:
 
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = worst_episodes(scored.iou, args.worst)
-    drops = []
-    for start in range(0, setup.num_episodes, TALLY_BATCH):  # every played episode's drops, against its belief
-        batch = np.arange(start, min(start + TALLY_BATCH, setup.num_episodes))
+    drops, batch_size = [], min(TALLY_BATCH, setup.num_episodes)
+    require_episode_memory(env, setup.params, policy, batch_size)
+    for start in range(0, setup.num_episodes, batch_size):  # every played episode's drops, against its belief
+        played_here = np.arange(start, min(start + batch_size, setup.num_episodes))
+        batch = np.resize(played_here, batch_size)  # a short last batch filled out with its own episodes: one compile
         played = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
                                         setup.params, setup.keys[batch], jnp.asarray(setup.design_indices[batch]),
                                         int(setup.params.max_steps_in_episode)))
-        for i in range(len(batch)):
+        for i in range(len(played_here)):
             drops.append(episode_drops(played.states.grid[i], played.states.position[i], played.states.bricks_used[i],
                                        played.beliefs[i], played.states.design[i], env.config.pad,
                                        int(played.length[i])))
