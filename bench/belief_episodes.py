@@ -260,7 +260,7 @@ def analyse(args: argparse.Namespace) -> dict:
 
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = worst_episodes(scored.iou, args.worst)
-    drops, batch_size = [], min(TALLY_BATCH, setup.num_episodes)
+    drops, kept, drawn, batch_size = [], {}, set(chosen.tolist()), min(TALLY_BATCH, setup.num_episodes)
     require_episode_memory(env, setup.params, policy, batch_size)
     for start in range(0, setup.num_episodes, batch_size):  # every played episode's drops, against its belief
         played_here = np.arange(start, min(start + batch_size, setup.num_episodes))
@@ -268,14 +268,13 @@ def analyse(args: argparse.Namespace) -> dict:
         played = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
                                         setup.params, setup.keys[batch], jnp.asarray(setup.design_indices[batch]),
                                         int(setup.params.max_steps_in_episode)))
-        for i in range(len(played_here)):
-            drops.append(episode_drops(played.states.grid[i], played.states.position[i], played.states.bricks_used[i],
-                                       played.beliefs[i], played.states.design[i], env.config.pad,
-                                       int(played.length[i])))
-    require_episode_memory(env, setup.params, policy, len(chosen))
-    recorded = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
-                                      setup.params, setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]),
-                                      int(setup.params.max_steps_in_episode)))
+        for i, episode in enumerate(played_here.tolist()):
+            one = jax.tree.map(lambda x: x[i], played)
+            drops.append(episode_drops(one.states.grid, one.states.position, one.states.bricks_used, one.beliefs,
+                                       one.states.design, env.config.pad, int(one.length)))
+            if episode in drawn:
+                kept[episode] = one  # the drawn episodes, kept from the tally's recording
+    recorded = jax.tree.map(lambda *parts: np.stack(parts), *[kept[episode] for episode in chosen.tolist()])
     if not np.array_equal(np.asarray(recorded.iou), np.asarray(scored.iou)[chosen]):
         raise AssertionError(f"the replayed episodes {chosen.tolist()} end at IoU {np.asarray(recorded.iou).tolist()}, "
                              f"the evaluator's at {np.asarray(scored.iou)[chosen].tolist()}")
