@@ -20,6 +20,7 @@ import typing
 from typing import Any, ClassVar
 
 from snac_jax.atomic import atomic_write_text
+from snac_jax.config import REWARD_SCHEMES
 from snac_jax.tasks import MAX_INT32, TASKS
 
 MAX_UPDATES = MAX_INT32
@@ -125,6 +126,9 @@ class TrainConfig:
     switches: str = option("", "environment switches for training and evaluation, comma-separated key=value "
                                "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=height|binary; "
                                "SPEC §9), as in the paper's ablations; empty: the task as defined")
+    train_reward: str = option("", "the reward table training learns from (height or binary, SPEC §5); empty: the "
+                                   "task's own. Unlike a reward_scheme switch it leaves the task scored as defined: "
+                                   "a learner's choice of training signal, not another task")
 
     @property
     def steps_per_update(self) -> int:
@@ -151,6 +155,12 @@ class TrainConfig:
                              f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)")
         if self.switches:
             self.env_config()  # every switch value checked by make, before anything is traced
+        if self.train_reward not in ("", *REWARD_SCHEMES):
+            raise ValueError(f"train_reward must be one of {('', *REWARD_SCHEMES)} (empty: the task's own), "
+                             f"got {self.train_reward!r}")
+        if self.train_reward and "reward_scheme" in self.env_overrides:
+            raise ValueError("give the reward as the reward_scheme switch (another task, scored so) or as "
+                             "train_reward (training alone), not both")
         self.check()
 
     def check(self) -> None:
@@ -179,11 +189,18 @@ class TrainConfig:
         world must match for this run's policy."""
         return self.scored_world()[0].config
 
+    @property
+    def training_overrides(self) -> dict[str, Any]:
+        """The `make` overrides the run trains with: the scored ones (`env_overrides`) and the
+        reward `train_reward` names, which changes no observation, rule or episode, so a policy
+        trained so acts in the scored world unchanged."""
+        return {**self.env_overrides, **({"reward_scheme": self.train_reward} if self.train_reward else {})}
+
     def make_env(self):
-        """The training environment `(env, params)` of this config."""
+        """The training environment `(env, params)` of this config (`training_overrides`)."""
         from snac_jax.tasks import make
 
-        return make(self.task, **self.env_overrides)
+        return make(self.task, **self.training_overrides)
 
     def to_json(self) -> dict[str, Any]:
         return {"algorithm": self.algorithm, **dataclasses.asdict(self)}

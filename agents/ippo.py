@@ -87,7 +87,7 @@ class IPPOConfig(TrainConfig):
 
     def make_env(self):
         """The team's training environment `(MultiSNACEnv, params)`."""
-        env = multi.make(self.task, num_robots=self.robots, **self.env_overrides)
+        env = multi.make(self.task, num_robots=self.robots, **self.training_overrides)
         return env, env.default_params
 
 

@@ -5,6 +5,7 @@ are made there with them), and bad values are refused from the fields' declarati
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -165,3 +166,29 @@ def test_a_flag_out_of_its_range_is_an_argparse_error(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["train", "ppo", "--gamma", "1.5"])
     assert "must be a number in [0, 1], got '1.5'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("algorithm", ["ppo", "pqn-belief", "dqn", "ippo"])
+def test_train_reward_changes_the_training_env_alone(algorithm):
+    from agents.registry import build_algorithm
+
+    config = make_config(algorithm, "2d-dynamic-dense", train_reward="height", num_envs=8)
+    plain = make_config(algorithm, "2d-dynamic-dense", num_envs=8)
+    training_env = lambda learner: getattr(learner, "team_env", None) or learner.env  # a team's (agents.ippo) or one robot's
+    assert training_env(build_algorithm(config)).config.reward_scheme == "height"  # what its rollouts are rewarded by
+    assert training_env(build_algorithm(plain)).config.reward_scheme == "binary"  # 2D's own (SPEC §5)
+    # Scored as the task is defined: the evaluator's overrides and the world a checkpoint must match.
+    assert config.env_overrides == {} and config.env_config() == plain.env_config()
+    assert config.env_config().reward_scheme == "binary"
+    # The training world is the plain one but for the reward: the same observation, rules and episodes.
+    assert dataclasses.replace(config.make_env()[0].config, reward_scheme="binary") == plain.make_env()[0].config
+    assert config_from_json(config.to_json()) == config
+    old = {k: v for k, v in plain.to_json().items() if k != "train_reward"}  # a config.json from before the option
+    assert config_from_json(old) == plain
+
+
+def test_train_reward_is_checked_up_front():
+    with pytest.raises(ValueError, match=r"train_reward must be one of \('', 'height', 'binary'\).*got 'dense'"):
+        make_config("pqn-belief", "2d-dynamic-dense", train_reward="dense")
+    with pytest.raises(ValueError, match="reward_scheme switch .* or as train_reward .* not both"):
+        make_config("pqn-belief", "2d-dynamic-dense", train_reward="height", switches="reward_scheme=binary")
