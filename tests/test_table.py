@@ -604,12 +604,34 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     assert table_run.run_cell(again, progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in made.iterdir()} == before
 
-    # The report reads it as any finished cell and copies it, its record named.
+    # The report reads it as any finished cell, but keeps one raw copy of the run, the record's:
+    # beside the gps arm's copy, the base row is read from the smoke preset's file.
     assert read_cell(made)["eval"] == record["eval"]
+    from agents.table import report
+    from agents.table.presets import load_presets
+
+    monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
+    arm = results / "table" / "abl" / "ppo" / "1d-static-sin.gps.json"
+    arm.parent.mkdir(parents=True)
+    arm.write_text(path.read_text().replace('"preset": "smoke"', '"preset": "abl"').replace(
+        '"column": "1d-static",', '"column": "1d-static", "variant": "gps", "paper_variant": "+gps", '
+        '"switches": "gps=true", "settings": {},').replace('"switches": ""', '"switches": "gps=true"'))
     write_report("abl", runs, results, reps=200)
-    copied = read_raw(results / "table" / "abl" / "ppo" / "1d-static-sin.base.json")
+    assert sorted(p.name for p in arm.parent.iterdir()) == [arm.name]  # no copy of the base
+    rows = json.loads((results / "table.json").read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
+    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.6)
+    assert rows["base"]["paper_variant"] == "base" and rows["gps"]["delta"]["delta"] == pytest.approx(0.0)
+    # The record changed since the arm trained (another learning rate): read alone, the report
+    # stops, naming it; with the base arm's run at hand, that run is copied as the base instead.
+    changed = json.loads(path.read_text())
+    changed["config"]["learning_rate"] *= 2
+    path.write_text(json.dumps(changed))
+    with pytest.raises(ValueError, match=re.escape(str(path)) + r" is the base of ppo/1d-static-sin.gps.*learning_rate"):
+        write_report("abl", None, results, reps=200)
+    write_report("abl", runs, results, reps=200)
+    copied = read_raw(arm.parent / "1d-static-sin.base.json")
     assert copied["cell"]["adopted_record"] == str(path) and copied["eval"] == record["eval"]
-    assert copied["metrics"] == record["curve"] and copied["config"] == record["config"]
+    assert copied["config"] == record["config"] != changed["config"]
 
 
 def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused(tmp_path, no_training):

@@ -17,12 +17,12 @@ import numpy as np
 from agents.table import statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import arm_changes
+from agents.table.raw import BASE_ARM as BASE
 from agents.table.raw import budget_record, budget_text, seed_means
 from snac_jax.atomic import atomic_write
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
 
-BASE = "base"
 PAPER_TABLE = "ablation_drqn"
 PAPER_LEARNER = "drqn"  # the paper's ablation table is DRQN's
 

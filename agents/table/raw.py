@@ -3,7 +3,8 @@
 JSON file, `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, holding
 {"cell", "config", "eval", "curve"} (`schemas.RAW_CELL_JSON`), and read back from there, so that
 every table, curve and training wall time can be rebuilt from the repository with one file per
-cell. A cell whose curve was not kept has an empty `curve`.
+cell. A cell whose curve was not kept has an empty `curve`. An ablation's base arm that adopted
+another preset's run is not copied again: it is read from that preset's copy (`with_adopted_bases`).
 
 Every cell is read back whole and checked (`agents.table.files.read_cell`, `read_raw`) before
 anything is written: a damaged cell stops the report with its file and field named, and no file
@@ -16,8 +17,10 @@ import math
 from pathlib import Path
 from typing import Any
 
-from agents.table.files import EVAL_FILE, RAW_SUFFIX, read_cell, read_raw
+from agents.table.files import EVAL_FILE, RAW_SUFFIX, read_cell, read_raw, record_path
 from snac_jax.atomic import atomic_write_text
+
+BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured against
 
 
 def run_cells_in(root: Path) -> list[Path]:
@@ -91,11 +94,72 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
                          "directory `snac table` trained in")
     planned = []
     for directory in run_cells_in(source):
-        text = raw_text(read_cell(directory))
+        files = read_cell(directory)
+        if _copy_of_its_record(files, results_dir):
+            continue
         destination = (target / directory.relative_to(source)).with_name(directory.name + RAW_SUFFIX)
         refuse_links(results_dir, destination)
-        planned.append((directory, destination, text))
+        planned.append((directory, destination, raw_text(files)))
     return planned
+
+
+def _adopted_record(results_dir: Path, adopted_from: str) -> Path:
+    """The raw copy of the cell an arm adopted (`adopted_from`: `<preset>/<algorithm>/<task>`)."""
+    return record_path(results_dir, *adopted_from.split("/"))
+
+
+def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
+    """Whether a finished cell (`read_cell`) is a base arm that adopted another preset's cell whose
+    raw copy is in the record with the same config and scores: the report keeps one copy of a
+    run (`with_adopted_bases` reads the base from there), not one per preset that adopts it. An
+    arm scored acting otherwise has scores of its own, so it is copied."""
+    cell = files["cell"]
+    adopted_from = cell.get("adopted_from")
+    if not adopted_from or cell.get("variant") != BASE_ARM or cell.get("evaluation"):
+        return False
+    path = _adopted_record(results_dir, adopted_from)
+    if not path.is_file():
+        return False
+    from agents.registry import config_from_json
+
+    record = read_raw(path)
+    return record["eval"] == files["eval"] and record["config"] == config_from_json(files["config"]).to_json()
+
+
+def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset) -> dict[str, dict[str, dict]]:
+    """`raw` (`load_raw`, the cells of `preset`, an `agents.table.presets.Preset` or None) with
+    each base arm the preset adopts from another (`adopts`) read from that preset's raw copy
+    (`_copy_of_its_record` left it uncopied), for every (learner, task of the base arm) with
+    other arms but no base copy of its own. A base arm that changes anything itself is never
+    adopted, so never read so. The record must still be the run the arms were measured against:
+    its config must equal every other arm's but for what that arm changes (its switches and
+    settings), or the report stops, naming the file."""
+    base = next((v for v in preset.variants if v.name == BASE_ARM), None) if preset is not None else None
+    if base is None or preset.adopts is None or base.switches or base.settings:
+        return raw
+    adopts, base_tasks, paper_name = preset.adopts, base.tasks, base.paper
+    results_dir = Path(results_dir)
+    for algorithm, cells in raw.items():
+        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base_tasks)):
+            name = f"{task}.{BASE_ARM}"
+            path = record_path(results_dir, adopts, algorithm, task)
+            if name in cells or not path.is_file():
+                continue
+            record = read_raw(path)
+            for arm, files in cells.items():
+                if files["cell"]["task"] != task:
+                    continue
+                changed = {"switches", *files["cell"].get("settings", {})}
+                differ = sorted(k for k in set(record["config"]) | set(files["config"])
+                                if k not in changed and record["config"].get(k) != files["config"].get(k))
+                if differ:
+                    raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
+                                     f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
+                                     "arm trained; train the base arm again (--arms base) or restore that record")
+            record["cell"] = {**record["cell"], "variant": BASE_ARM, "paper_variant": paper_name, "switches": "",
+                              "settings": {}, "adopted_from": f"{adopts}/{algorithm}/{task}"}
+            cells[name] = record
+    return raw
 
 
 def collect(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[Path]:

@@ -26,7 +26,8 @@ from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
 from agents.table.files import read_raw
-from agents.table.raw import budget_record, budget_text, collect, copies, load_raw, raw_files, refuse_links, seed_means
+from agents.table.raw import (budget_record, budget_text, collect, copies, load_raw, raw_files, refuse_links, seed_means,
+                              with_adopted_bases)
 from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
@@ -251,8 +252,9 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
     ablation's: its arms' learning curves, `ablation.curves_name`). Every cell, copied or to be
     copied, is read and checked before the first file is written (a damaged one is a
     `ValueError` naming its file and field), and no file is written through a symbolic link in
-    `results_dir`. `dry_run`: check all that and return what would be written, writing nothing
-    (the copies as `copy:<cell directory>`)."""
+    `results_dir`. An ablation's base arm adopted from another preset is read from that preset's
+    copy (`raw.with_adopted_bases`). `dry_run`: check all that and return what would be written,
+    writing nothing (the copies as `copy:<cell directory>`)."""
     results_dir = Path(results_dir)
     planned = copies(runs_dir, results_dir, preset)
     presets = load_presets()
@@ -263,7 +265,9 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     replaced = {destination for _, destination, _ in planned}
-    raws = {name: load_raw(results_dir, name) for name in found if name != preset}
+    for name in found:  # every copy the report will read, checked before anything is written
+        if name != preset:
+            with_adopted_bases(load_raw(results_dir, name), results_dir, presets.get(name))
     for path in raw_files(results_dir / "table" / preset):
         if path not in replaced:
             read_raw(path)  # a damaged copy the copies will not replace stops the report now
@@ -275,7 +279,9 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
     if dry_run:
         return {**{f"copy:{source}": destination for source, destination, _ in planned}, **paths}
     collect(runs_dir, results_dir, preset)
-    raws[preset] = load_raw(results_dir, preset)
+    # Read after the copies: an ablation's adopted base arm is read from the preset it adopts.
+    raws = {name: with_adopted_bases(load_raw(results_dir, name), results_dir, presets.get(name))
+            for name in found or [preset]}
     tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
     for name in found or [preset]:
         raw, arms = raws[name], [v.name for v in presets[name].variants] if name in presets else []
