@@ -168,8 +168,8 @@ class TrainConfig:
 
     @property
     def env_overrides(self) -> dict[str, Any]:
-        """The `snac_jax.make` overrides the run trains and is scored with: its switches and its
-        step limit, when it set them."""
+        """The `snac_jax.make` overrides the run is scored with: its switches and its step limit,
+        when it set them. It trains with them and its `train_reward` (`training_overrides`)."""
         from snac_jax.tasks import parse_switches
 
         return {**parse_switches(self.switches), **({"max_steps": self.max_steps} if self.max_steps else {})}

@@ -557,6 +557,7 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     from agents import checkpoint
     from agents.table import run as table_run
     from agents.table.files import read_cell, read_raw
+    from agents.table.raw import raw_text
     from agents.table.report import write_report
 
     runs, results = tmp_path / "runs", tmp_path / "results"
@@ -611,13 +612,15 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     from agents.table.presets import load_presets
 
     monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
-    arm = results / "table" / "abl" / "ppo" / "1d-static-sin.gps.json"
-    arm.parent.mkdir(parents=True)
-    arm.write_text(path.read_text().replace('"preset": "smoke"', '"preset": "abl"').replace(
-        '"column": "1d-static",', '"column": "1d-static", "variant": "gps", "paper_variant": "+gps", '
-        '"switches": "gps=true", "settings": {},').replace('"switches": ""', '"switches": "gps=true"'))
+    arm = _gps_arm_copy(results, path)
     write_report("abl", runs, results, reps=200)
     assert sorted(p.name for p in arm.parent.iterdir()) == [arm.name]  # no copy of the base
+    # An older copy of the base (a report made before the record held the run) is removed.
+    stale = arm.parent / "1d-static-sin.base.json"
+    stale.write_text(raw_text(read_cell(made)))
+    assert write_report("abl", runs, results, reps=200, dry_run=True)[f"uncopy:{made}"] == stale and stale.is_file()
+    write_report("abl", runs, results, reps=200)
+    assert not stale.exists()
     rows = json.loads((results / "table.json").read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
     assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.6)
     assert rows["base"]["paper_variant"] == "base" and rows["gps"]["delta"]["delta"] == pytest.approx(0.0)
@@ -632,6 +635,42 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     copied = read_raw(arm.parent / "1d-static-sin.base.json")
     assert copied["cell"]["adopted_record"] == str(path) and copied["eval"] == record["eval"]
     assert copied["config"] == record["config"] != changed["config"]
+
+
+def _gps_arm_copy(results, record):
+    """The raw copy of `_abl()`'s gps arm, written by hand from the smoke preset's `record`."""
+    arm = results / "table" / "abl" / "ppo" / "1d-static-sin.gps.json"
+    arm.parent.mkdir(parents=True, exist_ok=True)
+    arm.write_text(record.read_text().replace('"preset": "smoke"', '"preset": "abl"').replace(
+        '"column": "1d-static",', '"column": "1d-static", "variant": "gps", "paper_variant": "+gps", '
+        '"switches": "gps=true", "settings": {},').replace('"switches": ""', '"switches": "gps=true"'))
+    return arm
+
+
+def test_a_record_an_ablation_reads_as_its_base_is_kept_as_its_own_before_it_is_replaced(tmp_path):
+    from agents.table.files import read_raw, record_path
+    from agents.table.presets import load_presets
+    from agents.table.raw import bases_to_keep, load_raw, with_adopted_bases
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    path = write_record(results, source, means=(0.5, 0.7))
+    _gps_arm_copy(results, path)
+    presets = {**load_presets(), "abl": _abl()}
+    own = record_path(results, "abl", "ppo", "1d-static-sin.base")
+    assert bases_to_keep(results, "smoke", presets, {path: path.read_text()}) == {}  # the same run again
+    retrained = path.read_text().replace('"mean": 0.5', '"mean": 0.9')
+    for pending in ({path: retrained}, {path: None}):  # the smoke cell trained again, or its copy removed
+        kept = bases_to_keep(results, "smoke", presets, pending)
+        assert list(kept) == [own]
+        base = read_raw(own, kept[own])
+        assert (base["cell"]["variant"], base["cell"]["adopted_from"]) == ("base", "smoke/ppo/1d-static-sin")
+        assert base["eval"] == read_raw(path)["eval"]  # the run the gps arm was measured against
+        # Read as the report will after writing both: the ablation's own base, not the new record.
+        pending = {**pending, **kept}
+        cells = with_adopted_bases(load_raw(results, "abl", pending), results, presets["abl"], pending)["ppo"]
+        assert cells["1d-static-sin.base"]["eval"] == base["eval"]
+    assert bases_to_keep(results, "other", presets, {path: retrained}) == {}  # abl adopts smoke only
 
 
 def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused(tmp_path, no_training):

@@ -21,6 +21,7 @@ from typing import Any, Callable
 from agents import checkpoint, schemas
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import REPORT_EVAL_SEED
+from snac_jax.schema import loads_json
 from snac_jax.tasks import task_spec
 
 CELL_FILE = "cell.json"
@@ -157,15 +158,17 @@ def read_cell(directory: Path) -> dict[str, Any]:
             "cell": cell, "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)}
 
 
-def read_raw(path: Path) -> dict[str, Any]:
+def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
     """A cell's raw copy under `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, one
     file holding {"cell", "config", "eval", "curve"} (`schemas.RAW_CELL_JSON`: each part against the
-    schema of the file it was copied from), checked as `read_cell` checks a cell's files. Returns
-    {"config" (the config class's full settings), "eval", "cell", "metrics" (the curve)};
-    `ValueError` naming the file and the field (`eval['<seed>'].mean`) of the first problem."""
+    schema of the file it was copied from), checked as `read_cell` checks a cell's files; `text`:
+    what the report is about to write there, read in its place. Returns {"config" (the config
+    class's full settings), "eval", "cell", "metrics" (the curve)}; `ValueError` naming the file
+    and the field (`eval['<seed>'].mean`) of the first problem."""
     from agents.registry import config_from_json
 
-    record = schemas.load(path, schemas.RAW_CELL_JSON)
+    record = (schemas.load(path, schemas.RAW_CELL_JSON) if text is None
+              else loads_json(text, schemas.RAW_CELL_JSON, path))
     try:
         config = config_from_json(record["config"])
     except (TypeError, ValueError) as error:

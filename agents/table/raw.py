@@ -77,11 +77,19 @@ def raw_text(files: dict) -> str:
     return "{\n" + ",\n".join(parts) + "\n}\n"
 
 
-def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[tuple[Path, Path, str]]:
-    """What `collect` copies: (cell directory, destination file, its text) of every finished cell
-    of `preset` under `runs_dir` (None: no runs, nothing), each read back whole first
+Pending = dict[Path, "str | None"]
+"""What the report is about to do under the results, before it does it: a raw copy's path and the
+text it will hold, or None where it removes the file. Readers given it (`load_raw`,
+`with_adopted_bases`) see the results as they will be, so everything is checked before a write."""
+
+
+def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[tuple[Path, Path, str | None]]:
+    """What `write_copies` does: (cell directory, destination file, its text) of every finished
+    cell of `preset` under `runs_dir` (None: no runs, nothing), each read back whole first
     (`files.read_cell`: a damaged cell is a `ValueError` naming the file and field, never left
-    out), and every destination checked to hold no link."""
+    out), and every destination checked to hold no link. A base arm whose run is already in the
+    record as the preset's it adopted (`_copy_of_its_record`) is not copied; text None: an older
+    copy of it at the destination is removed, so the record holds the run once."""
     if runs_dir is None:
         return []
     runs_dir, results_dir = Path(runs_dir), Path(results_dir)
@@ -95,11 +103,12 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
     planned = []
     for directory in run_cells_in(source):
         files = read_cell(directory)
-        if _copy_of_its_record(files, results_dir):
-            continue
         destination = (target / directory.relative_to(source)).with_name(directory.name + RAW_SUFFIX)
         refuse_links(results_dir, destination)
-        planned.append((directory, destination, raw_text(files)))
+        if not _copy_of_its_record(files, results_dir):
+            planned.append((directory, destination, raw_text(files)))
+        elif destination.is_file():
+            planned.append((directory, destination, None))
     return planned
 
 
@@ -108,44 +117,68 @@ def _adopted_record(results_dir: Path, adopted_from: str) -> Path:
     return record_path(results_dir, *adopted_from.split("/"))
 
 
+def _same_run(a: dict, b: dict) -> bool:
+    """Whether two raw copies (`read_raw`'s form) hold the same run: config, scores and curve."""
+    return a["config"] == b["config"] and a["eval"] == b["eval"] and a["metrics"] == b["metrics"]
+
+
 def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
-    """Whether a finished cell (`read_cell`) is a base arm that adopted another preset's cell whose
-    raw copy is in the record with the same config and scores: the report keeps one copy of a
-    run (`with_adopted_bases` reads the base from there), not one per preset that adopts it. An
-    arm scored acting otherwise has scores of its own, so it is copied."""
+    """Whether a finished cell (`read_cell`) is a plain base arm that adopted another preset's cell
+    whose raw copy is in the record with the same run (`_same_run`): the report keeps one copy of a
+    run (`with_adopted_bases` reads the base from there), not one per preset that adopts it. An arm
+    scored acting otherwise has scores of its own, and a base arm that changes anything is read as
+    its own (`with_adopted_bases` reads none such), so both are copied."""
     cell = files["cell"]
     adopted_from = cell.get("adopted_from")
-    if not adopted_from or cell.get("variant") != BASE_ARM or cell.get("evaluation"):
+    if (not adopted_from or cell.get("variant") != BASE_ARM or cell.get("evaluation") or cell.get("switches")
+            or cell.get("settings")):
         return False
     path = _adopted_record(results_dir, adopted_from)
     if not path.is_file():
         return False
     from agents.registry import config_from_json
 
-    record = read_raw(path)
-    return record["eval"] == files["eval"] and record["config"] == config_from_json(files["config"]).to_json()
+    curve = json.loads(raw_text(files))["curve"]  # as the copy would hold it: strict JSON
+    return _same_run(read_raw(path), {"config": config_from_json(files["config"]).to_json(), "eval": files["eval"],
+                                      "metrics": curve})
 
 
-def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset) -> dict[str, dict[str, dict]]:
+def _as_base(record: dict, adopts: str, algorithm: str, task: str, paper_name: str) -> dict:
+    """The base arm read from the raw copy `record` of preset `adopts`' cell it adopted."""
+    return {**record, "cell": {**record["cell"], "variant": BASE_ARM, "paper_variant": paper_name, "switches": "",
+                               "settings": {}, "adopted_from": f"{adopts}/{algorithm}/{task}"}}
+
+
+def _plain_base(preset):
+    """The base arm of `preset` (a `Preset` or None) where it adopts another's cells as they are
+    (it changes nothing itself), else None."""
+    base = next((v for v in preset.variants if v.name == BASE_ARM), None) if preset is not None else None
+    return None if base is None or preset.adopts is None or base.switches or base.settings else base
+
+
+def _is_file(path: Path, pending: Pending) -> bool:
+    return pending[path] is not None if path in pending else path.is_file()
+
+
+def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset,
+                       pending: Pending | None = None) -> dict[str, dict[str, dict]]:
     """`raw` (`load_raw`, the cells of `preset`, an `agents.table.presets.Preset` or None) with
     each base arm the preset adopts from another (`adopts`) read from that preset's raw copy
     (`_copy_of_its_record` left it uncopied), for every (learner, task of the base arm) with
-    other arms but no base copy of its own. A base arm that changes anything itself is never
-    adopted, so never read so. The record must still be the run the arms were measured against:
-    its config must equal every other arm's but for what that arm changes (its switches and
-    settings), or the report stops, naming the file."""
-    base = next((v for v in preset.variants if v.name == BASE_ARM), None) if preset is not None else None
-    if base is None or preset.adopts is None or base.switches or base.settings:
+    other arms but no base copy of its own; `pending` as `load_raw`'s. The record must still be
+    the run the arms were measured against: its config must equal every other arm's but for what
+    that arm changes (its switches and settings), or the report stops, naming the file
+    (`bases_to_keep` keeps the old run where the report itself replaces that record)."""
+    base, pending = _plain_base(preset), pending or {}
+    if base is None:
         return raw
-    adopts, base_tasks, paper_name = preset.adopts, base.tasks, base.paper
     results_dir = Path(results_dir)
     for algorithm, cells in raw.items():
-        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base_tasks)):
-            name = f"{task}.{BASE_ARM}"
-            path = record_path(results_dir, adopts, algorithm, task)
-            if name in cells or not path.is_file():
+        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
+            path = record_path(results_dir, preset.adopts, algorithm, task)
+            if f"{task}.{BASE_ARM}" in cells or not _is_file(path, pending):
                 continue
-            record = read_raw(path)
+            record = read_raw(path, pending.get(path))
             for arm, files in cells.items():
                 if files["cell"]["task"] != task:
                     continue
@@ -156,30 +189,64 @@ def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path,
                     raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
                                      f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
                                      "arm trained; train the base arm again (--arms base) or restore that record")
-            record["cell"] = {**record["cell"], "variant": BASE_ARM, "paper_variant": paper_name, "switches": "",
-                              "settings": {}, "adopted_from": f"{adopts}/{algorithm}/{task}"}
-            cells[name] = record
+            cells[f"{task}.{BASE_ARM}"] = _as_base(record, preset.adopts, algorithm, task, base.paper)
     return raw
 
 
-def collect(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[Path]:
-    """Write every finished cell's raw copy under `results_dir/table/<preset>/` (each file
-    atomically; every cell is checked before the first is written); returns the files written."""
+def bases_to_keep(results_dir: str | Path, reported: str, presets: dict, pending: Pending) -> dict[Path, str]:
+    """The base copies the report must write before it replaces (`pending`) a raw copy of preset
+    `reported` that another preset reads as its adopted base (`with_adopted_bases`): that
+    preset's own `<task>.base.json` holding the run its arms were measured against, so a cell
+    trained again leaves the ablations that adopted the old one as they were."""
+    results_dir, keep = Path(results_dir), {}
+    for name, preset in presets.items():
+        base = _plain_base(preset)
+        if base is None or preset.adopts != reported:
+            continue
+        for algorithm, cells in load_raw(results_dir, name).items():
+            for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
+                own = record_path(results_dir, name, algorithm, f"{task}.{BASE_ARM}")
+                adopted = record_path(results_dir, reported, algorithm, task)
+                if own.is_file() or adopted not in pending or not adopted.is_file():
+                    continue
+                old = read_raw(adopted)
+                if pending[adopted] is not None and _same_run(old, read_raw(adopted, pending[adopted])):
+                    continue
+                refuse_links(results_dir, own)
+                keep[own] = raw_text(_as_base(old, reported, algorithm, task, base.paper))
+    return keep
+
+
+def write_copies(planned: list[tuple[Path, Path, str | None]]) -> list[Path]:
+    """Carry out `copies`' plan: each text written atomically, each None's file removed; returns
+    the files written."""
     written = []
-    for _, destination, text in copies(runs_dir, results_dir, preset):
-        atomic_write_text(destination, text)
-        written.append(destination)
+    for _, destination, text in planned:
+        if text is None:
+            destination.unlink(missing_ok=True)
+        else:
+            atomic_write_text(destination, text)
+            written.append(destination)
     return written
 
 
-def load_raw(results_dir: str | Path, preset: str) -> dict[str, dict[str, dict]]:
+def collect(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[Path]:
+    """Write every finished cell's raw copy under `results_dir/table/<preset>/` (`copies`: every
+    cell is checked before the first is written); returns the files written."""
+    return write_copies(copies(runs_dir, results_dir, preset))
+
+
+def load_raw(results_dir: str | Path, preset: str, pending: Pending | None = None) -> dict[str, dict[str, dict]]:
     """algorithm -> cell (the task, and an ablation's arm) -> {"config", "eval", "cell", "metrics"}
-    of the raw copies ("metrics": the curve's records, empty where not kept). A damaged copy is a
-    `ValueError` naming the file and the field."""
+    of the raw copies ("metrics": the curve's records, empty where not kept), as they will be
+    after `pending`. A damaged copy is a `ValueError` naming the file and the field."""
+    pending, root = pending or {}, Path(results_dir) / "table" / preset
+    paths = {p for p in raw_files(root) if pending.get(p, "") is not None}
+    paths |= {p for p, text in pending.items() if text is not None and p.parent.parent == root}
     raw: dict[str, dict[str, dict]] = {}
     plain = []
-    for path in raw_files(Path(results_dir) / "table" / preset):
-        files = raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(path)
+    for path in sorted(paths):
+        files = raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(path, pending.get(path))
         if "variant" not in files["cell"]:
             plain.append(path)
     if plain and len(plain) < sum(map(len, raw.values())):

@@ -25,9 +25,8 @@ from agents import schemas
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
-from agents.table.files import read_raw
-from agents.table.raw import (budget_record, budget_text, collect, copies, load_raw, raw_files, refuse_links, seed_means,
-                              with_adopted_bases)
+from agents.table.raw import (Pending, bases_to_keep, budget_record, budget_text, copies, load_raw, refuse_links,
+                              seed_means, with_adopted_bases, write_copies)
 from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
@@ -253,35 +252,38 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
     copied, is read and checked before the first file is written (a damaged one is a
     `ValueError` naming its file and field), and no file is written through a symbolic link in
     `results_dir`. An ablation's base arm adopted from another preset is read from that preset's
-    copy (`raw.with_adopted_bases`). `dry_run`: check all that and return what would be written,
-    writing nothing (the copies as `copy:<cell directory>`)."""
+    copy (`raw.with_adopted_bases`), and one the report's copies would replace is first kept as
+    the ablation's own (`raw.bases_to_keep`). `dry_run`: check all that and return what would be
+    written, writing nothing (the copies as `copy:<cell directory>`, an older copy of a run the
+    record holds once as `uncopy:<cell directory>`, a base kept as `keep:<its file>`)."""
     results_dir = Path(results_dir)
     planned = copies(runs_dir, results_dir, preset)
     presets = load_presets()
+    pending: Pending = {destination: text for _, destination, text in planned}
+    kept = bases_to_keep(results_dir, preset, presets, pending)
+    pending.update(kept)
     found = sorted({p.name for p in (results_dir / "table").glob("*") if p.is_dir()}
                    | ({preset} if planned else set()),
                    key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
     hand_path = results_dir / "handcrafted.json"
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
-    replaced = {destination for _, destination, _ in planned}
-    for name in found:  # every copy the report will read, checked before anything is written
-        if name != preset:
-            with_adopted_bases(load_raw(results_dir, name), results_dir, presets.get(name))
-    for path in raw_files(results_dir / "table" / preset):
-        if path not in replaced:
-            read_raw(path)  # a damaged copy the copies will not replace stops the report now
+    # Every copy the tables read, as it will be after the copies (a damaged one stops the report now);
+    # an ablation's adopted base arm is read from the preset it adopts.
+    raws = {name: with_adopted_bases(load_raw(results_dir, name, pending), results_dir, presets.get(name), pending)
+            for name in found or [preset]}
     for name in found or [preset]:
         arms = [v.name for v in presets[name].variants] if name in presets else []
         paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms else f"table-{name}.png")
     for path in paths.values():
         refuse_links(results_dir, path)
     if dry_run:
-        return {**{f"copy:{source}": destination for source, destination, _ in planned}, **paths}
-    collect(runs_dir, results_dir, preset)
-    # Read after the copies: an ablation's adopted base arm is read from the preset it adopts.
-    raws = {name: with_adopted_bases(load_raw(results_dir, name), results_dir, presets.get(name))
-            for name in found or [preset]}
+        return {**{f"{'copy' if text is not None else 'uncopy'}:{source}": destination
+                   for source, destination, text in planned},
+                **{f"keep:{path}": path for path in kept}, **paths}
+    for path, text in kept.items():
+        atomic_write_text(path, text)
+    write_copies(planned)
     tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
     for name in found or [preset]:
         raw, arms = raws[name], [v.name for v in presets[name].variants] if name in presets else []
