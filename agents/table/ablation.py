@@ -16,8 +16,8 @@ import numpy as np
 
 from agents.table import statistics
 from agents.table.plan import TRAIN_SEED
+from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import arm_changes
-from agents.table.raw import BASE_ARM as BASE
 from agents.table.raw import budget_record, budget_text, seed_means
 from snac_jax.atomic import atomic_write
 from snac_jax.evaluation import REPORT_EVAL_SEED

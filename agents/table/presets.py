@@ -14,6 +14,8 @@ from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
 from snac_jax.tasks import TASKS, parse_switches
 
+BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured against
+
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
 _PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
 _PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
@@ -62,6 +64,12 @@ class Preset:
     cheap_seeds: int | None = None  # seeds of a cheap column (None: every column has `seeds`)
     cheap_minutes: float = 5.0  # a column is cheap where each of its new cells, at cheap_seeds, fits this
     adopts: str | None = None  # a preset whose finished run with a cell's very settings the cell takes over
+
+    def adopted_base(self) -> Variant | None:
+        """The base arm where it is another preset's cells as they are (the preset `adopts` and the
+        arm changes nothing): what the report reads from that preset's raw copies (`raw.with_adopted_bases`)."""
+        base = next((v for v in self.variants if v.name == BASE_ARM), None)
+        return None if base is None or self.adopts is None or base.switches or base.settings else base
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -120,10 +128,10 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
                              f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
         arms = {v.name: v for v in presets[name].variants}
-        if arms and "base" not in arms:
+        if arms and BASE_ARM not in arms:
             raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
-        if any(v.evaluation for v in arms.values()) and (arms["base"].evaluation or arms["base"].settings
-                                                          or arms["base"].switches or "adopts" not in table):
+        if any(v.evaluation for v in arms.values()) and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings
+                                                          or arms[BASE_ARM].switches or "adopts" not in table):
             raise ValueError(f"{path}: [{name}] has an arm with evaluation settings, which scores the base arm's run "
                              "again: the preset must adopt another's runs, and its base arm give no settings, switches "
                              "or evaluation")

@@ -18,9 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from agents.table.files import EVAL_FILE, RAW_SUFFIX, read_cell, read_raw, record_path
+from agents.table.presets import BASE_ARM, Preset, Variant
 from snac_jax.atomic import atomic_write_text
-
-BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured against
 
 
 def run_cells_in(root: Path) -> list[Path]:
@@ -112,11 +111,6 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
     return planned
 
 
-def _adopted_record(results_dir: Path, adopted_from: str) -> Path:
-    """The raw copy of the cell an arm adopted (`adopted_from`: `<preset>/<algorithm>/<task>`)."""
-    return record_path(results_dir, *adopted_from.split("/"))
-
-
 def _same_run(a: dict, b: dict) -> bool:
     """Whether two raw copies (`read_raw`'s form) hold the same run: config, scores and curve."""
     return a["config"] == b["config"] and a["eval"] == b["eval"] and a["metrics"] == b["metrics"]
@@ -133,7 +127,7 @@ def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
     if (not adopted_from or cell.get("variant") != BASE_ARM or cell.get("evaluation") or cell.get("switches")
             or cell.get("settings")):
         return False
-    path = _adopted_record(results_dir, adopted_from)
+    path = record_path(results_dir, *adopted_from.split("/"))  # `<preset>/<algorithm>/<task>`
     if not path.is_file():
         return False
     from agents.registry import config_from_json
@@ -149,71 +143,69 @@ def _as_base(record: dict, adopts: str, algorithm: str, task: str, paper_name: s
                                "settings": {}, "adopted_from": f"{adopts}/{algorithm}/{task}"}}
 
 
-def _plain_base(preset):
-    """The base arm of `preset` (a `Preset` or None) where it adopts another's cells as they are
-    (it changes nothing itself), else None."""
-    base = next((v for v in preset.variants if v.name == BASE_ARM), None) if preset is not None else None
-    return None if base is None or preset.adopts is None or base.switches or base.settings else base
+def _adopted_tasks(raw: dict[str, dict[str, dict]], base: Variant):
+    """(algorithm, its cells, task) for every task of `base` an ablation's copies (`load_raw`) have."""
+    for algorithm, cells in raw.items():
+        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
+            yield algorithm, cells, task
 
 
 def _is_file(path: Path, pending: Pending) -> bool:
     return pending[path] is not None if path in pending else path.is_file()
 
 
-def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset,
+def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset: Preset | None,
                        pending: Pending | None = None) -> dict[str, dict[str, dict]]:
-    """`raw` (`load_raw`, the cells of `preset`, an `agents.table.presets.Preset` or None) with
+    """`raw` (`load_raw`, the cells of `preset`, None: a preset budgets.toml no longer has) with
     each base arm the preset adopts from another (`adopts`) read from that preset's raw copy
     (`_copy_of_its_record` left it uncopied), for every (learner, task of the base arm) with
     other arms but no base copy of its own; `pending` as `load_raw`'s. The record must still be
     the run the arms were measured against: its config must equal every other arm's but for what
     that arm changes (its switches and settings), or the report stops, naming the file
     (`bases_to_keep` keeps the old run where the report itself replaces that record)."""
-    base, pending = _plain_base(preset), pending or {}
+    base, pending = preset.adopted_base() if preset is not None else None, pending or {}
     if base is None:
         return raw
     results_dir = Path(results_dir)
-    for algorithm, cells in raw.items():
-        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
-            path = record_path(results_dir, preset.adopts, algorithm, task)
-            if f"{task}.{BASE_ARM}" in cells or not _is_file(path, pending):
+    for algorithm, cells, task in list(_adopted_tasks(raw, base)):
+        path = record_path(results_dir, preset.adopts, algorithm, task)
+        if f"{task}.{BASE_ARM}" in cells or not _is_file(path, pending):
+            continue
+        record = read_raw(path, pending.get(path))
+        for arm, files in cells.items():
+            if files["cell"]["task"] != task:
                 continue
-            record = read_raw(path, pending.get(path))
-            for arm, files in cells.items():
-                if files["cell"]["task"] != task:
-                    continue
-                changed = {"switches", *files["cell"].get("settings", {})}
-                differ = sorted(k for k in set(record["config"]) | set(files["config"])
-                                if k not in changed and record["config"].get(k) != files["config"].get(k))
-                if differ:
-                    raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
-                                     f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
-                                     "arm trained; train the base arm again (--arms base) or restore that record")
-            cells[f"{task}.{BASE_ARM}"] = _as_base(record, preset.adopts, algorithm, task, base.paper)
+            changed = {"switches", *files["cell"].get("settings", {})}
+            differ = sorted(k for k in set(record["config"]) | set(files["config"])
+                            if k not in changed and record["config"].get(k) != files["config"].get(k))
+            if differ:
+                raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
+                                 f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
+                                 "arm trained; train the base arm again (--arms base) or restore that record")
+        cells[f"{task}.{BASE_ARM}"] = _as_base(record, preset.adopts, algorithm, task, base.paper)
     return raw
 
 
-def bases_to_keep(results_dir: str | Path, reported: str, presets: dict, pending: Pending) -> dict[Path, str]:
+def bases_to_keep(results_dir: str | Path, reported: str, presets: dict[str, Preset], pending: Pending) -> dict[Path, str]:
     """The base copies the report must write before it replaces (`pending`) a raw copy of preset
     `reported` that another preset reads as its adopted base (`with_adopted_bases`): that
     preset's own `<task>.base.json` holding the run its arms were measured against, so a cell
     trained again leaves the ablations that adopted the old one as they were."""
     results_dir, keep = Path(results_dir), {}
     for name, preset in presets.items():
-        base = _plain_base(preset)
+        base = preset.adopted_base()
         if base is None or preset.adopts != reported:
             continue
-        for algorithm, cells in load_raw(results_dir, name).items():
-            for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
-                own = record_path(results_dir, name, algorithm, f"{task}.{BASE_ARM}")
-                adopted = record_path(results_dir, reported, algorithm, task)
-                if own.is_file() or adopted not in pending or not adopted.is_file():
-                    continue
-                old = read_raw(adopted)
-                if pending[adopted] is not None and _same_run(old, read_raw(adopted, pending[adopted])):
-                    continue
-                refuse_links(results_dir, own)
-                keep[own] = raw_text(_as_base(old, reported, algorithm, task, base.paper))
+        for algorithm, _, task in _adopted_tasks(load_raw(results_dir, name), base):
+            own = record_path(results_dir, name, algorithm, f"{task}.{BASE_ARM}")
+            adopted = record_path(results_dir, reported, algorithm, task)
+            if own.is_file() or adopted not in pending or not adopted.is_file():
+                continue
+            old = read_raw(adopted)
+            if pending[adopted] is not None and _same_run(old, read_raw(adopted, pending[adopted])):
+                continue
+            refuse_links(results_dir, own)
+            keep[own] = raw_text(_as_base(old, reported, algorithm, task, base.paper))
     return keep
 
 
@@ -228,12 +220,6 @@ def write_copies(planned: list[tuple[Path, Path, str | None]]) -> list[Path]:
             atomic_write_text(destination, text)
             written.append(destination)
     return written
-
-
-def collect(runs_dir: str | Path | None, results_dir: str | Path, preset: str) -> list[Path]:
-    """Write every finished cell's raw copy under `results_dir/table/<preset>/` (`copies`: every
-    cell is checked before the first is written); returns the files written."""
-    return write_copies(copies(runs_dir, results_dir, preset))
 
 
 def load_raw(results_dir: str | Path, preset: str, pending: Pending | None = None) -> dict[str, dict[str, dict]]:
