@@ -18,6 +18,7 @@ from agents.table.plan import TRAIN_SEED, make_plan
 from agents.table.plan_format import format_plan
 from agents.table.presets import Variant, expand_tasks, load_presets
 from agents.table.report import build, markdown
+from agents.table.raw import READ_FROM_ADOPTED
 from tests.table_cells import cell_files as _files
 from tests.table_cells import write_record
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
@@ -320,6 +321,7 @@ def test_ablation_report_by_hand():
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
     assert "adopted" not in text
     raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
+    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_bases` reads it
     text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
     assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
@@ -668,9 +670,21 @@ def test_a_record_an_ablation_reads_as_its_base_is_kept_as_its_own_before_it_is_
         assert base["eval"] == read_raw(path)["eval"]  # the run the gps arm was measured against
         # Read as the report will after writing both: the ablation's own base, not the new record.
         pending = {**pending, **kept}
-        cells = with_adopted_bases(load_raw(results, "abl", pending), results, presets["abl"], pending)["ppo"]
-        assert cells["1d-static-sin.base"]["eval"] == base["eval"]
+        raw = with_adopted_bases(load_raw(results, "abl", pending), results, presets["abl"], pending)
+        assert raw["ppo"]["1d-static-sin.base"]["eval"] == base["eval"]
+        # table.md says where that run now lives; a base read from the adopted record says nothing more.
+        assert "(read from this preset's own copy, `1d-static-sin.base.json`" in _adopted_line(raw)
     assert bases_to_keep(results, "other", presets, {path: retrained}) == {}  # abl adopts smoke only
+    before = with_adopted_bases(load_raw(results, "abl"), results, presets["abl"])
+    assert _adopted_line(before).endswith("`smoke/ppo/1d-static-sin`.")
+
+
+def _adopted_line(raw) -> str:
+    from agents.table import ablation
+
+    table = ablation.build(raw, arms=["base", "gps"], preset="abl", reps=20)
+    [line] = [line for line in ablation.section(table, "") if line.startswith("Arms that adopted")]
+    return line
 
 
 def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused(tmp_path, no_training):

@@ -18,7 +18,7 @@ from agents.table import statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import arm_changes
-from agents.table.raw import budget_record, budget_text, seed_means
+from agents.table.raw import READ_FROM_ADOPTED, budget_record, budget_text, seed_means
 from snac_jax.atomic import atomic_write
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
@@ -68,6 +68,7 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
                                                   files["cell"].get("evaluation")),
                        "budget": budget_record([files]), "paper": paper_arm.get("avg"),
                        "adopted_from": files["cell"].get("adopted_from"),
+                       **({"own_copy": True} if _own_copy_of_adopted(arm, files) else {}),
                        **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {})}
                 if arm != BASE:  # the paper's value of an arm is its change from the base
                     row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
@@ -78,6 +79,12 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
             "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
             "ablation": learners,
             "curves": curves}
+
+
+def _own_copy_of_adopted(arm: str, files: dict) -> bool:
+    """Whether a base arm that adopted another preset's run is read from this preset's own copy
+    (`raw.bases_to_keep`'s, where that cell trained again) rather than the adopted cell's record."""
+    return arm == BASE and bool(files["cell"].get("adopted_from")) and not files.get(READ_FROM_ADOPTED)
 
 
 def _interval(value: float, ci: list[float], signed: bool = False) -> str:
@@ -115,7 +122,10 @@ def section(table: dict, description: str) -> list[str]:
                 paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
                 lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
                              f"{delta} | {paper} | {budget_text(row['budget'])} |")
-    adopted = [f"{learner} on {task} ({arm}): `{row['adopted_from']}`" for learner, tasks in table["ablation"].items()
+    adopted = [f"{learner} on {task} ({arm}): `{row['adopted_from']}`"
+               + (f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
+                  if row.get("own_copy") else "")
+               for learner, tasks in table["ablation"].items()
                for task, rows in tasks.items() for arm, row in rows.items() if row.get("adopted_from")]
     if adopted:
         lines += ["", "Arms that adopted another preset's finished run with the same config.json (`adopts` in "

@@ -154,6 +154,12 @@ def _is_file(path: Path, pending: Pending) -> bool:
     return pending[path] is not None if path in pending else path.is_file()
 
 
+READ_FROM_ADOPTED = "read_from_adopted"
+"""The key `with_adopted_bases` sets on a base arm it read from the adopted preset's copy. A base
+arm that adopted a run but has a copy of its own holds that run as it was: the adopted cell has
+trained again since (`bases_to_keep`), so the table says where the run now lives."""
+
+
 def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset: Preset | None,
                        pending: Pending | None = None) -> dict[str, dict[str, dict]]:
     """`raw` (`load_raw`, the cells of `preset`, None: a preset budgets.toml no longer has) with
@@ -182,7 +188,7 @@ def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path,
                 raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
                                  f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
                                  "arm trained; train the base arm again (--arms base) or restore that record")
-        cells[f"{task}.{BASE_ARM}"] = _as_base(record, preset.adopts, algorithm, task, base.paper)
+        cells[f"{task}.{BASE_ARM}"] = {**_as_base(record, preset.adopts, algorithm, task, base.paper), READ_FROM_ADOPTED: True}
     return raw
 
 
