@@ -156,8 +156,9 @@ def _is_file(path: Path, pending: Pending) -> bool:
 
 READ_FROM_ADOPTED = "read_from_adopted"
 """The key `with_adopted_bases` sets on a base arm it read from the adopted preset's copy. A base
-arm that adopted a run but has a copy of its own holds that run as it was: the adopted cell has
-trained again since (`bases_to_keep`), so the table says where the run now lives."""
+arm that adopted a run but has a copy of its own holds that run as it was when adopted (the
+adopted cell's record now holds another run, e.g. one trained again: `bases_to_keep`), so the
+table says where the run lives."""
 
 
 def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset: Preset | None,
