@@ -637,6 +637,17 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     copied = read_raw(arm.parent / "1d-static-sin.base.json")
     assert copied["cell"]["adopted_record"] == str(path) and copied["eval"] == record["eval"]
     assert copied["config"] == record["config"] != changed["config"]
+    # A copy of the same run with other cell metadata (as `bases_to_keep` writes one from the old
+    # record) is left as it is: the record does not depend on which report wrote it last.
+    own = arm.parent / "1d-static-sin.base.json"
+    kept = json.loads(own.read_text())
+    del kept["cell"]["adopted_record"]
+    own.write_text(json.dumps(kept))
+    write_report("abl", runs, results, reps=200)
+    assert json.loads(own.read_text()) == kept
+    own.write_text("{")  # a damaged one is replaced by the run's own files
+    write_report("abl", runs, results, reps=200)
+    assert read_raw(own)["cell"]["adopted_record"] == str(path)
 
 
 def _gps_arm_copy(results, record):

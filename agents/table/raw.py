@@ -88,7 +88,10 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
     (`files.read_cell`: a damaged cell is a `ValueError` naming the file and field, never left
     out), and every destination checked to hold no link. A base arm whose run is already in the
     record as the preset's it adopted (`_copy_of_its_record`) is not copied; text None: an older
-    copy of it at the destination is removed, so the record holds the run once."""
+    copy of it at the destination is removed, so the record holds the run once. A copy that already
+    holds the cell's run (`_holds_the_run`) is left as it is, so the record does not depend on which
+    report wrote it last or on whether the runs directory was there: two writers (this one, and
+    `bases_to_keep` from the old record) give the same run different cell metadata."""
     if runs_dir is None:
         return []
     runs_dir, results_dir = Path(runs_dir), Path(results_dir)
@@ -105,10 +108,23 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
         destination = (target / directory.relative_to(source)).with_name(directory.name + RAW_SUFFIX)
         refuse_links(results_dir, destination)
         if not _copy_of_its_record(files, results_dir):
-            planned.append((directory, destination, raw_text(files)))
+            text = raw_text(files)
+            if not _holds_the_run(destination, text):
+                planned.append((directory, destination, text))
         elif destination.is_file():
             planned.append((directory, destination, None))
     return planned
+
+
+def _holds_the_run(destination: Path, text: str) -> bool:
+    """Whether the raw copy at `destination` holds the run `text` would write there (`_same_run`);
+    a copy that cannot be read does not, so the run's own files replace it."""
+    if not destination.is_file():
+        return False
+    try:
+        return _same_run(read_raw(destination), read_raw(destination, text))
+    except ValueError:
+        return False
 
 
 def _same_run(a: dict, b: dict) -> bool:
