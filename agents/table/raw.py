@@ -108,23 +108,31 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
         destination = (target / directory.relative_to(source)).with_name(directory.name + RAW_SUFFIX)
         refuse_links(results_dir, destination)
         if not _copy_of_its_record(files, results_dir):
-            text = raw_text(files)
-            if not _holds_the_run(destination, text):
-                planned.append((directory, destination, text))
+            if not _holds_the_run(destination, files):
+                planned.append((directory, destination, raw_text(files)))
         elif destination.is_file():
             planned.append((directory, destination, None))
     return planned
 
 
-def _holds_the_run(destination: Path, text: str) -> bool:
-    """Whether the raw copy at `destination` holds the run `text` would write there (`_same_run`);
-    a copy that cannot be read does not, so the run's own files replace it."""
+def _holds_the_run(destination: Path, files: dict) -> bool:
+    """Whether the raw copy at `destination` holds the run of the finished cell `files`
+    (`_same_run`); a copy that cannot be read does not, so the run's own files replace it."""
     if not destination.is_file():
         return False
     try:
-        return _same_run(read_raw(destination), read_raw(destination, text))
+        return _same_run(read_raw(destination), _run_of(files))
     except ValueError:
         return False
+
+
+def _run_of(files: dict) -> dict:
+    """The run of a finished cell (`read_cell`) in `read_raw`'s form, as its raw copy would hold it
+    (the curve strict JSON), for `_same_run`."""
+    from agents.registry import config_from_json
+
+    return {"config": config_from_json(files["config"]).to_json(), "eval": files["eval"],
+            "metrics": json.loads(raw_text(files))["curve"]}
 
 
 def _same_run(a: dict, b: dict) -> bool:
@@ -144,13 +152,7 @@ def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
             or cell.get("settings")):
         return False
     path = record_path(results_dir, *adopted_from.split("/"))  # `<preset>/<algorithm>/<task>`
-    if not path.is_file():
-        return False
-    from agents.registry import config_from_json
-
-    curve = json.loads(raw_text(files))["curve"]  # as the copy would hold it: strict JSON
-    return _same_run(read_raw(path), {"config": config_from_json(files["config"]).to_json(), "eval": files["eval"],
-                                      "metrics": curve})
+    return path.is_file() and _same_run(read_raw(path), _run_of(files))
 
 
 def _as_base(record: dict, adopts: str, algorithm: str, task: str, paper_name: str) -> dict:
