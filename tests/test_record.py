@@ -2,7 +2,7 @@
 bounded number of files; pilots and superseded runs live in git history), the README stays a
 front page, and the README and docs/ cite no numbered log entry (a reader cannot follow one:
 the pages name a commit instead). Every link of a learner page to a file of the record points at
-a file that is there."""
+a file that is there, and every committed cell is the run its preset trains today."""
 
 from __future__ import annotations
 
@@ -63,3 +63,34 @@ def test_the_tuned_settings_name_pages_that_exist():
             result = entry.get("result") if isinstance(entry, dict) else None
             if result is not None:
                 assert (ROOT / result).is_file(), f"{path.name} [{task}]: result {result} is not a file"
+
+
+def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
+    """A cell's raw copy holds the config.json that `snac table --preset P` trains for that cell
+    today (the table's own rule for the same run, `plan._settings_differ`), so a changed tuned entry
+    cannot silently redefine an ablation whose arms were measured on the old one. The seed count
+    aside: a cheap column's count follows the measured rates (budgets.toml, `cheap_seeds`). Arms
+    that only score another arm's run again (`evaluation`) train nothing of their own."""
+    import json
+
+    from agents.registry import ALGORITHMS, config_from_json
+    from agents.table.plan import _settings_differ, make_plan
+    from agents.table.presets import load_presets
+    from snac_jax.paper import PAPER_TASKS
+
+    checked, drifted = 0, []
+    for name, preset in load_presets().items():
+        arms = [v.name for v in preset.variants if not v.evaluation] or None
+        cells = make_plan(preset, list(preset.algorithms or ALGORITHMS), list(preset.tasks or PAPER_TASKS), None,
+                          tmp_path, arms=arms)
+        for cell in cells:
+            record = RESULTS / "table" / name / cell.algorithm / f"{cell.directory.name}.json"
+            if not record.is_file():
+                continue
+            checked += 1
+            stored = config_from_json(json.loads(record.read_text())["config"])
+            differ = [k for k in _settings_differ(cell, stored) if k != "seeds"]
+            if differ:
+                drifted.append(f"{record.relative_to(ROOT)}: {', '.join(differ)}")
+    assert checked > 100  # the paper, tuned, beyond and ablation presets' cells
+    assert not drifted, "records their preset no longer trains:\n" + "\n".join(drifted)
