@@ -172,7 +172,7 @@ class MappingBeliefQNetwork(BeliefQNetwork):
     one change against it is the evidence the filter weighs."""
 
     drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0)
-    capped: bool = True  # the 0/1 grid of 2D (SPEC §5)
+    capped: bool = True  # the map holds whether a cell has a brick: 2D's 0/1 grid (SPEC §5), 3D with brick_occupancy
     evidence_weight: float = 1.0  # the bricks' log-likelihood's weight (`mapping_filter_step`)
 
     @property
@@ -208,7 +208,7 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
-    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence")  # the filter has no params
+    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence", "brick_occupancy")  # the filter has no params
 
     position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
                                   "(trains the learned belief; 0: off, allowed with the filter)", low=0)
@@ -226,6 +226,9 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     brick_evidence: float = option(1.0, "with brick_map, the weight of the window's bricks as evidence of the "
                                    "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
                                    "tempers it, as the window shows the same bricks step after step)", low=0, high=1)
+    brick_occupancy: bool = option(False, "with brick_map in 3D, the map holds whether a cell has a brick, not how "
+                                   "many, and reads the window so: a stack's height never enters the evidence (2D's "
+                                   "map is so already)")
 
     def check(self) -> None:
         super().check()
@@ -238,6 +241,9 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
                              "before the last action and the action")
         if self.brick_evidence != 1.0 and not self.brick_map:
             raise ValueError(f"brick_evidence={self.brick_evidence} needs brick_map=True: it weighs the map's evidence")
+        if self.brick_occupancy and not (self.brick_map and self.env_config().dim == 3):
+            raise ValueError(f"brick_occupancy needs brick_map=True on a 3D task, got brick_map={self.brick_map} on "
+                             f"{self.task}: it changes the 3D map of heights (2D's map holds occupancy already)")
         if self.brick_map and not self.belief_filter:
             raise ValueError("pqn-belief with brick_map needs belief_filter=True: the map is the filter's")
         if self.view_radius:
@@ -291,7 +297,7 @@ class PQNBelief(PQNAux):
         )
         if config.brick_map:
             self.network = MappingBeliefQNetwork(**fields, drops=drop_table(self.env.config),
-                                                 capped=self.env.config.dim == 2,
+                                                 capped=self.env.config.dim == 2 or config.brick_occupancy,
                                                  evidence_weight=config.brick_evidence)
         else:
             self.network = BeliefQNetwork(**fields)

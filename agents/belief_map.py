@@ -131,13 +131,17 @@ def mapping_filter_step(state: tuple[jax.Array, jax.Array, jax.Array], reset: ja
     window (`window (B, wr, wc)`, raw values): its padding and its bricks against the map, the
     bricks' log-likelihood times `evidence_weight` (1: Bayes' rule as if each step's window were
     new evidence; below 1 tempers it, as the window shows the same bricks step after step, and a
-    map error repeats with them; bench/filter_replay.py compares weights)."""
+    map error repeats with them; bench/filter_replay.py compares weights). `capped`: the map holds
+    the chance that a cell has a brick (`add_drop`) and the window's counts are read as 0/1 too,
+    so a stack's height never enters the evidence (2D's 0/1 grid; 3D with `brick_occupancy`)."""
     belief, mean, var = state
     _, rows, cols = belief.shape
     mean, var = add_drop(mean, var, drop_target(belief, last_action, drops), capped)
     empty = jnp.zeros_like(mean)
     belief = jnp.where(reset[:, None, None], start_joint(rows, cols), move_joint(belief, p_cells, sign))
     mean, var = jnp.where(reset[:, None, None], empty, mean), jnp.where(reset[:, None, None], empty, var)
+    if capped:  # the window read as the map is kept: a cell holds a brick or not (2D's window already is)
+        window = jnp.where(window > 0, jnp.ones_like(window), window)
     belief = correct_joint(belief, window == PADDING, evidence_weight * brick_log_likelihood(window, mean, var))
     return belief, mean, var
 

@@ -10,8 +10,8 @@ policy, with its own belief, plays the evaluation protocol's episodes, SPEC §8)
 filter runs beside it on exactly what the policy's filter read at each step
 (`PQNBelief.filter_inputs`: the move head's distribution, the last action, the window), once per
 `--weights` entry (the bricks' log-likelihood times the weight, `mapping_filter_step`'s
-`evidence_weight`; 0: the padding alone, on the joint belief). No variant acts, so every one
-is scored on the same steps.
+`evidence_weight`; 0: the padding alone, on the joint belief; `--occupancy`: the 3D map as
+`brick_occupancy` keeps it). No variant acts, so every one is scored on the same steps.
 
 Scored per variant, over every step t of every episode (t = 0 to the episode's length: the
 belief after reading observation t): the mean of -log P(true position) (P floored at 1e-6),
@@ -127,6 +127,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--arm", type=int, default=None, help="the arm of a sweep run (required for a sweep)")
     parser.add_argument("--weights", type=float, nargs="+", default=list(WEIGHTS),
                         help=f"evidence weights of the bricks (default {' '.join(map(str, WEIGHTS))})")
+    parser.add_argument("--occupancy", action="store_true",
+                        help="in 3D, the replayed maps hold whether a cell has a brick, not how many "
+                             "(pqn-belief's brick_occupancy); 2D's always do")
     parser.add_argument("--episodes", type=positive_int, default=None,
                         help=f"episodes on a static design / per dynamic test design "
                              f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
@@ -160,7 +163,7 @@ def replay(args: argparse.Namespace) -> dict:
                               episodes_per_test_design=count)
     rows, cols = env.config.plan_shape
     num_steps = int(setup.params.max_steps_in_episode)
-    drops, capped = drop_table(env.config), env.config.dim == 2
+    drops, capped = drop_table(env.config), env.config.dim == 2 or args.occupancy
 
     inputs, positions, held_p, held_hit, lengths, ious = [], [], [], [], [], []
     for _, index in indices:
@@ -192,6 +195,7 @@ def replay(args: argparse.Namespace) -> dict:
         variants[f"mapping, weight {weight:g}"] = scored(np.asarray(p_true), np.asarray(hit))
     report = {
         "run": str(args.run), "task": config.task, "switches": config.switches, "brick_map": algorithm.config.brick_map,
+        "occupancy": capped,
         "seed_indices": [s for s, _ in indices], "arm": args.arm, "eval_seed": args.eval_seed,
         "episodes_per_design": count, "episodes": int(length.size),
         "mean_iou": float(np.mean(np.concatenate(ious))), "mean_length": float(np.mean(length)),

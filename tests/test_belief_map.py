@@ -92,15 +92,17 @@ def test_a_joint_move_by_hand():
     assert float(moved[0, 1]) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("task", ["2d-dynamic-sparse", "3d-static-dense", "1d-dynamic"])
-def test_the_mapping_filter_tracks_real_episodes_when_told_the_cells_moved(task):
-    """Told the true cells moved, the joint belief is the robot's position at every step and the
-    map's mean is the grid it built: the drops and moves of random episodes, auto-resets included."""
+@pytest.mark.parametrize("task, capped", [("2d-dynamic-sparse", True), ("3d-static-dense", False),
+                                          ("3d-static-dense", True), ("1d-dynamic", False)])
+def test_the_mapping_filter_tracks_real_episodes_when_told_the_cells_moved(task, capped):
+    """Told the true cells moved, the joint belief is the robot's position at every step: the drops
+    and moves of random episodes, auto-resets included, with the map of heights or, `capped`, of
+    whether each cell holds a brick."""
     env, params = make(task, max_steps=40)
     moves = jnp.asarray(np.concatenate([move_directions(env.config), [(0, 0)]]), jnp.float32)
     drops, (rows, cols), worlds = drop_table(env.config), env.config.plan_shape, 16
     state = (jnp.zeros((worlds, rows, cols)),) * 3
-    step = jax.jit(lambda s, *a: mapping_filter_step(s, *a, drops=drops, capped=env.config.dim == 2))
+    step = jax.jit(lambda s, *a: mapping_filter_step(s, *a, drops=drops, capped=capped))
     for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 90)):
         window = env.observation_layout.window_cells(obs)
         state = step(state, reset, jax.nn.one_hot(cells, 4), moves[last_action],
@@ -149,6 +151,35 @@ def test_the_learner_trains_with_the_map_finite_and_compiled_once():
         state, metrics = chunk(state, agent.env_params)
         assert np.all(np.isfinite(metrics["loss"])) and np.all(np.isfinite(metrics["belief_nll"]))
     assert len(traces) == 1 and chunk._cache_size() == 1
+
+
+def test_a_capped_map_reads_a_stack_as_one_brick():
+    """`capped` (2D, or 3D with brick_occupancy): the window's count at a cell is read as whether
+    it holds a brick, as the map keeps it, so a stack of three scores as one brick would; with
+    heights it is three bricks where the map expects one."""
+    config = make("3d-static-dense")[0].config
+    drops, none = drop_table(config), jax.nn.one_hot(config.num_actions, config.num_actions + 1)[None]
+    belief = jnp.full((1, 5, 5), 1 / 25)
+    mean = jnp.zeros((1, 5, 5)).at[0, 2, 3].set(1.0)  # one sure brick, right of the plan's centre
+    window = jnp.zeros((1, 3, 3))
+
+    def corrected(count, capped):
+        state = (belief, mean, jnp.zeros_like(mean))
+        return mapping_filter_step(state, jnp.array([False]), jax.nn.one_hot(jnp.array([0]), 4), jnp.zeros((1, 2)),
+                                   none, window.at[0, 1, 2].set(count), drops, capped)[0][0]
+
+    np.testing.assert_array_equal(corrected(3.0, True), corrected(1.0, True))
+    assert int(corrected(3.0, True).argmax()) == 2 * 5 + 2  # the brick right of the robot: the centre
+    assert not np.allclose(corrected(3.0, False), corrected(1.0, False))
+
+
+def test_brick_occupancy_caps_the_3d_map_and_is_refused_elsewhere():
+    agent = build_algorithm(make_config("pqn-belief", "3d-static-dense", **TINY, brick_map=True, brick_occupancy=True))
+    assert isinstance(agent.network, MappingBeliefQNetwork) and agent.network.capped
+    with pytest.raises(ValueError, match="brick_occupancy needs brick_map=True on a 3D task, got brick_map=False on 3d"):
+        make_config("pqn-belief", "3d-static-dense", brick_occupancy=True)
+    with pytest.raises(ValueError, match="brick_occupancy needs brick_map=True on a 3D task, got brick_map=True on 2d"):
+        make_config("pqn-belief", "2d-dynamic-sparse", brick_map=True, brick_occupancy=True)
 
 
 def test_the_map_needs_the_filter():
