@@ -208,7 +208,8 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
-    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence", "brick_occupancy")  # the filter has no params
+    # the filter has no params, so its options may change at evaluation
+    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence", "brick_occupancy")
 
     position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
                                   "(trains the learned belief; 0: off, allowed with the filter)", low=0)
