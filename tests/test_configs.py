@@ -173,7 +173,7 @@ def test_train_reward_changes_the_training_env_alone(algorithm):
     from agents.registry import build_algorithm
 
     config = make_config(algorithm, "2d-dynamic-dense", train_reward="height", num_envs=8)
-    plain = make_config(algorithm, "2d-dynamic-dense", num_envs=8)
+    plain = make_config(algorithm, "2d-dynamic-dense", num_envs=8, train_reward="")  # the task's own reward
     training_env = lambda learner: getattr(learner, "team_env", None) or learner.env  # a team's (agents.ippo) or one robot's
     assert training_env(build_algorithm(config)).config.reward_scheme == "height"  # what its rollouts are rewarded by
     assert training_env(build_algorithm(plain)).config.reward_scheme == "binary"  # 2D's own (SPEC §5)
