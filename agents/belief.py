@@ -28,6 +28,10 @@ Three beliefs, one per run (`belief_filter`, `brick_map`):
   columns, which also maps the bricks the robot laid under its belief and weighs each position
   by how well the window's bricks match that map (`agents.belief_map`, `MappingBeliefQNetwork`):
   SLAM with distributions.
+
+With `todo_compass` the Q head also reads where a map of the robot's drops under its belief leaves
+the design unbuilt, beyond the window (`remaining_compass`); the filter keeps that map without
+weighing it, the mapping filter reads its own.
 - **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
   position loss on the true position; a distribution over rows and one over columns.
 
@@ -55,7 +59,7 @@ from agents.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, requi
 from agents.config import option
 from agents.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
 from agents.belief_filter import belief_cross_entropy, expected_design_window, filter_step
-from agents.belief_map import drop_table, mapping_filter_step
+from agents.belief_map import add_drop, drop_table, drop_target, mapping_filter_step, remaining_compass
 from agents.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
@@ -92,6 +96,9 @@ class BeliefQNetwork(AuxiliaryQNetwork):
     moves: tuple | None = None
     view_radius: int = 0  # half size of the expected design the Q head reads; 0: the window's
     design_encoder: bool = True  # also read a dynamic task's whole design through `DesignEncoder`
+    todo_compass: bool = False  # also read where the unbuilt design lies (`remaining_compass`), from a map of the drops
+    drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0): where the map's bricks go
+    capped: bool = True  # the map holds whether a cell has a brick: 2D's 0/1 grid (SPEC §5), 3D with brick_occupancy
 
     @property
     def view_shape(self) -> tuple[int, int]:
@@ -103,7 +110,7 @@ class BeliefQNetwork(AuxiliaryQNetwork):
     @property
     def carry_size(self) -> int:
         rows, cols = self.layout.plan_shape
-        return self.rnn_size + (rows + cols if self.moves is not None else 0)
+        return self.rnn_size + (rows + cols if self.moves is not None else 0) + (rows * cols if self.todo_compass else 0)
 
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -116,10 +123,10 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         if self.moves is None:
             position = jax.lax.stop_gradient(heads["position"])
             p_row, p_col = jax.nn.softmax(position[..., :rows]), jax.nn.softmax(position[..., rows:])
-            carry = gru_carry
+            carry, built = gru_carry, None
         else:
             heads["move"] = MoveHead(self.hidden_size, name="move_head")(parts)
-            belief, (p_row, p_col) = self._filter(carry[:, self.rnn_size :], heads["move"], obs, resets)
+            belief, (p_row, p_col), built = self._filter(carry[:, self.rnn_size :], heads["move"], obs, resets)
             carry = jnp.concatenate([gru_carry, belief], axis=-1)
         self.sow("intermediates", "auxiliary", heads)
         self.sow("intermediates", "belief", (p_row, p_col))
@@ -132,27 +139,41 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         (vr, vc), (wr, wc) = self.view_shape, layout.window_shape
         in_window = expected[..., (vr - wr) // 2 : (vr + wr) // 2, (vc - wc) // 2 : (vc + wc) // 2]
         lead = obs.shape[:-1]
-        local = jnp.concatenate([expected.reshape(lead + (-1,)), (in_window - parts["window"]).reshape(lead + (-1,))],
-                                axis=-1)
+        local = [expected.reshape(lead + (-1,)), (in_window - parts["window"]).reshape(lead + (-1,))]
+        if self.todo_compass:
+            local.append(remaining_compass(p_row, p_col, design * layout.height_scale, built))
+        local = jnp.concatenate(local, axis=-1)
         h = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(jnp.concatenate([x, local], axis=-1))
         h = nn.relu(nn.LayerNorm()(h))
         return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(h)
 
     def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
-        """Run `filter_step` along time `(T, B, ...)` from the carried belief `(B, rows + cols)`;
-        returns the last belief (for the carry) and the belief after each step, `(T, B, rows)`
-        and `(T, B, cols)`. It reads from `obs` the last action and where the window shows
-        padding (tests/test_belief.py runs it on real episodes, the move head's part given)."""
-        rows, _ = self.layout.plan_shape
-        p_cells, _, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
+        """Run `filter_step` along time `(T, B, ...)` from the carried belief `(B, rows + cols)`
+        (with `todo_compass`, then the map of the drops, `rows * cols`); returns the last of both
+        (for the carry), the belief after each step, `(T, B, rows)` and `(T, B, cols)`, and the
+        map after each step, `(T, B, rows, cols)` (None without `todo_compass`). The map is the
+        mapping filter's (`add_drop`) under the product of the row and column beliefs, which it
+        does not correct. It reads from `obs` the last action and where the window shows padding
+        (tests/test_belief.py runs it on real episodes, the move head's part given)."""
+        rows, cols = self.layout.plan_shape
+        p_cells, last_action, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
+        drops = tuple(self.drops)
 
-        def step(belief, inputs):
-            belief = filter_step(belief, *inputs)
-            return belief, belief
+        def step(state, inputs):
+            (b_row, b_col), built = state
+            reset, p, s, action, padding = inputs
+            if self.todo_compass:  # the last action's brick, under the belief it was dropped with
+                target = drop_target(b_row[:, :, None] * b_col[:, None, :], action, drops)
+                built = jnp.where(reset[:, None, None], 0.0, add_drop(built, built, target, self.capped)[0])
+            state = filter_step((b_row, b_col), reset, p, s, padding), built
+            return state, state
 
-        (b_row, b_col), beliefs = jax.lax.scan(step, (belief[:, :rows], belief[:, rows:]),
-                                               (resets, p_cells, sign, window == PADDING))
-        return jnp.concatenate([b_row, b_col], axis=-1), beliefs
+        built = belief[:, rows + cols :].reshape(-1, rows, cols) if self.todo_compass else None
+        ((b_row, b_col), built), (beliefs, maps) = jax.lax.scan(
+            step, ((belief[:, :rows], belief[:, rows : rows + cols]), built),
+            (resets, p_cells, sign, last_action, window == PADDING))
+        last = [b_row, b_col] + ([built.reshape(built.shape[0], -1)] if self.todo_compass else [])
+        return jnp.concatenate(last, axis=-1), beliefs, maps
 
     def filter_inputs_from_move_logits(self, move_logits: jax.Array, obs: jax.Array):
         """What a filter reads per step from `(T, B, ...)` inputs: the move head's distribution over
@@ -169,10 +190,9 @@ class MappingBeliefQNetwork(BeliefQNetwork):
     """`BeliefQNetwork` whose filter is `mapping_filter_step`: the carry after the GRU's state holds
     the joint belief and the map's mean and variance, each `rows x cols`. The Q head reads the
     design expected under the belief's row and column marginals, as `BeliefQNetwork` does, so the
-    one change against it is the evidence the filter weighs."""
+    one change against it is the evidence the filter weighs; with `todo_compass` it also reads
+    where the map leaves the design unbuilt."""
 
-    drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0)
-    capped: bool = True  # the map holds whether a cell has a brick: 2D's 0/1 grid (SPEC §5), 3D with brick_occupancy
     evidence_weight: float = 1.0  # the bricks' log-likelihood's weight (`mapping_filter_step`)
 
     @property
@@ -188,11 +208,11 @@ class MappingBeliefQNetwork(BeliefQNetwork):
         def step(state, inputs):
             state = mapping_filter_step(state, *inputs, drops=drops, capped=self.capped,
                                         evidence_weight=self.evidence_weight)
-            return state, (state[0].sum(axis=2), state[0].sum(axis=1))
+            return state, ((state[0].sum(axis=2), state[0].sum(axis=1)), state[1] if self.todo_compass else None)
 
         state = tuple(part.reshape(-1, rows, cols) for part in jnp.split(belief, 3, axis=-1))
-        state, marginals = jax.lax.scan(step, state, (resets, p_cells, sign, last_action, window))
-        return jnp.concatenate([part.reshape(part.shape[0], -1) for part in state], axis=-1), marginals
+        state, (marginals, built) = jax.lax.scan(step, state, (resets, p_cells, sign, last_action, window))
+        return jnp.concatenate([part.reshape(part.shape[0], -1) for part in state], axis=-1), marginals, built
 
 
 # --- the learner ----------------------------------------------------------------------------------------
@@ -227,6 +247,9 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     brick_evidence: float = option(1.0, "with brick_map, the weight of the window's bricks as evidence of the "
                                    "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
                                    "tempers it, as the window shows the same bricks step after step)", low=0, high=1)
+    todo_compass: bool = option(False, "the Q head also reads where the design's unbuilt cells lie under a map of the "
+                                "drops made under the belief: their expected share above, below, left and right of "
+                                "the believed position, and in all (with brick_map, that filter's map)")
     brick_occupancy: bool = option(False, "with brick_map in 3D, the map holds whether a cell has a brick, not how "
                                    "many, and reads the window so: a stack's height never enters the evidence (2D's "
                                    "map is so already)")
@@ -245,6 +268,8 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
         if self.brick_occupancy and not (self.brick_map and self.env_config().dim == 3):
             raise ValueError(f"brick_occupancy needs brick_map=True on a 3D task, got brick_map={self.brick_map} on "
                              f"{self.task}: it changes the 3D map of heights (2D's map holds occupancy already)")
+        if self.todo_compass and not self.belief_filter:
+            raise ValueError("todo_compass needs belief_filter=True: it maps the drops under the filter's belief")
         if self.brick_map and not self.belief_filter:
             raise ValueError("pqn-belief with brick_map needs belief_filter=True: the map is the filter's")
         if self.view_radius:
@@ -294,12 +319,11 @@ class PQNBelief(PQNAux):
         fields = dict(
             layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
             auxiliary_heads=heads, fixed_design=None if self.layout.dynamic else self._fixed_design(), moves=moves,
-            view_radius=config.view_radius, design_encoder=config.design_encoder,
+            view_radius=config.view_radius, design_encoder=config.design_encoder, todo_compass=config.todo_compass,
+            drops=drop_table(self.env.config), capped=self.env.config.dim == 2 or config.brick_occupancy,
         )
         if config.brick_map:
-            self.network = MappingBeliefQNetwork(**fields, drops=drop_table(self.env.config),
-                                                 capped=self.env.config.dim == 2 or config.brick_occupancy,
-                                                 evidence_weight=config.brick_evidence)
+            self.network = MappingBeliefQNetwork(**fields, evidence_weight=config.brick_evidence)
         else:
             self.network = BeliefQNetwork(**fields)
 

@@ -146,6 +146,30 @@ def mapping_filter_step(state: tuple[jax.Array, jax.Array, jax.Array], reset: ja
     return belief, mean, var
 
 
+def remaining_compass(p_row: jax.Array, p_col: jax.Array, design: jax.Array, built: jax.Array) -> jax.Array:
+    """`(..., 5)`: where the design's unbuilt cells lie under the map, as the Q head reads them
+    (`todo_compass`): the expected share of the design still unbuilt in the rows above the
+    believed row, the rows below it, the columns left and right of the believed column, and in
+    all. `design` and `built` `(..., rows, cols)` in bricks (`built` the map's mean), `p_row
+    (..., rows)`, `p_col (..., cols)` the belief's marginals.
+
+    Why: the window shows what is missing within reach only, and the GRU's few units cannot hold
+    which of a solid design's cells are done; on 2d-static-dense most episodes the cell loses end
+    at the step limit with a few bricks in hand (beyond.md). The map already knows where the robot
+    believes it laid them."""
+    remaining = jnp.maximum(design - built, 0.0)
+    total = jnp.maximum(design.sum(axis=(-2, -1)), 1.0)[..., None]
+
+    def before_after(p: jax.Array, line: jax.Array) -> tuple[jax.Array, jax.Array]:  # line (..., n): per row or column
+        before = jnp.cumsum(line, axis=-1) - line  # the remaining design strictly before each line
+        after = line.sum(axis=-1, keepdims=True) - before - line
+        return (p * before).sum(axis=-1), (p * after).sum(axis=-1)
+
+    above, below = before_after(p_row, remaining.sum(axis=-1))
+    left, right = before_after(p_col, remaining.sum(axis=-2))
+    return jnp.stack([above, below, left, right, remaining.sum(axis=(-2, -1))], axis=-1) / total
+
+
 def drop_table(env_config) -> tuple:
     """Per action `(is_drop, d_row, d_col)` (`EnvConfig.actions`, SPEC §3), the landmark placement
     (SPEC §14, the index after the table's) `(0, 0, 0)`: where each drop's brick lands."""

@@ -1,6 +1,7 @@
 """`pqn-belief --brick-map` (agents/belief_map.py): the map's pieces by hand, the mapping filter
 tracking real episodes when told the cells moved, the bricks' evidence making a vague move
-reading sharper than the row and column filters alone, and the learner wired to it."""
+reading sharper than the row and column filters alone, the learner wired to it, and the Q head
+reading the map's unbuilt design (`todo_compass`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from agents.auxiliary import move_directions
 from agents.belief_filter import filter_step, move_belief
 from agents.belief import MappingBeliefQNetwork
 from agents.belief_map import (WINDOW_NOISE, add_drop, brick_log_likelihood, drop_table,
-                               drop_target, mapping_filter_step, move_joint, shifted)
+                               drop_target, mapping_filter_step, move_joint, remaining_compass, shifted)
 from agents.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 from tests.test_belief import TINY, random_episode_steps
@@ -185,3 +186,71 @@ def test_brick_occupancy_caps_the_3d_map_and_is_refused_elsewhere():
 def test_the_map_needs_the_filter():
     with pytest.raises(ValueError, match="brick_map needs belief_filter=True"):
         make_config("pqn-belief", "2d-static-sparse", brick_map=True, belief_filter=False, position_coef=5e-3)
+
+
+def test_the_remaining_compass_by_hand():
+    """A 3x3 solid design (9 bricks), the map sure of (0, 0) and (0, 1) and half sure of (2, 2), a
+    brick off the design at nowhere (the design is solid): unbuilt per row 1, 3, 2.5 and per
+    column 2, 2, 2.5. The robot is sure of row 1 and split between columns 0 and 1: above 1,
+    below 2.5, left 0.5 * 0 + 0.5 * 2, right 0.5 * 4.5 + 0.5 * 2.5, all 6.5, each over 9."""
+    design = jnp.ones((3, 3))
+    built = jnp.zeros((3, 3)).at[0, 0].set(1.0).at[0, 1].set(1.0).at[2, 2].set(0.5)
+    compass = remaining_compass(jnp.array([0.0, 1.0, 0.0]), jnp.array([0.5, 0.5, 0.0]), design, built)
+    np.testing.assert_allclose(compass, np.array([1.0, 2.5, 1.0, 3.5, 6.5]) / 9, rtol=1e-6)
+    off_design = remaining_compass(jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]), jnp.eye(2), jnp.ones((2, 2)))
+    np.testing.assert_array_equal(off_design, np.zeros(5))  # a brick where the design has none owes nothing
+
+
+@pytest.mark.parametrize("brick_map", [False, True])
+def test_the_compass_reaches_the_q_head_and_needs_the_filter(brick_map):
+    """The same observation and belief, the map of drops empty or full (the filter's own, or the
+    mapping filter's at evidence weight 0, so the map does not move the belief): the Q values
+    differ with `todo_compass` and not without it."""
+    task = "2d-static-dense"
+    mapping = dict(brick_map=True, brick_evidence=0.0) if brick_map else {}
+
+    def q_values(compass: bool):
+        agent = build_algorithm(make_config("pqn-belief", task, **TINY, **mapping, todo_compass=compass))
+        policy = agent.policy(None)
+        obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+        start = policy.init(None, None)
+        net_obs = agent.layout.acting_inputs(obs, start)[None, None]
+        carry, reset = start["carry"][None], jnp.array([[False]])
+        params = agent.network.init(jax.random.key(1), carry, net_obs, reset)
+        rows, cols = agent.env.config.plan_shape
+        map_at = agent.network.rnn_size + (rows * cols if brick_map else rows + cols)  # after the belief
+        if compass and not brick_map:  # the filter's carry grows by the map
+            assert agent.network.carry_size == map_at + rows * cols
+        full = carry.at[:, map_at : map_at + rows * cols].set(1.0)
+        return [agent.network.apply(params, c, net_obs, reset)[1] for c in (carry, full)]
+
+    empty, full = q_values(True)
+    assert not np.allclose(empty, full)
+    if brick_map:  # without the compass the filter keeps no map; the mapping filter's, unread at weight 0
+        empty, full = q_values(False)
+        np.testing.assert_allclose(empty, full, rtol=1e-6)
+
+
+def test_the_filter_maps_a_drop_under_its_belief():
+    """One drop on the robot's own cell with the compass on: the map the filter carries after it is
+    `add_drop` of the belief's product (the robot sure of the corner, so a sure brick there)."""
+    agent = build_algorithm(make_config("pqn-belief", "2d-static-dense", **TINY, todo_compass=True))
+    network, env = agent.network, agent.env
+    rows, cols = env.config.plan_shape
+    policy = agent.policy(None)
+    drop = [a for a, (is_drop, d_row, d_col) in enumerate(drop_table(env.config)) if is_drop and not d_row | d_col][0]
+    obs, env_state = env.reset(jax.random.key(0), agent.env_params)
+    start = policy.init(None, None)
+    params = network.init(jax.random.key(1), start["carry"][None], agent.layout.acting_inputs(obs, start)[None, None],
+                          start["reset"][None, None])
+    _, state = policy.act(params, start, obs, jax.random.key(2))  # the episode's first step: the belief at the corner
+    state = {**state, **agent.layout.remember(obs, jnp.asarray(drop))}  # as if it had chosen the drop
+    obs, env_state, *_ = env.step(jax.random.key(3), env_state, drop, agent.env_params)
+    _, state = policy.act(params, state, obs, jax.random.key(4))
+    built = state["carry"][network.rnn_size + rows + cols :].reshape(rows, cols)
+    assert float(built[0, 0]) == 1.0 and float(built.sum()) == 1.0
+
+
+def test_the_compass_needs_the_filter():
+    with pytest.raises(ValueError, match="^todo_compass needs belief_filter=True: it maps the drops under the filter's belief$"):
+        make_config("pqn-belief", "2d-static-dense", todo_compass=True, belief_filter=False, position_coef=5e-3)
