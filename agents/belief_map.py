@@ -154,9 +154,8 @@ def remaining_compass(p_row: jax.Array, p_col: jax.Array, design: jax.Array, bui
     (..., rows)`, `p_col (..., cols)` the belief's marginals.
 
     Why: the window shows what is missing within reach only, and the GRU's few units cannot hold
-    which of a solid design's cells are done; on 2d-static-dense most episodes the cell loses end
-    at the step limit with a few bricks in hand (beyond.md). The map already knows where the robot
-    believes it laid them."""
+    which of a solid design's cells are done; on 2d-static-dense more than half of the episodes
+    end at the step limit (beyond.md). The map knows where the robot believes it laid its bricks."""
     remaining = jnp.maximum(design - built, 0.0)
     total = jnp.maximum(design.sum(axis=(-2, -1)), 1.0)[..., None]
 
