@@ -189,9 +189,8 @@ def test_the_map_needs_the_filter():
 
 
 def test_the_remaining_compass_by_hand():
-    """A 3x3 solid design (9 bricks), the map sure of (0, 0) and (0, 1) and half sure of (2, 2), a
-    brick off the design at nowhere (the design is solid): unbuilt per row 1, 3, 2.5 and per
-    column 2, 2, 2.5. The robot is sure of row 1 and split between columns 0 and 1: above 1,
+    """A 3x3 solid design (9 bricks), the map sure of (0, 0) and (0, 1) and half sure of (2, 2):
+    unbuilt per row 1, 3, 2.5 and per column 2, 2, 2.5. The robot is sure of row 1 and split between columns 0 and 1: above 1,
     below 2.5, left 0.5 * 0 + 0.5 * 2, right 0.5 * 4.5 + 0.5 * 2.5, all 6.5, each over 9."""
     design = jnp.ones((3, 3))
     built = jnp.zeros((3, 3)).at[0, 0].set(1.0).at[0, 1].set(1.0).at[2, 2].set(0.5)
@@ -202,7 +201,7 @@ def test_the_remaining_compass_by_hand():
 
 
 @pytest.mark.parametrize("brick_map", [False, True])
-def test_the_compass_reaches_the_q_head_and_needs_the_filter(brick_map):
+def test_the_compass_reaches_the_q_head(brick_map):
     """The same observation and belief, the map of drops empty or full (the filter's own, or the
     mapping filter's at evidence weight 0, so the map does not move the belief): the Q values
     differ with `todo_compass` and not without it."""
