@@ -164,7 +164,8 @@ class BeliefQNetwork(AuxiliaryQNetwork):
             reset, p, s, action, padding = inputs
             if self.todo_compass:  # the last action's brick, under the belief it was dropped with
                 target = drop_target(b_row[:, :, None] * b_col[:, None, :], action, drops)
-                built = jnp.where(reset[:, None, None], 0.0, add_drop(built, built, target, self.capped)[0])
+                built = add_drop(built, jnp.zeros_like(built), target, self.capped)[0]  # the mean alone: no variance
+                built = jnp.where(reset[:, None, None], 0.0, built)
             state = filter_step((b_row, b_col), reset, p, s, padding), built
             return state, state
 
