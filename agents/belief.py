@@ -28,12 +28,12 @@ Three beliefs, one per run (`belief_filter`, `brick_map`):
   columns, which also maps the bricks the robot laid under its belief and weighs each position
   by how well the window's bricks match that map (`agents.belief_map`, `MappingBeliefQNetwork`):
   SLAM with distributions.
+- **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
+  position loss on the true position; a distribution over rows and one over columns.
 
 With `todo_compass` the Q head also reads where a map of the robot's drops under its belief leaves
 the design unbuilt, beyond the window (`remaining_compass`); the filter keeps that map without
 weighing it, the mapping filter reads its own.
-- **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
-  position loss on the true position; a distribution over rows and one over columns.
 
 Honest acting: every belief is computed from the observations alone (the filter's only learned
 part reads the windows and the action), and the design it reads is the observation's (a dynamic
@@ -59,7 +59,7 @@ from agents.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, requi
 from agents.config import option
 from agents.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
 from agents.belief_filter import belief_cross_entropy, expected_design_window, filter_step
-from agents.belief_map import add_drop, drop_table, drop_target, mapping_filter_step, remaining_compass
+from agents.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
 from agents.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
@@ -162,10 +162,9 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         def step(state, inputs):
             (b_row, b_col), built = state
             reset, p, s, action, padding = inputs
-            if self.todo_compass:  # the last action's brick, under the belief it was dropped with
-                target = drop_target(b_row[:, :, None] * b_col[:, None, :], action, drops)
-                built = add_drop(built, jnp.zeros_like(built), target, self.capped)[0]  # the mean alone: no variance
-                built = jnp.where(reset[:, None, None], 0.0, built)
+            if self.todo_compass:  # the last action's brick, under the belief it was dropped with; the mean alone
+                built, _ = map_last_drop(built, jnp.zeros_like(built), b_row[:, :, None] * b_col[:, None, :], action,
+                                         reset, drops, self.capped)
             state = filter_step((b_row, b_col), reset, p, s, padding), built
             return state, state
 

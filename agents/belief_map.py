@@ -88,6 +88,16 @@ def add_drop(mean: jax.Array, var: jax.Array, target: jax.Array, capped: bool) -
     return mean + target, var + target * (1.0 - target)
 
 
+def map_last_drop(mean: jax.Array, var: jax.Array, belief: jax.Array, last_action: jax.Array, reset: jax.Array,
+                  drops: tuple, capped: bool) -> tuple[jax.Array, jax.Array]:
+    """The map `(mean, var)`, each `(B, rows, cols)`, after the last action's brick went in under
+    the joint `belief` the robot dropped it with (`drop_target`, `add_drop`); empty where `reset`
+    (a new episode's map). The one map update of the mapping filter and of `todo_compass`'s map."""
+    mean, var = add_drop(mean, var, drop_target(belief, last_action, drops), capped)
+    empty = jnp.zeros_like(mean)
+    return jnp.where(reset[:, None, None], empty, mean), jnp.where(reset[:, None, None], empty, var)
+
+
 def correlate(image: jax.Array, kernel: jax.Array) -> jax.Array:
     """`out[b, r, c] = sum_ij kernel[b, i, j] image[b, r + i, c + j]` for `image (B, R + kh - 1,
     C + kw - 1)` and `kernel (B, kh, kw)`: the window laid over every position of the plan."""
@@ -136,10 +146,8 @@ def mapping_filter_step(state: tuple[jax.Array, jax.Array, jax.Array], reset: ja
     so a stack's height never enters the evidence (2D's 0/1 grid; 3D with `brick_occupancy`)."""
     belief, mean, var = state
     _, rows, cols = belief.shape
-    mean, var = add_drop(mean, var, drop_target(belief, last_action, drops), capped)
-    empty = jnp.zeros_like(mean)
+    mean, var = map_last_drop(mean, var, belief, last_action, reset, drops, capped)
     belief = jnp.where(reset[:, None, None], start_joint(rows, cols), move_joint(belief, p_cells, sign))
-    mean, var = jnp.where(reset[:, None, None], empty, mean), jnp.where(reset[:, None, None], empty, var)
     if capped:  # the window read as the map is kept: a cell holds a brick or not (2D's window already is)
         window = jnp.where(window > 0, jnp.ones_like(window), window)
     belief = correct_joint(belief, window == PADDING, evidence_weight * brick_log_likelihood(window, mean, var))
