@@ -233,9 +233,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def analyse(args: argparse.Namespace) -> dict:
-    from agents import sweep, trained
-    from agents.checkpoint import read_config
-    from agents.registry import build_algorithm
+    from agents.training import sweep, trained
+    from agents.training.checkpoint import read_config
+    from agents.training.registry import build_algorithm
     from snac_jax.atomic import atomic_write_json, check_writable
     from snac_jax.rendering import save_gif, save_png
 

@@ -163,8 +163,8 @@ def measure_stepping(report: Report, tasks: list[str], worlds: tuple[int, ...], 
 def measure_learning(report: Report, worlds: tuple[int, ...], updates: int, repeats: int) -> None:
     import jax
 
-    from agents.driver import initial_state
-    from agents.registry import build_algorithm, make_config
+    from agents.training.driver import initial_state
+    from agents.training.registry import build_algorithm, make_config
 
     for algorithm_name in LEARNERS:
         for num_envs in worlds:
@@ -189,9 +189,9 @@ def measure_sweep(report: Report, num_envs: int, updates: int, repeats: int, arm
     learning rates, each compiled once, one seed per arm."""
     import jax
 
-    from agents.driver import initial_state, per_run
-    from agents.registry import build_algorithm, make_config
-    from agents.sweep import parse_sweep
+    from agents.training.driver import initial_state, per_run
+    from agents.training.registry import build_algorithm, make_config
+    from agents.training.sweep import parse_sweep
 
     row = {"algorithm": "ppo-rnn", "task": LEARN_TASK, "num_envs": num_envs, "arms": arms, "updates": updates}
     if not report.time_left():

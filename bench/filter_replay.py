@@ -87,7 +87,7 @@ def _record(env, init, act, held, inputs, policy_params, env_params, keys, desig
 def _observe(inputs, position, weight, rows: int, cols: int, drops: tuple, capped: bool):
     """The mapping filter at `weight` along each recorded episode: P(true position) and the argmax
     hit per step, `(episodes, steps)`."""
-    from agents.belief_map import mapping_filter_step, start_joint
+    from agents.research.belief_map import mapping_filter_step, start_joint
 
     def one(inputs, position):
         def step(state, x):
@@ -139,10 +139,10 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def replay(args: argparse.Namespace) -> dict:
-    from agents import sweep, trained
-    from agents.belief_map import drop_table
-    from agents.checkpoint import read_config
-    from agents.registry import build_algorithm
+    from agents.training import sweep, trained
+    from agents.research.belief_map import drop_table
+    from agents.training.checkpoint import read_config
+    from agents.training.registry import build_algorithm
     from snac_jax.atomic import atomic_write_json, check_writable
 
     config = read_config(args.run)

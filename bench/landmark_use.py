@@ -3,7 +3,7 @@ places, when, whether on design cells, and where on the plan.
 
     python bench/landmark_use.py --run runs/table/landmark-action/ppo/2d-static-sparse.landmark-action --out OUT
 
-Each training seed's greedy policy (`agents.trained.checkpoint_policy`; of a sweep, the seeds of
+Each training seed's greedy policy (`agents.training.trained.checkpoint_policy`; of a sweep, the seeds of
 the arm `--arm` names, which a sweep requires) plays the evaluation protocol's episodes (SPEC §8):
 `--episodes` on a static task's design (default 100), or on each of a dynamic task's ten test
 designs (default 20), with the run's switches and the report key (`REPORT_EVAL_SEED`) unless
@@ -132,7 +132,7 @@ def run_landmark_episodes(env, policy, setup: ProtocolEpisodes) -> LandmarkEpiso
 def run_indices(run: Path, swept, seeds: int, arm: int | None, seed_index: int | None) -> list[tuple[int, int]]:
     """`(seed, index into the run's trained policies)` for each policy analysed: every seed of the
     run, or of `arm` of the sweep `swept` (arm a, seed s is index a * seeds + s), or the one
-    `seed_index`. `swept`: `agents.sweep.load(run)`, None for a run of one arm.
+    `seed_index`. `swept`: `agents.training.sweep.load(run)`, None for a run of one arm.
 
     A sweep's arms are different settings, so pooling them would describe no one policy: a sweep
     needs `--arm`, and a run of one arm refuses it."""
@@ -235,8 +235,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def analyse(args: argparse.Namespace) -> dict:
-    from agents import sweep, trained
-    from agents.checkpoint import read_config
+    from agents.training import sweep, trained
+    from agents.training.checkpoint import read_config
     from snac_jax.atomic import atomic_write_json, check_writable
     from snac_jax.tasks import parse_switches
 

@@ -47,7 +47,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def row(path: Path) -> dict:
     """One cell's row, from its raw copy (checked against its schema on the way in)."""
-    from agents import schemas
+    from agents.training import schemas
     from agents.table.statistics import cell_summary
 
     raw = schemas.load(path, schemas.RAW_CELL_JSON)

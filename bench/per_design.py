@@ -135,7 +135,7 @@ def markdown(command: str, tasks: dict[str, dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from agents import schemas
+    from agents.training import schemas
 
     args = parse_args(argv)
     paths = cells(args.results, args.preset, args.algorithm, args.task)

@@ -16,7 +16,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import snac_jax.gymnasium  # noqa: E402, F401  (registers the SNAC/<task>-v0 ids)
-from agents.registry import make_config  # noqa: E402
+from agents.training.registry import make_config  # noqa: E402
 
 from snac_jax import make  # noqa: E402
 from snac_jax.evaluation import evaluate_task  # noqa: E402

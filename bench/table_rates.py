@@ -35,8 +35,8 @@ from agents.table.rates import RATES_FILE, load_rates
 def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: int, evaluate: bool) -> dict:
     import jax
 
-    from agents.driver import initial_state
-    from agents.registry import build_algorithm, make_config
+    from agents.training.driver import initial_state
+    from agents.training.registry import build_algorithm, make_config
     from snac_jax.evaluation import REPORT_EVAL_SEED, evaluate_task
 
     base = make_config(algorithm, task)

@@ -62,9 +62,9 @@ def main() -> None:
         parser.error(str(error))
     import jax
 
-    from agents.driver import initial_state
-    from agents.registry import build_algorithm, make_config
-    from agents.networks import param_count
+    from agents.training.driver import initial_state
+    from agents.training.registry import build_algorithm, make_config
+    from agents.common.networks import param_count
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
     print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s) "
@@ -122,9 +122,9 @@ def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
     one-line `ValueError` naming the algorithm's settings otherwise (their values are checked when
     `main` makes every row's config, before the first compiles). A setting that is one of
     `own_flags` (this script's own options, e.g. --num-envs) is refused: its flag sets every row."""
-    from agents.cli import flag_type
-    from agents.config import field_specs
-    from agents.registry import config_class
+    from agents.training.cli import flag_type
+    from agents.training.config import field_specs
+    from agents.training.registry import config_class
 
     fields = {name: spec for name, spec in field_specs(config_class(algorithm)).items() if spec.cli}
     settings = {}

@@ -10,7 +10,7 @@ and a score of NaN is no score.
 
 The schema of each file lives beside its other rules and is defined once: the human records'
 here (`HUMAN_RECORD`, read by `snac_jax.human.records`), the learners' run files (`config.json`,
-`run.json`, `cell.json`, `eval.json`) in `agents.schemas`, with this checker.
+`run.json`, `cell.json`, `eval.json`) in `agents.training.schemas`, with this checker.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ def write_cell(directory, *, algorithm: str = "ppo", task: str = "1d-static-sin"
     import json
     from pathlib import Path
 
-    from agents.registry import make_config
+    from agents.training.registry import make_config
     from snac_jax.paper import paper_column
 
     directory = Path(directory)

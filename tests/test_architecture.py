@@ -172,9 +172,9 @@ def test_docstrings_do_not_narrate_measurements():
     assert not found, "\n".join(found)
 
 
-LEARNER_MODULES = {"agents.ppo", "agents.pqn", "agents.dqn", "agents.drqn", "agents.hindsight", "agents.rainbow",
-                   "agents.sac", "agents.offpolicy", "agents.privileged", "agents.auxiliary", "agents.pqn_aux",
-                   "agents.belief"}
+LEARNER_MODULES = {"agents.learners.ppo", "agents.learners.pqn", "agents.learners.dqn", "agents.learners.drqn", "agents.learners.drqn_her", "agents.learners.rainbow",
+                   "agents.learners.sac", "agents.common.offpolicy", "agents.research.ppo_privileged", "agents.research.drqn_aux", "agents.research.pqn_aux",
+                   "agents.research.pqn_belief"}
 # Names through which a variant (ppo-privileged, pqn-aux, drqn-aux, pqn-belief) would reach into its
 # base learner: hook methods that do nothing in the base, and arguments the base passes and ignores.
 VARIANT_HOOKS = ("_privileged", "_auxiliary_losses", "auxiliary_losses", "_auxiliary_targets", "_step", "privileged",
@@ -182,13 +182,13 @@ VARIANT_HOOKS = ("_privileged", "_auxiliary_losses", "auxiliary_losses", "_auxil
 
 
 def test_ppo_and_pqn_fork_alone():
-    """agents/ppo.py and agents/pqn.py import no other learner (only the library modules:
+    """agents/learners/ppo.py and agents/learners/pqn.py import no other learner (only the library modules:
     networks, targets, inputs, config) and carry no hook for a variant: the variants build on
     them in their own files."""
     graph = _graph()
-    for name in ("agents.ppo", "agents.pqn"):
+    for name in ("agents.learners.ppo", "agents.learners.pqn"):
         assert not graph[name] & (LEARNER_MODULES - {name}), name
-    for path in ("agents/ppo.py", "agents/pqn.py", "agents/dqn.py"):
+    for path in ("agents/learners/ppo.py", "agents/learners/pqn.py", "agents/learners/dqn.py"):
         text = (ROOT / path).read_text()
         found = {hook: len(re.findall(rf"\b{hook}\b", text)) for hook in VARIANT_HOOKS}
         assert not {hook: n for hook, n in found.items() if n}, path

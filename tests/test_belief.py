@@ -1,4 +1,4 @@
-"""`pqn-belief` (agents/belief.py): the expected design window by hand and against a loop over
+"""`pqn-belief` (agents/research/pqn_belief.py): the expected design window by hand and against a loop over
 positions, the filter's pieces by hand and the whole filter tracking real episodes, each belief
 trained by its own loss alone, the design it reads (the observation's or the static task's),
 honest acting and the CLI. Tiny runs with every signal, compile-once and resume are
@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.auxiliary import move_directions
-from agents.belief import BeliefQNetwork
-from agents.belief_filter import (belief_cross_entropy, correct_belief, expected_design_window, filter_step,
+from agents.research.drqn_aux import move_directions
+from agents.research.pqn_belief import BeliefQNetwork
+from agents.research.belief_filter import (belief_cross_entropy, correct_belief, expected_design_window, filter_step,
                            move_belief, padding_agrees, start_belief)
-from agents.registry import build_algorithm, make_config
+from agents.training.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 
 TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,

@@ -82,7 +82,7 @@ def test_heat_colours_run_from_the_first_anchor_to_the_last():
 
 def _untrained(**options):
     """A tiny pqn-belief agent and its greedy policy with freshly initialised weights."""
-    from agents.registry import build_algorithm, make_config
+    from agents.training.registry import build_algorithm, make_config
 
     agent = build_algorithm(make_config("pqn-belief", TASK, **TINY, **options))
     policy = agent.policy(None)
@@ -168,8 +168,8 @@ def test_record_plays_the_evaluators_episodes_and_keeps_a_belief_per_state():
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from agents.driver import train
-    from agents.registry import make_config
+    from agents.training.driver import train
+    from agents.training.registry import make_config
 
     run = tmp_path_factory.mktemp("belief") / "run"
     train(make_config("pqn-belief", TASK, seeds=1, total_steps=256, chunks=1, **TINY), run, progress=False)
@@ -177,9 +177,9 @@ def tiny_run(tmp_path_factory):
 
 
 def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_run, tmp_path, monkeypatch):
-    from agents import trained
-    from agents.checkpoint import read_config
-    from agents.registry import build_algorithm
+    from agents.training import trained
+    from agents.training.checkpoint import read_config
+    from agents.training.registry import build_algorithm
     from bench import belief_episodes
 
     monkeypatch.setattr(belief_episodes, "TALLY_BATCH", 7)  # 20 episodes: 7, 7 and a last 6 filled out to 7
@@ -245,8 +245,8 @@ def test_endings_are_told_apart_by_bricks_then_steps_then_stuck():
 
 
 def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     run = tmp_path / "run"
     run.mkdir()
@@ -261,9 +261,9 @@ def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
 
 
 def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_one_line(tmp_path, capsys):
-    from agents import sweep
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training import sweep
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     out = tmp_path / "out"
     missing = tmp_path / "nowhere"

@@ -1,4 +1,4 @@
-"""`pqn-belief --brick-map` (agents/belief_map.py): the map's pieces by hand, the mapping filter
+"""`pqn-belief --brick-map` (agents/research/belief_map.py): the map's pieces by hand, the mapping filter
 tracking real episodes when told the cells moved, the bricks' evidence making a vague move
 reading sharper than the row and column filters alone, the learner wired to it, and the Q head
 reading the map's unbuilt design (`todo_compass`)."""
@@ -10,12 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.auxiliary import move_directions
-from agents.belief_filter import filter_step, move_belief
-from agents.belief import MappingBeliefQNetwork
-from agents.belief_map import (WINDOW_NOISE, add_drop, brick_log_likelihood, drop_table,
+from agents.research.drqn_aux import move_directions
+from agents.research.belief_filter import filter_step, move_belief
+from agents.research.pqn_belief import MappingBeliefQNetwork
+from agents.research.belief_map import (WINDOW_NOISE, add_drop, brick_log_likelihood, drop_table,
                                drop_target, mapping_filter_step, move_joint, remaining_compass, shifted)
-from agents.registry import build_algorithm, make_config
+from agents.training.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 from tests.test_belief import TINY, random_episode_steps
 

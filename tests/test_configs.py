@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.config import field_specs
-from agents.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_table
+from agents.training.config import field_specs
+from agents.training.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_table
 from snac_jax.tasks import TASKS
 
 RESOLVED = json.loads((Path(__file__).parent / "data" / "resolved_configs.json").read_text())
@@ -38,7 +38,7 @@ def test_config_json_round_trips(algorithm):
 def test_every_tuned_entry_names_the_result_page_it_was_tuned_for(algorithm):
     import tomllib
 
-    from agents.registry import tuned_files
+    from agents.training.registry import tuned_files
 
     root = Path(__file__).parents[1]
     paths = tuned_files(algorithm)
@@ -101,7 +101,7 @@ def test_switches_reach_the_training_env_and_the_evaluation_and_are_checked_up_f
 
 
 def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
-    from agents import registry
+    from agents.training import registry
 
     (tmp_path / "ppo.toml").write_text('["1d-static-sin"]\nresult = "bench/results/ppo.md"\nlearning_rat = 0.1\n')
     monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
@@ -114,7 +114,7 @@ def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
 
 
 def test_a_variant_reads_its_base_learners_tuned_file_then_its_own(tmp_path, monkeypatch):
-    from agents import registry
+    from agents.training import registry
 
     (tmp_path / "pqn.toml").write_text('["1d-dynamic"]\nresult = "r"\nnum_envs = 64\nlearning_rate = 0.003\n'
                                       '["2d-static-dense"]\nresult = "r"\nnum_envs = 128\n')
@@ -170,11 +170,11 @@ def test_a_flag_out_of_its_range_is_an_argparse_error(capsys):
 
 @pytest.mark.parametrize("algorithm", ["ppo", "pqn-belief", "dqn", "ippo"])
 def test_train_reward_changes_the_training_env_alone(algorithm):
-    from agents.registry import build_algorithm
+    from agents.training.registry import build_algorithm
 
     config = make_config(algorithm, "2d-dynamic-dense", train_reward="height", num_envs=8)
     plain = make_config(algorithm, "2d-dynamic-dense", num_envs=8, train_reward="")  # the task's own reward
-    training_env = lambda learner: getattr(learner, "team_env", None) or learner.env  # a team's (agents.ippo) or one robot's
+    training_env = lambda learner: getattr(learner, "team_env", None) or learner.env  # a team's (agents.learners.ippo) or one robot's
     assert training_env(build_algorithm(config)).config.reward_scheme == "height"  # what its rollouts are rewarded by
     assert training_env(build_algorithm(plain)).config.reward_scheme == "binary"  # 2D's own (SPEC §5)
     # Scored as the task is defined: the evaluator's overrides and the world a checkpoint must match.

@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.hindsight import hindsight_rewards
-from agents.networks import stack_frames
-from agents.offpolicy import Step
-from agents.registry import build_algorithm, make_config
-from agents.targets import n_step_targets
+from agents.learners.drqn_her import hindsight_rewards
+from agents.common.networks import stack_frames
+from agents.common.offpolicy import Step
+from agents.training.registry import build_algorithm, make_config
+from agents.common.targets import n_step_targets
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
 TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
@@ -309,8 +309,8 @@ def test_tiny_run_of_each_agent_completes(algorithm, task, options):
 
 @pytest.mark.slow  # three compilations of a whole run: ~100 s on a 2-core CPU (PPO's resume test stays in the default suite)
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
-    from agents.trained import checkpoint_policy
-    from agents.driver import train
+    from agents.training.trained import checkpoint_policy
+    from agents.training.driver import train
     from snac_jax.evaluation import evaluate_task
 
     config = make_config("drqn-her", "1d-dynamic", **TINY, **RECURRENT, total_steps=4 * 64, buffer_size=8 * 30,

@@ -66,7 +66,7 @@ def test_play_without_pygame_names_the_play_extra():
 
 
 def test_a_missing_module_that_no_extra_provides_is_a_bug_with_its_traceback():
-    result = _snac_without(["agents.ppo"], ["train", "ppo"])
+    result = _snac_without(["agents.learners.ppo"], ["train", "ppo"])
     assert result.returncode == 1 and "Traceback" in result.stderr
 
 

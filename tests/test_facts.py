@@ -51,7 +51,7 @@ def test_tasks_py_states_the_step_limits_once():
 
 
 def test_budgets_toml_converts_episodes_with_the_tasks_step_limit_and_does_not_restate_it():
-    from agents.registry import make_config
+    from agents.training.registry import make_config
     from agents.table.plan import requested_budget
     from agents.table.presets import load_presets
 
@@ -148,7 +148,7 @@ def test_a_same_as_that_names_no_budget_is_refused(tmp_path, entry, message):
 
 
 def test_the_learners_inputs_read_padding_and_landmark_values_from_the_library():
-    from agents import inputs
+    from agents.training import inputs
     from snac_jax.observation import LANDMARK_VALUE
     from snac_jax.transition import PADDING
 

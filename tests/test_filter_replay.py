@@ -44,7 +44,7 @@ def _untrained(**options):
     """A tiny pqn-belief agent, its freshly initialised weights, and a policy that carries the
     agent's memory (its filter included) but wanders and drops by the step's key: episodes on which
     the filter moves and the map fills."""
-    from agents.registry import build_algorithm, make_config
+    from agents.training.registry import build_algorithm, make_config
 
     agent = build_algorithm(make_config("pqn-belief", TASK, **TINY, **options))
     greedy = agent.policy(None)
@@ -63,7 +63,7 @@ def _untrained(**options):
 
 def _replayed(agent, init, act, params, weight):
     """(held P(true), held hit, replayed P(true), replayed hit, lengths) on six protocol episodes."""
-    from agents.belief_map import drop_table
+    from agents.research.belief_map import drop_table
 
     env = agent.env
     _, env_params = make(TASK, max_steps=60)
@@ -99,8 +99,8 @@ def test_the_padding_alone_on_the_joint_belief_is_the_filters_row_and_column_bel
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from agents.driver import train
-    from agents.registry import make_config
+    from agents.training.driver import train
+    from agents.training.registry import make_config
 
     run = tmp_path_factory.mktemp("filter") / "run"
     train(make_config("pqn-belief", TASK, seeds=2, total_steps=512, chunks=1, **TINY), run, progress=False)
@@ -131,8 +131,8 @@ def test_a_tiny_run_is_replayed_for_each_weight_into_one_json(tiny_run, tmp_path
 
 
 def test_runs_without_a_filter_and_bad_weights_are_refused_in_one_line(tmp_path, capsys):
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     out = tmp_path / "out"
     for algorithm, options, message in [
@@ -151,7 +151,7 @@ def test_runs_without_a_filter_and_bad_weights_are_refused_in_one_line(tmp_path,
 
 
 def test_brick_evidence_needs_the_map():
-    from agents.registry import make_config
+    from agents.training.registry import make_config
 
     with pytest.raises(ValueError, match=r"^brick_evidence=0.5 needs brick_map=True: it weighs the map's evidence$"):
         make_config("pqn-belief", TASK, brick_evidence=0.5, **TINY)

@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents import checkpoint
-from agents.driver import read_metrics, train
-from agents.ippo import IPPO, team_objective
-from agents.registry import make_config
-from agents.schemas import EVAL_JSON, load
+from agents.training import checkpoint
+from agents.training.driver import read_metrics, train
+from agents.learners.ippo import IPPO, team_objective
+from agents.training.registry import make_config
+from agents.training.schemas import EVAL_JSON, load
 
 TINY = dict(num_envs=4, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
 TINY_FLAGS = ["--num-envs", "4", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",

@@ -95,8 +95,8 @@ def test_a_scripted_policy_placing_at_step_zero_places_one_landmark_on_its_start
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from agents.driver import train
-    from agents.registry import make_config
+    from agents.training.driver import train
+    from agents.training.registry import make_config
 
     run = tmp_path_factory.mktemp("landmark") / "run"
     config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1,
@@ -106,8 +106,8 @@ def tiny_run(tmp_path_factory):
 
 
 def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp_path):
-    from agents import trained
-    from agents.checkpoint import read_config
+    from agents.training import trained
+    from agents.training.checkpoint import read_config
     from snac_jax.evaluation import evaluate_task
 
     out = tmp_path / "out"
@@ -138,8 +138,8 @@ def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp
 
 
 def test_a_run_without_the_switch_is_refused_in_one_line(tmp_path):
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     run = tmp_path / "run"
     run.mkdir()
@@ -154,7 +154,7 @@ def test_a_run_without_the_switch_is_refused_in_one_line(tmp_path):
 
 
 def test_the_indices_of_one_arm_are_its_seeds_arm_major():
-    from agents.sweep import Sweep
+    from agents.training.sweep import Sweep
 
     swept = Sweep(("lr",), ((1e-3,), (3e-4,), (1e-4,)))
     assert run_indices(Path("r"), swept, 3, 2, None) == [(0, 6), (1, 7), (2, 8)]
@@ -168,9 +168,9 @@ def test_the_indices_of_one_arm_are_its_seeds_arm_major():
 def _config_only_run(tmp_path, arms=None):
     """A run directory with a config (and a sweep of `arms` learning rates): enough for the
     refusals, which come before any checkpoint is read."""
-    from agents import sweep
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training import sweep
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     run = tmp_path / "run"
     run.mkdir()
@@ -200,10 +200,10 @@ def test_a_sweep_needs_one_of_its_arms_in_one_line(tmp_path, arms, arm, message)
 def test_an_arm_of_a_sweep_is_scored_with_its_own_policies(tmp_path):
     """Arm 1 of a 2-arm sweep with 2 seeds is run indices 2 and 3: its seeds' IoUs are the
     protocol's for those policies, and differ from arm 0's (another learning rate)."""
-    from agents import trained
-    from agents.driver import train
-    from agents.registry import make_config
-    from agents.sweep import parse_sweep
+    from agents.training import trained
+    from agents.training.driver import train
+    from agents.training.registry import make_config
+    from agents.training.sweep import parse_sweep
     from snac_jax.evaluation import evaluate_task
 
     run = tmp_path / "sweep"

@@ -25,9 +25,9 @@ WORKER = textwrap.dedent(
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=2, process_id=process_id)
 
-    from agents.driver import train
-    from agents.registry import make_config
-    from agents.sharding import host_value
+    from agents.training.driver import train
+    from agents.training.registry import make_config
+    from agents.training.sharding import host_value
 
     config = make_config("ppo", "1d-static-sin", total_steps=4 * 8 * 16, num_envs=8, rollout_steps=16,
                          num_minibatches=2, update_epochs=1, hidden_size=16, chunks=2)

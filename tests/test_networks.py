@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from agents.networks import DesignEncoder, StridedConv
+from agents.common.networks import DesignEncoder, StridedConv
 
 
 @pytest.mark.parametrize("shape", [(5, 20, 20, 1), (3, 10, 10, 16), (2, 7, 9, 2), (2, 1, 6, 1), (1, 2, 2, 3)])

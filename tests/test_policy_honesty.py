@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.registry import ALGORITHMS, build_algorithm, make_config
+from agents.training.registry import ALGORITHMS, build_algorithm, make_config
 from snac_jax.env import SNACEnv
 from snac_jax.evaluation import _run_episodes
 from snac_jax.multi import MultiSNACEnv
@@ -46,7 +46,7 @@ TINY = {
     "pqn": PPO,
     "pqn-aux": PPO,
     "pqn-belief": PPO,
-    "pqn-belief --brick-map": dict(PPO, brick_map=True),  # the filter that maps its own bricks (agents/belief_map.py)
+    "pqn-belief --brick-map": dict(PPO, brick_map=True),  # the filter that maps its own bricks (agents/research/belief_map.py)
     "pqn-belief --todo-compass": dict(PPO, todo_compass=True),  # the Q head reads a map of its own drops
     "dqn": dict(REPLAY, frame_stack=2),  # the stacked frames are memory too
     "drqn": DRQN,

@@ -8,11 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.inputs import ObsLayout
-from agents.registry import config_from_json, make_config
-from agents.networks import ActorCritic
-from agents.ppo import PPO, PPOConfig, make_train
-from agents.targets import gae
+from agents.common.inputs import ObsLayout
+from agents.training.registry import config_from_json, make_config
+from agents.common.networks import ActorCritic
+from agents.learners.ppo import PPO, PPOConfig, make_train
+from agents.common.targets import gae
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
 

@@ -20,11 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.inputs import ObsLayout
-from agents.networks import ActorCritic, LayerNormQNetwork
-from agents.pqn import PQN, Transition
-from agents.registry import make_config
-from agents.targets import q_lambda, truncation_values
+from agents.common.inputs import ObsLayout
+from agents.common.networks import ActorCritic, LayerNormQNetwork
+from agents.learners.pqn import PQN, Transition
+from agents.training.registry import make_config
+from agents.common.targets import q_lambda, truncation_values
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
@@ -253,7 +253,7 @@ def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes()
 
 
 def test_two_seeds_through_the_driver_differ(tmp_path):
-    from agents.driver import read_metrics, train
+    from agents.training.driver import read_metrics, train
 
     config = make_config("pqn", "1d-static-sin", **{**TINY, "seeds": 2, "max_steps": 6})
     _, state = train(config, tmp_path, progress=False)
@@ -267,8 +267,8 @@ def test_two_seeds_through_the_driver_differ(tmp_path):
 @pytest.mark.slow  # two runs and a resume through the driver, with compiles: ~30 s or more on a 2-core CPU
 @pytest.mark.parametrize("recurrent", [True, False])
 def test_resume_equals_uninterrupted(tmp_path, recurrent):
-    from agents import checkpoint
-    from agents.driver import train
+    from agents.training import checkpoint
+    from agents.training.driver import train
 
     config = make_config("pqn", "1d-static-gauss", **{**TINY, "recurrent": recurrent, "seeds": 2, "total_steps": 4 * 8 * 8,
                                                         "chunks": 4, "max_steps": 6})
@@ -339,7 +339,7 @@ def test_cli_trains_pqn_with_two_seeds_and_evaluates_each_without_a_paper_row(tm
 def test_make_train_is_one_jittable_function_vmappable_over_seeds():
     """`make_train(config)` gives the whole run as `train(key)`, as PPO's does: jitted and
     vmapped over two seeds, every update runs, and the seeds train apart."""
-    from agents.pqn import make_train
+    from agents.learners.pqn import make_train
 
     config = make_config("pqn", "1d-static-sin", **dict(TINY, recurrent=True, max_steps=20))
     state, metrics = jax.jit(jax.vmap(make_train(config)))(jax.random.split(jax.random.key(0), 2))

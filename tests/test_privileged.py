@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.auxiliary import map_loss, move_loss, move_targets, position_loss, stride_curriculum
-from agents.registry import build_algorithm, config_class, make_config
+from agents.research.drqn_aux import map_loss, move_loss, move_targets, position_loss, stride_curriculum
+from agents.training.registry import build_algorithm, config_class, make_config
 from snac_jax.env import draw_stride
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import TASKS, make
@@ -224,8 +224,8 @@ def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
-    from agents.driver import read_metrics, train
-    from agents.trained import checkpoint_policy
+    from agents.training.driver import read_metrics, train
+    from agents.training.trained import checkpoint_policy
 
     config = make_config("ppo-privileged", "1d-static-sin", **{**PPO_TINY, "total_steps": 2 * 16 * 8}, chunks=2,
                          seeds=2, move_coef=0.1, max_steps=6)
@@ -244,8 +244,8 @@ def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
 @pytest.mark.slow  # three driver runs of each learner: over 20 s on a 2-core CPU
 @pytest.mark.parametrize("algorithm", ["ppo-privileged", "drqn-aux", "pqn-aux", "pqn-belief"])
 def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
-    from agents.checkpoint import to_storable
-    from agents.driver import train
+    from agents.training.checkpoint import to_storable
+    from agents.training.driver import train
 
     options = TINY[algorithm]
     config = make_config(algorithm, "1d-static-sin", **options, **ALL_SIGNALS, chunks=2, max_steps=6)
@@ -268,9 +268,9 @@ VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux",
 def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base, base_options, task):
     """On every task a variant's config is its base learner's tuned config with the training
     signals added, so a comparison with the base is of the signals alone; where the variant's
-    own tuned file has an entry for the task (`agents.registry.tuned_files`), the base's config
+    own tuned file has an entry for the task (`agents.training.registry.tuned_files`), the base's config
     with that entry's settings."""
-    from agents.registry import TUNED_DIR
+    from agents.training.registry import TUNED_DIR
 
     extra = {"algorithm"} | {f.name for f in dataclasses.fields(config_class(algorithm))} - {
         f.name for f in dataclasses.fields(config_class(base))}

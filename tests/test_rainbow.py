@@ -13,11 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.noisy import NoisyDense
-from agents.offpolicy import Step
-from agents.rainbow import Rainbow, RainbowConfig, cross_entropy_and_kl, importance_weights
-from agents.registry import build_algorithm, make_config
-from agents.targets import categorical_projection, n_step_returns
+from agents.common.noisy import NoisyDense
+from agents.common.offpolicy import Step
+from agents.learners.rainbow import Rainbow, RainbowConfig, cross_entropy_and_kl, importance_weights
+from agents.training.registry import build_algorithm, make_config
+from agents.common.targets import categorical_projection, n_step_returns
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
@@ -317,7 +317,7 @@ def test_acting_draws_noise_for_each_world_apart(trained_1d):
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
-    from agents.driver import read_metrics, train
+    from agents.training.driver import read_metrics, train
 
     traces = {"loss": 0, "_env_step": 0}
     for name in traces:
@@ -331,7 +331,7 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
     config = make_config("rainbow", "1d-static-step", **TINY, seeds=2)  # two equal chunks: one program
     _, state = train(config, tmp_path, progress=False)
     # The loss is traced twice in the one program: for the learning branch and for the waiting
-    # branch's metric shapes (`agents.offpolicy`'s update); a second chunk traces nothing more.
+    # branch's metric shapes (`agents.common.offpolicy`'s update); a second chunk traces nothing more.
     assert traces == {"loss": 2, "_env_step": 1}
     assert state.params["params"]["NoisyDense_0"]["kernel"].shape[0] == 2
     first, second = (jax.tree.map(lambda x: x[i], state.params) for i in (0, 1))
@@ -416,8 +416,8 @@ def test_config_errors_are_clear(options, message):
 
 @pytest.mark.slow  # three compilations of a whole run on a 2-core CPU
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
-    from agents.driver import train
-    from agents.trained import checkpoint_policy
+    from agents.training.driver import train
+    from agents.training.trained import checkpoint_policy
     from snac_jax.evaluation import evaluate_task
 
     config = make_config("rainbow", "1d-static-sin", **TINY)

@@ -73,7 +73,7 @@ def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
     that only score another arm's run again (`evaluation`) train nothing of their own."""
     import json
 
-    from agents.registry import ALGORITHMS, config_from_json
+    from agents.training.registry import ALGORITHMS, config_from_json
     from agents.table.plan import _settings_differ, make_plan
     from agents.table.presets import load_presets
     from snac_jax.paper import PAPER_TASKS

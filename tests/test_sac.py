@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.offpolicy import Step
-from agents.registry import build_algorithm, make_config
-from agents.sac import actor_loss, critic_loss, soft_values, temperature_loss
-from agents.targets import n_step_targets
+from agents.common.offpolicy import Step
+from agents.training.registry import build_algorithm, make_config
+from agents.learners.sac import actor_loss, critic_loss, soft_values, temperature_loss
+from agents.common.targets import n_step_targets
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned entry could set is pinned here, so retuning never changes the tests.
@@ -206,9 +206,9 @@ def test_greedy_policy_is_the_argmax_of_the_actors_logits():
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
 def test_two_seeds_through_the_driver(tmp_path):
-    from agents.checkpoint import read_config
-    from agents.driver import read_metrics, train
-    from agents.trained import checkpoint_policy
+    from agents.training.checkpoint import read_config
+    from agents.training.driver import read_metrics, train
+    from agents.training.trained import checkpoint_policy
 
     config = make_config("sac", "1d-static-step", **{**TINY, "seeds": 2})
     algorithm, state = train(config, tmp_path, progress=False)
@@ -255,8 +255,8 @@ def test_network_widths_follow_the_papers_appendix_per_dimension():
 
 @pytest.mark.slow  # three compilations of a whole run through the driver
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
-    from agents.driver import train
-    from agents.trained import checkpoint_policy
+    from agents.training.driver import train
+    from agents.training.trained import checkpoint_policy
     from snac_jax.evaluation import evaluate_task
 
     config = make_config("sac", "1d-dynamic", **{**TINY, "total_steps": 4 * 64, "chunks": 4})

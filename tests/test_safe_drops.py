@@ -1,13 +1,13 @@
-"""`safe_drops`: the drops that would wall the robot in, refused from the window (agents.safe_drops)."""
+"""`safe_drops`: the drops that would wall the robot in, refused from the window (agents.common.safe_drops)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.pqn import PQN, PQNConfig
-from agents.pqn_aux import PQNAux, PQNAuxConfig
-from agents.safe_drops import allowed_actions, neighbour_drop_targets
+from agents.learners.pqn import PQN, PQNConfig
+from agents.research.pqn_aux import PQNAux, PQNAuxConfig
+from agents.common.safe_drops import allowed_actions, neighbour_drop_targets
 from snac_jax import make
 from snac_jax.observation import LANDMARK_VALUE
 

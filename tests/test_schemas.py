@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agents import schemas
+from agents.training import schemas
 from snac_jax import schema
 from snac_jax.schema import Bool, Int, ListOf, MapOf, Nullable, Number, Object, OneOf, SchemaError, Str
 from tests.table_cells import write_cell
@@ -65,8 +65,8 @@ def test_the_checker_names_the_field_and_what_it_allows(tmp_path):
 
 
 def test_config_json_schema_is_the_config_classs_declarations(tmp_path):
-    from agents.config import save_config
-    from agents.registry import make_config
+    from agents.training.config import save_config
+    from agents.training.registry import make_config
 
     path = tmp_path / "config.json"
     save_config(make_config("ppo", "1d-dynamic", total_steps=512), path)

@@ -1,4 +1,4 @@
-"""Sweeps in one program (`agents.sweep`, `snac train --sweep`): each arm trains as a separate run
+"""Sweeps in one program (`agents.training.sweep`, `snac train --sweep`): each arm trains as a separate run
 of its settings would, a sweep resumes like any run, and a setting that would need another
 program per arm is refused in one line before anything runs."""
 
@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from agents import driver
-from agents.registry import make_config
-from agents.sweep import Sweep, check_traceable, parse_sweep
+from agents.training import driver
+from agents.training.registry import make_config
+from agents.training.sweep import Sweep, check_traceable, parse_sweep
 
 TINY = dict(num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8,
             total_steps=256, chunks=2, max_steps=30, seeds=2)
@@ -122,7 +122,7 @@ def test_snac_train_refuses_a_bad_sweep_in_one_line(argv, phrase, tmp_path):
 
 
 def test_a_sweep_runs_policies_load_by_run_index_with_their_arms_settings(sweep_run):
-    from agents.trained import checkpoint_policy
+    from agents.training.trained import checkpoint_policy
     from snac_jax import make
 
     base, config, _ = sweep_run
@@ -133,7 +133,7 @@ def test_a_sweep_runs_policies_load_by_run_index_with_their_arms_settings(sweep_
 
 
 def test_a_damaged_sweep_json_is_refused_naming_the_file_and_the_field(tmp_path):
-    from agents import sweep
+    from agents.training import sweep
 
     (tmp_path / "sweep.json").write_text('{"names": ["learning_rate"], "arms": [[0.001], ["fast"]]}')
     with pytest.raises(ValueError, match=r"sweep\.json: arms\[1\] must be finite numbers, got 'fast'") as caught:

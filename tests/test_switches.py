@@ -197,7 +197,7 @@ def test_parse_switches_reads_the_extensions():
 
 
 def test_a_training_config_carries_the_extensions_and_refuses_bad_ones_up_front():
-    from agents.registry import make_config
+    from agents.training.registry import make_config
 
     config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4")
     env, _ = config.make_env()

@@ -94,8 +94,8 @@ def test_an_algorithms_own_wall_limit_replaces_the_presets(tmp_path):
 
 
 def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, monkeypatch):
-    from agents import checkpoint
-    from agents.config import save_config
+    from agents.training import checkpoint
+    from agents.training.config import save_config
 
     slow = {"drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
     [cell] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path, slow)
@@ -116,8 +116,8 @@ def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, 
 
 
 def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, monkeypatch):
-    from agents import checkpoint
-    from agents.config import save_config
+    from agents.training import checkpoint
+    from agents.training.config import save_config
 
     paper = PRESETS["paper"]
     assert (paper.seeds, paper.cheap_seeds, paper.cheap_minutes) == (3, 5, 5.0)
@@ -170,7 +170,7 @@ def test_evaluation_estimates_scale_with_the_episodes():
 
 
 def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
-    from agents.registry import make_config
+    from agents.training.registry import make_config
 
     [cell] = make_plan(PRESETS["tuned"], ["ppo"], ["1d-static-step"], 2, tmp_path, rates={})
     tuned = make_config("ppo", "1d-static-step")
@@ -449,7 +449,7 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
     before = (cells[0].directory / "eval.json").stat().st_mtime_ns
     calls = []
-    import agents.driver as driver
+    import agents.training.driver as driver
 
     real_train = driver.train
 
@@ -474,7 +474,7 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert table["learners"] == {"ppo": {}}  # 1d-static-step is missing: no column is complete
     copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
     assert copied == [f"table/smoke/ppo/{t}.json" for t in ("1d-static-gauss", "1d-static-sin")]
-    from agents import checkpoint
+    from agents.training import checkpoint
     for task, source in (("1d-static-sin", cells[0].directory), ("1d-static-gauss", cells[1].directory)):
         record = json.loads((results / "table" / "smoke" / "ppo" / f"{task}.json").read_text())
         assert list(record) == ["cell", "config", "eval", "curve"]  # the whole record in one file
@@ -545,18 +545,18 @@ def _abl(**changes):
 @pytest.fixture
 def no_training(monkeypatch):
     """Fail a test that trains or evaluates: a cell copied from the record does neither."""
-    import agents.cli
-    import agents.driver
+    import agents.training.cli
+    import agents.training.driver
 
     def refuse(*args, **kwargs):
         raise AssertionError("trained or evaluated")
 
-    monkeypatch.setattr(agents.driver, "train", refuse)
-    monkeypatch.setattr(agents.cli, "evaluate_run", refuse)
+    monkeypatch.setattr(agents.training.driver, "train", refuse)
+    monkeypatch.setattr(agents.training.cli, "evaluate_run", refuse)
 
 
 def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(tmp_path, no_training, monkeypatch):
-    from agents import checkpoint
+    from agents.training import checkpoint
     from agents.table import run as table_run
     from agents.table.files import read_cell, read_raw
     from agents.table.raw import raw_text

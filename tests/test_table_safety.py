@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from agents import checkpoint
+from agents.training import checkpoint
 from agents.table.presets import load_presets
 from tests.table_cells import raw_copy_text, unpack_raw, write_cell
 
@@ -50,7 +50,7 @@ def _tree(root: Path) -> dict[str, bytes]:
 @pytest.fixture
 def no_training(monkeypatch):
     """Fail any test that reaches training: these cases must be refused or skipped before it."""
-    import agents.driver as driver
+    import agents.training.driver as driver
 
     def refuse(*args, **kwargs):
         raise AssertionError("trained")
@@ -83,7 +83,7 @@ class _Holder:
 def test_a_second_table_run_is_refused_before_it_touches_a_cell(tmp_path, no_training):
     """The first process holds the preset's folder (and its cell, in its first chunk): the second
     is refused in one line, and the first's cell (config, metrics, lock) is left as it was."""
-    from agents.config import save_config
+    from agents.training.config import save_config
     from agents.table.plan import make_plan
 
     runs = tmp_path / "runs"
@@ -205,8 +205,8 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
     """What a start of this very cell leaves before its first checkpoint (its config.json, an
     empty metrics.jsonl, a free lock) is resumed from the start, not deleted; a free lock alone
     leaves the directory new."""
-    import agents.driver as driver
-    from agents.config import save_config
+    import agents.training.driver as driver
+    from agents.training.config import save_config
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 
@@ -236,7 +236,7 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
 
 def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained_again(tmp_path, no_training,
                                                                                        monkeypatch, capsys):
-    from agents.config import save_config
+    from agents.training.config import save_config
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 

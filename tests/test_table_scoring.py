@@ -29,7 +29,7 @@ SMOKE_TASK = "1d-static-sin"
 def gamma_acts(monkeypatch):
     """PPO, the cheapest learner, has no acting option; the tests of the table's mechanics give it
     one (gamma, which changes nothing at evaluation) rather than train a learner that has one."""
-    from agents.ppo import PPOConfig
+    from agents.learners.ppo import PPOConfig
 
     monkeypatch.setattr(PPOConfig, "acting_options", ("gamma",))
 
@@ -152,11 +152,11 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     import jax
     import numpy as np
 
-    import agents.cli
-    import agents.driver
-    from agents import checkpoint
+    import agents.training.cli
+    import agents.training.driver
+    from agents.training import checkpoint
     from agents.table import run as table_run
-    from agents.trained import load_trained
+    from agents.training.trained import load_trained
 
     runs = tmp_path / "runs"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
@@ -166,7 +166,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     assert "scored again" in acting.estimate_from
 
     scored, trained = [], []
-    real_evaluate, real_train = agents.cli.evaluate_run, agents.driver.train
+    real_evaluate, real_train = agents.training.cli.evaluate_run, agents.training.driver.train
 
     def evaluate_spy(algorithm, state, out_dir, *args, **kwargs):
         scored.append((algorithm.config, state.params))
@@ -178,8 +178,8 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
         trained.append(kwargs["resume"])
         return real_train(config, out_dir, **kwargs)
 
-    monkeypatch.setattr(agents.cli, "evaluate_run", evaluate_spy)
-    monkeypatch.setattr(agents.driver, "train", train_spy)
+    monkeypatch.setattr(agents.training.cli, "evaluate_run", evaluate_spy)
+    monkeypatch.setattr(agents.training.driver, "train", train_spy)
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cell(acting, progress=False)
     assert not (acting.directory / "eval.json").exists()  # the twin's scores were never copied

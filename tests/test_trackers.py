@@ -8,7 +8,7 @@ import struct
 
 import pytest
 
-from agents import trackers
+from agents.training import trackers
 from snac_jax.cli import main
 
 TINY = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
@@ -43,8 +43,8 @@ def test_scalars_are_the_records_numbers_per_seed():
 
 
 def test_train_log_tensorboard_writes_the_metrics_of_metrics_jsonl_across_a_resume(tmp_path):
-    from agents.driver import train
-    from agents.registry import make_config
+    from agents.training.driver import train
+    from agents.training.registry import make_config
 
     out = tmp_path / "run"
     config = make_config("ppo", "1d-static-sin", num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents import checkpoint, trained
-from agents.registry import make_config
-from agents.driver import chunk_sizes, initial_state, read_metrics, train
+from agents.training import checkpoint, trained
+from agents.training.registry import make_config
+from agents.training.driver import chunk_sizes, initial_state, read_metrics, train
 
 TINY = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
 
@@ -42,7 +42,7 @@ def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_not
     """Chunks of 2 and 1 updates: each program compiles once, the 1-update one behind the first
     chunks' training where the driver compiles ahead (an accelerator; forced here) and when its
     chunk comes on a CPU; the run ends where one 3-update chunk ends."""
-    import agents.driver as driver
+    import agents.training.driver as driver
 
     monkeypatch.setattr(driver, "compiles_ahead", lambda: ahead)
     config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=3 * 16 * 8, chunks=2, **TINY)
@@ -57,7 +57,7 @@ def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_not
 
 
 def test_the_driver_compiles_ahead_on_accelerators_only():
-    from agents.chunk_programs import compiles_ahead
+    from agents.training.chunk_programs import compiles_ahead
 
     assert compiles_ahead() == (jax.default_backend() != "cpu")
 
@@ -85,7 +85,7 @@ class _Lowered:
 def test_chunk_programs_compile_the_later_sizes_on_another_thread_and_say_so_when_closing_on_one():
     import threading
 
-    from agents.chunk_programs import ChunkPrograms
+    from agents.training.chunk_programs import ChunkPrograms
 
     started, release, threads, written = threading.Event(), threading.Event(), [], []
     gates = {1: (started, release)}
@@ -113,7 +113,7 @@ def test_chunk_programs_compile_the_later_sizes_on_another_thread_and_say_so_whe
 def test_a_failed_background_compile_is_warned_about_and_compiled_again_in_the_foreground():
     import threading
 
-    from agents.chunk_programs import ChunkPrograms
+    from agents.training.chunk_programs import ChunkPrograms
 
     threads, written, failures = [], [], {1: True}  # the first compile of 1 fails, the second succeeds
     programs = ChunkPrograms(lambda n: _Lowered(n, threads, failures=failures), [2, 1], written.append, background=True)
@@ -129,7 +129,7 @@ def test_a_failed_background_compile_is_warned_about_and_compiled_again_in_the_f
 def test_without_compiling_ahead_every_program_compiles_on_the_callers_thread_when_first_needed():
     import threading
 
-    from agents.chunk_programs import ChunkPrograms
+    from agents.training.chunk_programs import ChunkPrograms
 
     threads, written = [], []
     programs = ChunkPrograms(lambda n: _Lowered(n, threads), [2, 2, 1], written.append, background=False)
@@ -142,7 +142,7 @@ def test_without_compiling_ahead_every_program_compiles_on_the_callers_thread_wh
 
 def test_checkpoint_round_trip(tmp_path):
     config = make_config("ppo", "1d-static-sin", recurrent=True, seeds=2, total_steps=128, **TINY)
-    from agents.registry import build_algorithm
+    from agents.training.registry import build_algorithm
 
     algorithm = build_algorithm(config)
     state = initial_state(algorithm)
@@ -222,7 +222,7 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
 
         shutil.rmtree(tmp_path / checkpoint.CHECKPOINT_DIR)
         (tmp_path / checkpoint.METRICS_FILE).write_text('{"chunk": 0}\n')
-        from agents.driver import _resume_point
+        from agents.training.driver import _resume_point
 
         _resume_point(tmp_path, like, print)
     (tmp_path / checkpoint.METRICS_FILE).write_text("")  # killed before its first chunk ended: start again
@@ -252,8 +252,8 @@ TWO_DEVICES = textwrap.dedent(
     """
     import json, sys
     import jax
-    from agents.registry import make_config
-    from agents.driver import train
+    from agents.training.registry import make_config
+    from agents.training.driver import train
     from snac_jax.evaluation import run_episodes
     from snac_jax.devices import env_mesh
     import numpy as np
@@ -477,7 +477,7 @@ def test_a_lock_is_never_followed_through_a_link(tmp_path):
 
 def _stored_run(tmp_path, options: str):
     """A run directory with its config.json and the given run.json, and no chunk trained yet."""
-    from agents.config import save_config
+    from agents.training.config import save_config
 
     save_config(make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY), tmp_path / checkpoint.CONFIG_FILE)
     (tmp_path / checkpoint.RUN_OPTIONS_FILE).write_text(options)
@@ -533,7 +533,7 @@ TINY_FLAGS = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "
 
 
 def test_resume_refuses_options_the_run_fixed(tmp_path, capsys):
-    from agents.config import save_config
+    from agents.training.config import save_config
 
     save_config(make_config("ppo", "1d-static-sin", total_steps=128, **TINY), tmp_path / checkpoint.CONFIG_FILE)
     code, _, err = _cli(["train", "ppo", "--resume", str(tmp_path), "--total-steps", "5000", "--task", "1d-static-step"], capsys)
@@ -629,7 +629,7 @@ def test_a_run_trained_without_stride_noise_is_refused_in_a_noisy_world(tmp_path
     """The −uncertainty switch changes `EnvParams` only, not `EnvConfig`: a policy trained with
     strides of one cell must not be scored, silently, in the default world of strides 1-3. The
     check reads the run's config.json alone, before any checkpoint."""
-    from agents.config import save_config
+    from agents.training.config import save_config
     from snac_jax import make
 
     save_config(make_config("ppo", "2d-static-dense", switches="stride_probs=1/0/0", **TINY), tmp_path / "config.json")
@@ -643,9 +643,9 @@ def test_a_run_trained_without_stride_noise_is_refused_in_a_noisy_world(tmp_path
 KILLER = textwrap.dedent(
     """
     import json, os, pathlib, signal, sys
-    from agents import driver
-    from agents.config import TrainConfig
-    from agents.registry import config_from_json
+    from agents.training import driver
+    from agents.training.config import TrainConfig
+    from agents.training.registry import config_from_json
     from snac_jax.devices import env_mesh
 
     out, where, chunk = sys.argv[1], sys.argv[2], int(sys.argv[3])
@@ -713,8 +713,8 @@ def test_sigkill_at_any_point_then_resume_equals_an_uninterrupted_run(tmp_path):
 def test_run_files_are_readable_by_others(tmp_path):
     """Every file of a run goes through `snac_jax.atomic` and gets 0666 less the umask (0644
     under 022), not the 0600 of a bare temporary file."""
-    from agents.driver import _start_run
-    from agents.plotting import plot_curve
+    from agents.training.driver import _start_run
+    from agents.training.plotting import plot_curve
     from snac_jax.atomic import atomic_write_json
 
     config = make_config("ppo", "1d-static-sin", total_steps=128, **TINY)

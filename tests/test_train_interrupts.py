@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from agents import checkpoint
-from agents.driver import read_metrics, train
-from agents.registry import make_config
+from agents.training import checkpoint
+from agents.training.driver import read_metrics, train
+from agents.training.registry import make_config
 from snac_jax.cli import main
 
 PPO = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
@@ -89,12 +89,12 @@ def test_ctrl_c_in_snac_train_is_one_line_naming_the_resume_command(tmp_path, mo
 
 
 def test_ctrl_c_before_a_run_starts_says_there_is_nothing_to_resume(tmp_path, monkeypatch, capsys):
-    import agents.registry
+    import agents.training.registry
 
     def interrupted(config):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(agents.registry, "build_algorithm", interrupted)
+    monkeypatch.setattr(agents.training.registry, "build_algorithm", interrupted)
     run = tmp_path / "run"
     assert _snac(["train", "ppo", *PPO_FLAGS, "--total-steps", "128", "--out", str(run)]) == 130
     assert capsys.readouterr().err.splitlines()[-1] == ("snac train ppo: interrupted before the run started; "
@@ -171,8 +171,8 @@ def test_snac_train_refuses_learning_starts_beyond_the_budget_in_one_line(tmp_pa
 def test_a_diverged_run_is_flagged_resumed_and_noted_beside_its_evaluation(tmp_path, capsys):
     """Rewards scaled past float32 make the critic's loss infinite from its first gradient step,
     which `learning_starts` puts in the last two of three chunks."""
-    from agents.cli import evaluate_run
-    from agents.plotting import plot_curve
+    from agents.training.cli import evaluate_run
+    from agents.training.plotting import plot_curve
 
     config = make_config("sac", "1d-static-sin", **SAC, total_steps=3 * 64, chunks=3, learning_starts=2 * 64,
                          reward_scale=1e38)

@@ -34,7 +34,7 @@ def _task(text: str) -> str:
 
 
 def add_parser(subparsers) -> None:
-    from agents.registry import ALGORITHMS
+    from agents.training.registry import ALGORITHMS
     from agents.table.presets import BUDGETS_FILE, load_presets
     from snac_jax.paper import PAPER_TASKS
 
@@ -76,7 +76,7 @@ def add_parser(subparsers) -> None:
 
 
 def plan_from_args(args: argparse.Namespace):
-    from agents.registry import ALGORITHMS
+    from agents.training.registry import ALGORITHMS
     from agents.table.plan import make_plan
     from agents.table.presets import load_presets
     from snac_jax.paper import PAPER_TASKS
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         return _report(args, given_runs_dir)
 
-    from agents import checkpoint
+    from agents.training import checkpoint
     from agents.table.plan_format import format_plan
     from agents.table.run import run_cells
 

@@ -1,7 +1,7 @@
 """The files of `snac table`'s cells: reading them back (each against its schema in
-`agents.schemas`, then against each other) and what a runner may touch in a runs directory.
+`agents.training.schemas`, then against each other) and what a runner may touch in a runs directory.
 
-A cell directory (`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`) holds one run of `agents.driver`
+A cell directory (`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`) holds one run of `agents.training.driver`
 with `cell.json` beside it. A runner deletes nothing and starts no run over files it did not
 make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
 short before its first checkpoint (which it trains again from the start), or it is refused,
@@ -18,7 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable
 
-from agents import checkpoint, schemas
+from agents.training import checkpoint, schemas
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.schema import loads_json
@@ -29,7 +29,7 @@ EVAL_FILE = "eval.json"
 RAW_SUFFIX = ".json"
 """A raw copy's file name is its cell's directory name with this suffix (`read_raw`)."""
 RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
-"""What a cell's run leaves before its first checkpoint (`agents.driver`), besides its lock."""
+"""What a cell's run leaves before its first checkpoint (`agents.training.driver`), besides its lock."""
 RECORD_FIELD = "adopted_record"
 """cell.json's field naming the raw copy a cell was copied from (`record_copy`)."""
 CURVE_FILE = "curve.png"
@@ -105,7 +105,7 @@ def check_finished_without_checkpoints(directory: Path, config, episodes: int) -
     must be a finished run: an eval.json that is a finished result of the cell (`episodes` per
     seed), a metrics.jsonl through the run's last chunk, and files that agree with each other
     (`read_cell`). Else a `ValueError`: nothing is left to resume or evaluate the run from."""
-    from agents.driver import chunk_sizes
+    from agents.training.driver import chunk_sizes
 
     where = f"{directory} holds this cell's files without checkpoints"
     if not eval_is_valid(directory / EVAL_FILE, config.seeds, episodes):
@@ -165,7 +165,7 @@ def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
     what the report is about to write there, read in its place. Returns {"config" (the config
     class's full settings), "eval", "cell", "metrics" (the curve)}; `ValueError` naming the file
     and the field (`eval['<seed>'].mean`) of the first problem."""
-    from agents.registry import config_from_json
+    from agents.training.registry import config_from_json
 
     record = (schemas.load(path, schemas.RAW_CELL_JSON) if text is None
               else loads_json(text, schemas.RAW_CELL_JSON, path))
@@ -190,7 +190,7 @@ def read_record(path: Path, same_settings: Callable[[Any], bool], episodes: int 
     (`episodes`), seeds and the reporting key; None where there is no such file or it is another
     run. A damaged copy is a `ValueError` naming the file: it is the repository's record, which the
     report refuses as well, so it is mended, never trained over unseen."""
-    from agents.registry import config_from_json
+    from agents.training.registry import config_from_json
 
     if not path.exists() and not path.is_symlink():
         return None

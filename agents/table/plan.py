@@ -2,7 +2,7 @@
 long it should take, before anything starts.
 
 A cell is one (algorithm, environment task) run in `<runs-dir>/<preset>/<algorithm>/<task>/`: one
-`agents.driver.train` call with the preset's seeds vmapped, then the reporting protocol. The
+`agents.training.driver.train` call with the preset's seeds vmapped, then the reporting protocol. The
 paper's `1d-static` column is three cells, one per shape. Budgets come from the presets of
 `budgets.toml` (`agents.table.presets`); wall-time estimates from measured rates (`rates.json`, written by
 `bench/table_rates.py`), or, for a cell that has started, from its own `metrics.jsonl`.
@@ -18,9 +18,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-from agents import checkpoint
-from agents.config import TrainConfig
-from agents.registry import ALGORITHMS, config_class, make_config, tuned_source
+from agents.training import checkpoint
+from agents.training.config import TrainConfig
+from agents.training.registry import ALGORITHMS, config_class, make_config, tuned_source
 from agents.table.files import (EVAL_FILE, RECORD_FIELD, check_finished_without_checkpoints, eval_is_valid,
                                  expected_episodes, new_cell_leftovers, own_files, read_record, record_copy, record_path)
 from agents.table.presets import Preset, Variant, expand_tasks

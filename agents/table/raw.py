@@ -56,7 +56,7 @@ def refuse_links(root: Path, path: Path) -> None:
 
 def _finite(value: Any) -> Any:
     """`value` with every float that is not finite as None: a curve is strict JSON, as
-    `agents.driver` writes metrics.jsonl (a chunk in which no episode ended has a null mean)."""
+    `agents.training.driver` writes metrics.jsonl (a chunk in which no episode ended has a null mean)."""
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, list):
@@ -129,7 +129,7 @@ def _holds_the_run(destination: Path, files: dict) -> bool:
 def _run_of(files: dict) -> dict:
     """The run of a finished cell (`read_cell`) in `read_raw`'s form, as its raw copy would hold it
     (the curve strict JSON), for `_same_run`."""
-    from agents.registry import config_from_json
+    from agents.training.registry import config_from_json
 
     return {"config": config_from_json(files["config"]).to_json(), "eval": files["eval"],
             "metrics": json.loads(raw_text(files))["curve"]}

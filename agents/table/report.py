@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from agents import schemas
+from agents.training import schemas
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
@@ -39,7 +39,7 @@ def _column_tasks(column: str) -> tuple[str, ...]:
 
 
 def _paper_method(algorithm: str) -> str | None:
-    from agents.registry import ALGORITHMS, config_class
+    from agents.training.registry import ALGORITHMS, config_class
 
     return config_class(algorithm).paper_method if algorithm in ALGORITHMS else None
 

@@ -1,4 +1,4 @@
-"""Running the plan of `snac table`: each unfinished cell is one `agents.driver.train` call (a
+"""Running the plan of `snac table`: each unfinished cell is one `agents.training.driver.train` call (a
 started one resumes from its last checkpoint), then its learning curve and the reporting
 protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped, and a
 cell whose preset adopts another's finished run with the same settings copies that run instead,
@@ -13,8 +13,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from agents import checkpoint
-from agents.config import save_config
+from agents.training import checkpoint
+from agents.training.config import save_config
 from agents.table.files import CELL_FILE, EVAL_FILE
 from agents.table.plan import Cell, cell_state, own_copy, record_twin
 from agents.table.scoring import adoption_kept, scoring_config
@@ -31,9 +31,9 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
     The cell's directory is locked first (`checkpoint.lock_run`: another process working on it
     is refused at once), and where it stands is read again under the lock, so nothing another
     process made since the plan is trained over, and a cell finished meanwhile is left as it is."""
-    from agents.cli import evaluate_run
-    from agents.driver import chunk_sizes, train
-    from agents.registry import build_algorithm
+    from agents.training.cli import evaluate_run
+    from agents.training.driver import chunk_sizes, train
+    from agents.training.registry import build_algorithm
     from snac_jax import devices
 
     if cell.status == "done":
@@ -136,8 +136,8 @@ def _assemble(cell: Cell, copy, *, cell_json_first: bool) -> None:
 
 def _plot_curve(cell: Cell, directory: Path) -> None:
     """The cell's learning curve from the run's metrics in `directory`, titled with its preset."""
-    from agents.driver import read_metrics
-    from agents.plotting import plot_curve
+    from agents.training.driver import read_metrics
+    from agents.training.plotting import plot_curve
 
     plot_curve(read_metrics(directory), cell.task, f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
                directory / "curve.png")

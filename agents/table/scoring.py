@@ -10,9 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from agents import schemas
-from agents.config import TrainConfig
-from agents.registry import make_config
+from agents.training import schemas
+from agents.training.config import TrainConfig
+from agents.training.registry import make_config
 from agents.table.files import CELL_FILE, RECORD_FIELD
 from agents.table.rates import eval_seconds
 

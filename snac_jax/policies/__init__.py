@@ -7,7 +7,7 @@ name to a *builder* `builder(env, **options) -> Policy` (for `env`'s task), name
 Learned agents are not registered by name: a trained run is its checkpoint directory, and
 `snac eval --checkpoint DIR` takes its builder from the installed checkpoint loader
 (`snac_jax.plugins.checkpoint_loader()`, which the agents package provides as
-`agents.trained.checkpoint_builder`). That builder has the same `builder(env, **options)` form,
+`agents.training.trained.checkpoint_builder`). That builder has the same `builder(env, **options)` form,
 so the evaluator runs a checkpoint exactly as it runs the policies listed here.
 """
 

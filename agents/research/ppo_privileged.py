@@ -1,6 +1,6 @@
 """Asymmetric PPO: the critic also reads the environment's privileged state (SPEC §12), the actor
 only its observations; optionally with the auxiliary localisation and map losses of
-`agents.auxiliary` on the recurrent state, and the stride curriculum.
+`agents.research.drqn_aux` on the recurrent state, and the stride curriculum.
 
 Why: in SNAC the robot never sees its position, and recurrent PPO's value must guess it from the
 same memory the policy localises with, so the advantages it learns from are noisy exactly where
@@ -16,7 +16,7 @@ and what is left to build (the design minus the built plan), each flattened, and
 (`PrivilegedEncoder`). With `privileged_critic=False` and every auxiliary weight
 0 this is PPO, update for update.
 
-The learner is PPO (`agents.ppo`) with the steps the critic changes written out here: the
+The learner is PPO (`agents.learners.ppo`) with the steps the critic changes written out here: the
 rollout also records the privileged state of every step and, through `step_keeping_final_state`,
 the one each ended episode ended in (the truncation bootstrap values it); the advantages score
 both with the critic; the loss adds the heads' losses to PPO's (`clipped_objective`). The update,
@@ -34,12 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
-from agents.config import option
-from agents.inputs import ObsLayout
-from agents.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
-from agents.targets import gae, truncation_values
+from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
+from agents.training.config import option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.learners.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
+from agents.common.targets import gae, truncation_values
 from snac_jax.state import PrivilegedState
 
 

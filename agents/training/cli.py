@@ -1,7 +1,7 @@
 """`snac train ALGORITHM`: train an agent end-to-end on device, then score it with the protocol.
 
 Plugged into the `snac` command through the `snac_jax.commands` entry point. Every field of an
-algorithm's config (`agents.config.option`) becomes a flag of its sub-subcommand, with the field's
+algorithm's config (`agents.training.config.option`) becomes a flag of its sub-subcommand, with the field's
 type, bounds and help: nothing here lists hyperparameters. Each run writes `DIR/config.json`,
 `DIR/metrics.jsonl`, `DIR/checkpoints/`, `DIR/curve.png`, and after the evaluation protocol
 `DIR/eval.json` (the evaluator's format; one row per seed when several).
@@ -42,7 +42,7 @@ def flag_type(spec):
 
 def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, ...]:
     """One flag per command-line field of `config_cls`; returns the field names."""
-    from agents.config import field_specs
+    from agents.training.config import field_specs
 
     names = []
     for spec in field_specs(config_cls).values():
@@ -60,8 +60,8 @@ def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, 
 
 
 def add_parser(subparsers) -> None:
-    from agents.registry import ALGORITHMS, config_class
-    from agents.trackers import TRACKERS
+    from agents.training.registry import ALGORITHMS, config_class
+    from agents.training.trackers import TRACKERS
 
     parser = subparsers.add_parser("train", help="train an agent end-to-end on device, then evaluate it")
     algorithms = parser.add_subparsers(dest="algorithm", required=True)
@@ -91,7 +91,7 @@ def add_parser(subparsers) -> None:
 
 
 def build_config(args: argparse.Namespace):
-    from agents.registry import make_config
+    from agents.training.registry import make_config
 
     options = {name: getattr(args, name) for name in args.config_options}
     return make_config(args.algorithm, args.task or DEFAULT_TASK, **options)
@@ -114,7 +114,7 @@ def training_memory_bytes(algorithm) -> int:
     `rollout(state, env_params) -> (state, batch, stats)`."""
     import jax
 
-    from agents.driver import seed_keys
+    from agents.training.driver import seed_keys
     from snac_jax.memory import tree_bytes
 
     init = jax.vmap(algorithm.init)
@@ -162,8 +162,8 @@ def run_command(args: argparse.Namespace) -> int:
 
 def interruption_message(algorithm: str, out_dir: Path | None) -> str:
     """One line on a run interrupted while `snac train` worked on `out_dir` (None: not chosen yet)."""
-    from agents import checkpoint
-    from agents.driver import chunk_sizes
+    from agents.training import checkpoint
+    from agents.training.driver import chunk_sizes
 
     said = f"snac train {algorithm}: interrupted"
     if out_dir is None or not (out_dir / checkpoint.CONFIG_FILE).is_file():
@@ -185,11 +185,11 @@ def interruption_message(algorithm: str, out_dir: Path | None) -> str:
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from agents import checkpoint, sweep, trackers
-    from agents.driver import read_metrics, train
-    from agents.plotting import plot_curve
-    from agents.registry import build_algorithm
-    from agents.sharding import host_value, training_mesh
+    from agents.training import checkpoint, sweep, trackers
+    from agents.training.driver import read_metrics, train
+    from agents.training.plotting import plot_curve
+    from agents.training.registry import build_algorithm
+    from agents.training.sharding import host_value, training_mesh
     from snac_jax import devices, memory
 
     resume = args.resume is not None
@@ -260,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
 def _parse_sweep(args: argparse.Namespace, config):
     """The run's grid from `--sweep` (None without one), refused in one line where a value would
     change shapes or is also given as its own flag; traced once to check the learner takes it."""
-    from agents.sweep import check_traceable, parse_sweep
+    from agents.training.sweep import check_traceable, parse_sweep
 
     if not args.sweep:
         return None
@@ -279,10 +279,10 @@ def evaluate_sweep(config, swept, state, out_dir: Path, options: dict | None) ->
     import jax
     import numpy as np
 
-    from agents.driver import read_metrics
-    from agents.plotting import plot_curve
-    from agents.registry import build_algorithm
-    from agents.sweep import arm_dir
+    from agents.training.driver import read_metrics
+    from agents.training.plotting import plot_curve
+    from agents.training.registry import build_algorithm
+    from agents.training.sweep import arm_dir
 
     rows = []
     for arm in range(swept.num_arms):
@@ -310,7 +310,7 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     `counts` (`static_episodes`, `episodes_per_test_design`) replaces `episodes` where given."""
     import jax
 
-    from agents.driver import divergence_note, read_metrics
+    from agents.training.driver import divergence_note, read_metrics
     from snac_jax.atomic import atomic_write_json
     from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES, TUNING_EVAL_SEED, evaluate_task
     from snac_jax.paper import load_paper_results, markdown_table, paper_cell, paper_column, paper_row
@@ -325,7 +325,7 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
     results = []
     for index in range(config.seeds):
         params = jax.tree.map(lambda x: x[index], state.params)
-        team = getattr(algorithm, "evaluate_team", None)  # a team of robots (agents.ippo) runs its own episodes
+        team = getattr(algorithm, "evaluate_team", None)  # a team of robots (agents.learners.ippo) runs its own episodes
         if team is not None:
             protocol = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
             result = team(params, **{**protocol, **counts}, seed=TUNING_EVAL_SEED if seed is None else seed)

@@ -9,10 +9,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from agents import sweep
-from agents.checkpoint import CHECKPOINT_DIR, read_config, restore_latest
-from agents.driver import initial_state
-from agents.registry import build_algorithm
+from agents.training import sweep
+from agents.training.checkpoint import CHECKPOINT_DIR, read_config, restore_latest
+from agents.training.driver import initial_state
+from agents.training.registry import build_algorithm
 
 
 def load_trained(directory: str | Path):
@@ -77,6 +77,6 @@ def checkpoint_builder(directory: str | Path):
         return checkpoint_policy(env, directory, **options)
 
     overrides = config.env_overrides
-    if getattr(config, "robots", None) is not None:  # a team run (agents.ippo): snac_jax.multi.make's count
+    if getattr(config, "robots", None) is not None:  # a team run (agents.learners.ippo): snac_jax.multi.make's count
         overrides = {**overrides, "num_robots": config.robots}
     return builder, config.task, getattr(config, "paper_method", config.algorithm), overrides

@@ -14,8 +14,8 @@ environment's privileged state (SPEC §12, training only):
 Each is on when its coefficient is above 0 (`AuxiliaryOptions`); its head then exists and its loss
 is added to the learner's. The heads read the memory, never feed the policy: the greedy policy's
 action is the same function of its observations whatever the heads hold, and it never sees the
-privileged state. `agents.privileged` adds them to PPO, `DRQNAux` here to DRQN, and
-`agents.pqn_aux` to PQN-RNN.
+privileged state. `agents.research.ppo_privileged` adds them to PPO, `DRQNAux` here to DRQN, and
+`agents.research.pqn_aux` to PQN-RNN.
 
 `stride_curriculum` anneals the stride noise from none (every move one cell, the paper's
 "-uncertainty") to the task's distribution over a share of the run, through `EnvParams`, which the
@@ -34,11 +34,11 @@ import numpy as np
 import optax
 from flax import struct
 
-from agents.config import option
-from agents.drqn import DRQN, DRQNConfig
-from agents.inputs import ObsLayout
-from agents.networks import mlp_head
-from agents.offpolicy import Step
+from agents.training.config import option
+from agents.learners.drqn import DRQN, DRQNConfig
+from agents.common.inputs import ObsLayout
+from agents.common.networks import mlp_head
+from agents.common.offpolicy import Step
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams
 
@@ -46,7 +46,7 @@ from snac_jax.state import EnvParams
 @dataclasses.dataclass(frozen=True)
 class AuxiliaryOptions:
     """The auxiliary losses' weights (0: off) and the stride curriculum, shared by the learners
-    that train with them (`agents.privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`, `PQNAuxConfig`)."""
+    that train with them (`agents.research.ppo_privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`, `PQNAuxConfig`)."""
 
     position_coef: float = option(0.05, "weight of the loss predicting the true plan position from the recurrent "
                                   "state (0: off)", low=0)
@@ -212,7 +212,7 @@ def add_rollout_losses(auxiliary: Auxiliary, total: jax.Array, info: dict, sown:
 
 @dataclasses.dataclass(frozen=True)
 class DRQNAuxConfig(AuxiliaryOptions, DRQNConfig):
-    """DRQN (`agents.drqn`) with auxiliary localisation and map losses on its LSTM state, trained
+    """DRQN (`agents.learners.drqn`) with auxiliary localisation and map losses on its LSTM state, trained
     with DRQN's tuned settings per task (`tuned_as`)."""
 
     algorithm: ClassVar[str] = "drqn-aux"

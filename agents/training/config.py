@@ -2,12 +2,12 @@
 
 An option is a dataclass field made with `option(default, help, low=..., high=...)`. Its type
 annotation, bounds and help text are the single declaration that validation (`TrainConfig.validate`)
-and the command line (`agents.cli`, one flag per field) both read, so adding a hyperparameter is
+and the command line (`agents.training.cli`, one flag per field) both read, so adding a hyperparameter is
 one line in the algorithm's config class. Rules that tie several fields together live in the
 class's `check()`.
 
-Each algorithm module defines its own config class beside the algorithm (`agents.ppo.PPOConfig`,
-...); `agents.registry` maps names to them, and `agents/tuned/<algorithm>.toml` holds the tuned
+Each algorithm module defines its own config class beside the algorithm (`agents.learners.ppo.PPOConfig`,
+...); `agents.training.registry` maps names to them, and `agents/tuned/<algorithm>.toml` holds the tuned
 values per task.
 """
 
@@ -103,7 +103,7 @@ def field_specs(cls: type) -> dict[str, FieldSpec]:
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """What the shared driver (`agents.driver`) needs from any algorithm."""
+    """What the shared driver (`agents.training.driver`) needs from any algorithm."""
 
     algorithm: ClassVar[str] = "base"
     paper_method: ClassVar[str] = "base"  # the algorithm's row in the paper's results
@@ -140,7 +140,7 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Every field against its declaration, then the class's cross-field rules. A config
-        holding traced values (one run of a sweep, `agents.sweep`) is not checked again: its
+        holding traced values (one run of a sweep, `agents.training.sweep`) is not checked again: its
         arms' concrete configs were, and a traced value has no value to check."""
         import jax
 

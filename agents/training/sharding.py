@@ -1,7 +1,7 @@
 """Data parallelism for training: the parallel worlds (and everything with one entry per world)
 are split over the env mesh of `snac_jax.devices`; parameters and optimiser state are replicated.
 
-A runner state keeps its per-world arrays under a `worlds` field (see `agents.ppo.Worlds`), with
+A runner state keeps its per-world arrays under a `worlds` field (see `agents.learners.ppo.Worlds`), with
 the seed axis first and the world axis second; the driver shards exactly that field and jit's
 sharding propagation does the rest (the gradient mean over worlds becomes an all-reduce).
 The training mesh is built from `jax.devices()`, which lists every device of every process, so

@@ -16,8 +16,8 @@ the clipped-objective updates are one pure function of a key, vmappable over see
 Truncated episodes bootstrap from the value of `info["final_observation"]` (the last observation
 of the episode, before the auto-reset), computed with the hidden state that saw the episode.
 
-The module forks alone: besides `snac_jax` it reads only the library modules `agents.config`,
-`agents.inputs`, `agents.networks` and `agents.targets`.
+The module forks alone: besides `snac_jax` it reads only the library modules `agents.training.config`,
+`agents.common.inputs`, `agents.common.networks` and `agents.common.targets`.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.config import TrainConfig, option
-from agents.inputs import ObsLayout
-from agents.networks import ActorCritic
-from agents.targets import gae, truncation_values
+from agents.training.config import TrainConfig, option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import ActorCritic
+from agents.common.targets import gae, truncation_values
 from snac_jax.policy import Policy
 
 

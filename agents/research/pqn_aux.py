@@ -1,7 +1,7 @@
-"""PQN-RNN trained with the auxiliary localisation and map losses of `agents.auxiliary` on its GRU
+"""PQN-RNN trained with the auxiliary localisation and map losses of `agents.research.drqn_aux` on its GRU
 state (`pqn-aux`): PQN's rollout also records the true position (and the built plan, with the map
 loss) where each observation was made, and its loss adds the heads' losses. The update, the
-epsilon schedule and the greedy policy are PQN's (`agents.pqn`); the heads never feed the policy.
+epsilon schedule and the greedy policy are PQN's (`agents.learners.pqn`); the heads never feed the policy.
 """
 
 from __future__ import annotations
@@ -13,16 +13,16 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from agents.auxiliary import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
-from agents.config import option
-from agents.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
-from agents.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
+from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
+from agents.training.config import option
+from agents.common.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
+from agents.learners.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
 
 
 
 @dataclasses.dataclass(frozen=True)
 class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
-    """PQN-RNN (`agents.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
+    """PQN-RNN (`agents.learners.pqn`, recurrent) with auxiliary localisation and map losses on its GRU
     state. It trains with PQN's tuned settings per task (`tuned_as`), so a comparison with PQN-RNN
     is of the losses alone; where PQN's entry turns the GRU off, `agents/tuned/pqn-aux.toml` turns
     it back on, as the heads read its state. The position loss's default weight is a hundredth of
@@ -84,7 +84,7 @@ class AuxiliaryTransition(NamedTuple):
 class PQNAux(StrideCurriculum, PQN):
     """PQN-RNN whose rollout also records the true position (and the built plan, with the map
     loss) where each observation was made, and whose loss adds the auxiliary losses on the GRU
-    outputs of every rollout step, as `agents.privileged.PrivilegedPPO` does for PPO. The rollout
+    outputs of every rollout step, as `agents.research.ppo_privileged.PrivilegedPPO` does for PPO. The rollout
     and the loss are PQN's with those additions; the update and the policy are PQN's."""
 
     def __init__(self, config: PQNAuxConfig):

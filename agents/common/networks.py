@@ -1,6 +1,6 @@
 """Network pieces shared by every learner: the observation and design encoders, a GRU or LSTM
 scanned over time with resets at episode boundaries, and the actor-critic and Q heads. What they
-read, and how it is scaled, is `agents.inputs.ObsLayout`.
+read, and how it is scaled, is `agents.common.inputs.ObsLayout`.
 
 Every network takes time-major inputs `(T, B, obs_size)` with `resets (T, B)` (True where the
 observation starts a new episode) and a carry `(B, carry_size)`, and returns the new carry.
@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.inputs import ObsLayout
-from agents.noisy import noisy_dense
+from agents.common.inputs import ObsLayout
+from agents.common.noisy import noisy_dense
 
 
 def scaled_init(gain: float) -> nn.initializers.Initializer:
@@ -213,9 +213,9 @@ def param_count(params) -> int:
 class QNetwork(nn.Module):
     """Q-values from a stack of observations, with an optional LSTM core and a dueling head; with
     `atoms` > 1 the logits of each action's return distribution instead (C51), and with `noisy`
-    factorised noisy layers (`agents.noisy.NoisyDense`) in place of the encoder's and heads' dense ones.
+    factorised noisy layers (`agents.common.noisy.NoisyDense`) in place of the encoder's and heads' dense ones.
 
-    Time-major like every network of `agents.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
+    Time-major like every network of `agents.common.networks`: `carry (B, C)`, `frames (T, B, k, O)` (the
     last k observations, oldest first, zeros before the episode start), `resets (T, B)`.
     """
 
@@ -228,7 +228,7 @@ class QNetwork(nn.Module):
     noisy: bool = False
     sigma0: float = 0.1  # of the noisy layers
     layer_norm: bool = False  # LayerNorm before every hidden ReLU, as in `LayerNormQNetwork`
-    # Heads on the core's features for auxiliary losses (`agents.auxiliary`); their outputs are
+    # Heads on the core's features for auxiliary losses (`agents.research.drqn_aux`); their outputs are
     # sown into "intermediates", which only a training loss asks for, so acting never computes them.
     auxiliary_heads: nn.Module | None = None
 

@@ -23,12 +23,12 @@ Three beliefs, one per run (`belief_filter`, `brick_map`):
   (trained by the move loss on the true count), then keeps the positions whose plan edges agree
   with where the window shows padding (`filter_step`). An episode starts at the plan's corner
   (SPEC §2). It is the handcrafted policy's dead reckoning with the window's shift read by a
-  learned head; it ignores what the built cells could add (`agents.belief_filter`).
+  learned head; it ignores what the built cells could add (`agents.research.belief_filter`).
 - **mapping filter** (`brick_map`): the same moves and padding on a joint belief over rows and
   columns, which also maps the bricks the robot laid under its belief and weighs each position
-  by how well the window's bricks match that map (`agents.belief_map`, `MappingBeliefQNetwork`):
+  by how well the window's bricks match that map (`agents.research.belief_map`, `MappingBeliefQNetwork`):
   SLAM with distributions.
-- **learned**: the position head of `agents.auxiliary`, on the GRU state, trained by the
+- **learned**: the position head of `agents.research.drqn_aux`, on the GRU state, trained by the
   position loss on the true position; a distribution over rows and one over columns.
 
 With `todo_compass` the Q head also reads where a map of the robot's drops under its belief leaves
@@ -54,13 +54,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.auxiliary import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losses, move_directions
-from agents.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
-from agents.config import option
-from agents.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.belief_filter import belief_cross_entropy, expected_design_window, filter_step
-from agents.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
-from agents.pqn import PQNConfig, td_loss
+from agents.research.drqn_aux import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losses, move_directions
+from agents.research.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
+from agents.training.config import option
+from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.research.belief_filter import belief_cross_entropy, expected_design_window, filter_step
+from agents.research.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
+from agents.learners.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
@@ -243,7 +243,7 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
                                  "the move loss: move_coef > 0); off: the position head (position_coef > 0)")
     brick_map: bool = option(False, "the filter also maps the bricks it laid under its belief and weighs positions by "
                              "how well the window's bricks match the map, with a joint belief over rows and columns "
-                             "(agents/belief_map.py)")
+                             "(agents/research/belief_map.py)")
     brick_evidence: float = option(1.0, "with brick_map, the weight of the window's bricks as evidence of the "
                                    "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
                                    "tempers it, as the window shows the same bricks step after step)", low=0, high=1)

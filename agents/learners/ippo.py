@@ -17,8 +17,8 @@ and a world auto-resets when its episode ends for all (`dones["__all__"]`).
 - `evaluate_team(params, ...) -> snac_jax.evaluation.TaskResult`: the protocol's episodes, run by the team.
 
 `make_train(config)` returns the whole run as a pure `train(key)`. The module forks alone: besides
-`snac_jax` it reads only the library modules `agents.config`, `agents.inputs`, `agents.networks`
-and `agents.targets`.
+`snac_jax` it reads only the library modules `agents.training.config`, `agents.common.inputs`, `agents.common.networks`
+and `agents.common.targets`.
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.config import TrainConfig, option
-from agents.inputs import ObsLayout
-from agents.networks import ObservationEncoder, ScannedRNN, mlp_head
-from agents.targets import gae, truncation_values
+from agents.training.config import TrainConfig, option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head
+from agents.common.targets import gae, truncation_values
 from snac_jax import multi
 from snac_jax.multi.rules import max_robots
 

@@ -4,9 +4,9 @@ Each file has one schema, defined here once, and every place that reads the file
 `load` (or `read_config`'s use of `config_json`), so a damaged or hand-edited file fails with one
 line naming the file and the field, whoever reads it:
 
-- `config.json`: the fields of the run's config class (`agents.config.option`: type and bounds),
+- `config.json`: the fields of the run's config class (`agents.training.config.option`: type and bounds),
   checked from the same declarations that validate a config made in code;
-- `run.json`: the options of `snac train` kept for a resume (`agents.cli.RUN_OPTIONS`);
+- `run.json`: the options of `snac train` kept for a resume (`agents.training.cli.RUN_OPTIONS`);
 - `cell.json`: what `snac table` keeps beside them (`agents.table.plan.Cell.record`);
 - `eval.json`: the protocol's results, one row per training seed (`snac_jax.evaluation.TaskResult`),
   every IoU in [0, 1]; `bench/results/handcrafted.json` has the same rows;
@@ -26,7 +26,7 @@ from snac_jax.tasks import MAX_SEED, TASKS
 
 
 class _Declared(Spec):
-    """A config field, checked by its declaration (`agents.config.FieldSpec`), in its words."""
+    """A config field, checked by its declaration (`agents.training.config.FieldSpec`), in its words."""
 
     def __init__(self, spec):
         self.spec = spec
@@ -51,8 +51,8 @@ class _ConfigJson(Spec):
         return "an object"
 
     def check(self, value: Any, field: str) -> None:
-        from agents.config import field_specs
-        from agents.registry import ALGORITHMS, config_class
+        from agents.training.config import field_specs
+        from agents.training.registry import ALGORITHMS, config_class
 
         Object({"algorithm": Str(ALGORITHMS)}, {"task": Anything()}).check(
             {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field)
@@ -71,7 +71,7 @@ CONFIG_JSON = _ConfigJson()
 RUN_JSON = Object({}, {"eval_episodes": Nullable(Int(1)), "no_eval": Bool()})
 
 SWEEP_JSON = Object({"names": ListOf(Str()), "arms": ListOf(ListOf(Number()))})
-"""A sweep's grid (`agents.sweep`): the swept settings' names and one list of values per arm."""
+"""A sweep's grid (`agents.training.sweep`): the swept settings' names and one list of values per arm."""
 
 PROTOCOL = Object({"static_episodes": Int(1), "episodes_per_test_design": Int(1)})
 

@@ -1,9 +1,9 @@
 """`pqn-belief`'s filter with a map of the bricks it laid (`brick_map=True`), as pure functions each
 checked by hand in tests/test_belief_map.py: the belief is joint over rows and columns, and the
-window's bricks are evidence of where the robot stands (`MappingBeliefQNetwork` in agents/belief.py
+window's bricks are evidence of where the robot stands (`MappingBeliefQNetwork` in agents/research/pqn_belief.py
 runs it).
 
-Why: the row and column filters of `agents.belief_filter` correct the belief only where the window
+Why: the row and column filters of `agents.research.belief_filter` correct the belief only where the window
 reaches off the plan. Away from the plan's edges every position agrees with the padding, so a
 misread stride leaves the robot a cell or two sideways for the rest of the episode (what
 pqn-belief's notes measure on 2d-dynamic-sparse). The bricks it laid are the rest of what the
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.belief_filter import UNLIKELY, move_belief, padding_agrees
+from agents.research.belief_filter import UNLIKELY, move_belief, padding_agrees
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
 WINDOW_NOISE = 0.25  # the variance added to the map's: a brick the map does not expect costs 1 / (2 * 0.25) = 2 nats
@@ -122,7 +122,7 @@ def brick_log_likelihood(window: jax.Array, mean: jax.Array, var: jax.Array) -> 
 
 def correct_joint(belief: jax.Array, padding: jax.Array, log_likelihood: jax.Array) -> jax.Array:
     """Bayes' rule on the joint belief: the padding's near-certain likelihood along the window's
-    centre column (rows) and centre row (columns), as `agents.belief_filter.correct_belief`, times the
+    centre column (rows) and centre row (columns), as `agents.research.belief_filter.correct_belief`, times the
     bricks' likelihood, after a floor of `UNLIKELY` under every position."""
     _, rows, cols = belief.shape
     wr, wc = padding.shape[1:]

@@ -25,7 +25,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from agents.config import TrainConfig, field_specs
+from agents.training.config import TrainConfig, field_specs
 from snac_jax.atomic import atomic_write_text
 
 SWEEP_FILE = "sweep.json"
@@ -124,7 +124,7 @@ def learner_for(config: TrainConfig, values: dict[str, jax.Array]):
     A learner's constructor does concrete work (it makes the environment, samples the design
     bank, reads the designs' heights); under `ensure_compile_time_eval` that work runs eagerly
     as it would outside, and only what the swept values reach is traced."""
-    from agents.registry import build_algorithm
+    from agents.training.registry import build_algorithm
 
     with jax.ensure_compile_time_eval():
         return build_algorithm(traced_config(config, values))
@@ -153,7 +153,7 @@ def save(sweep: Sweep, out_dir: Path) -> None:
 
 def load(out_dir: Path) -> Sweep | None:
     """The sweep of the run in `out_dir`, or None for a run of one arm."""
-    from agents import schemas
+    from agents.training import schemas
 
     path = out_dir / SWEEP_FILE
     if not path.is_file():

@@ -1,10 +1,10 @@
-"""Rainbow (Hessel et al. 2018) as the paper's appendix configures it: the DQN of `agents.dqn` with
+"""Rainbow (Hessel et al. 2018) as the paper's appendix configures it: the DQN of `agents.learners.dqn` with
 a distributional (C51) dueling head of 101 atoms on [-5, 35], factorised noisy layers (sigma0 = 0.1)
 that explore instead of epsilon-greedy, 3-step returns, double-Q bootstrap actions, and prioritised
 replay (priority exponent 0.5; importance-sampling exponent 0.4, annealed to 1 over training) in a
 buffer of 10^4 steps; learning rate 5e-5 in 1D and 2D, 1e-4 in 3D (agents/tuned/rainbow.toml).
 
-The replay loop (`agents.offpolicy`), epsilon-greedy acting, the replayed windows (previous-step
+The replay loop (`agents.common.offpolicy`), epsilon-greedy acting, the replayed windows (previous-step
 inputs, episode boundaries, the n steps to bootstrap from) and the greedy policy are DQN's. Rainbow
 changes the network (`make_network`: noisy layers, `atoms` logits per action), the replay
 (`make_buffer`: flashbax's prioritised trajectory buffer), how Q-values are read (`q_values`: each
@@ -14,7 +14,7 @@ noise-free mean network for the greedy policy, `action_scores`) and the learning
 target copy are the replay loop's `apply_gradients`).
 
 The loss of a sampled window is the KL divergence from the projected n-step target distribution
-(`agents.targets.categorical_projection`) to the predicted one, weighted by the window's
+(`agents.common.targets.categorical_projection`) to the predicted one, weighted by the window's
 importance-sampling weight; that KL is the window's new priority, as in Rainbow. With
 `cross_entropy_priority` the priority is the cross-entropy instead (the KL plus the target's
 entropy, which has no gradient), as Dopamine and the paper's own code prioritise: a window whose
@@ -33,11 +33,11 @@ import numpy as np
 import optax
 from jax.scipy.special import xlogy
 
-from agents.config import option
-from agents.dqn import DQN, DQNConfig
-from agents.offpolicy import RunnerState, Step
-from agents.networks import QNetwork
-from agents.targets import categorical_projection, n_step_returns
+from agents.training.config import option
+from agents.learners.dqn import DQN, DQNConfig
+from agents.common.offpolicy import RunnerState, Step
+from agents.common.networks import QNetwork
+from agents.common.targets import categorical_projection, n_step_returns
 
 # Added to every priority: a window whose KL is 0 would otherwise never be drawn again.
 PRIORITY_FLOOR = 1e-6

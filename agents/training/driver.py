@@ -2,7 +2,7 @@
 seeds and sharded over devices, with a progress bar, `metrics.jsonl`, a checkpoint after each
 chunk, resume, the learning curve and the final evaluation.
 
-An algorithm object (e.g. `agents.ppo.PPO`) provides, as pure functions:
+An algorithm object (e.g. `agents.learners.ppo.PPO`) provides, as pure functions:
 `init(key) -> state` (state has `params` and a per-world `worlds` field), `train_chunk(state,
 env_params, n) -> (state, metrics)` (metrics stacked over the n iterations, with `episodes`,
 `iou_sum`, `return_sum` and losses), `policy(params) -> Policy`, plus `env_params`,
@@ -37,13 +37,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-from agents import checkpoint
-from agents.chunk_programs import ChunkPrograms, compiles_ahead
-from agents.config import TrainConfig, save_config
-from agents import sweep, trackers
-from agents.registry import build_algorithm
-from agents.sweep import Sweep
-from agents.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
+from agents.training import checkpoint
+from agents.training.chunk_programs import ChunkPrograms, compiles_ahead
+from agents.training.config import TrainConfig, save_config
+from agents.training import sweep, trackers
+from agents.training.registry import build_algorithm
+from agents.training.sweep import Sweep
+from agents.training.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
 from snac_jax.atomic import atomic_write_text
 
 def seed_keys(config: TrainConfig, arms: int = 1) -> jax.Array:
@@ -56,7 +56,7 @@ def seed_keys(config: TrainConfig, arms: int = 1) -> jax.Array:
 def per_run(algorithm, swept: Sweep | None, fn: Callable, in_axes) -> Callable:
     """`fn(learner, *args)` vmapped over the run axis (`in_axes` for `args`): over seeds with
     `algorithm`, or over a sweep's arms x seeds with each run's learner built from its own traced
-    swept values (`agents.sweep`), so one compiled function trains every arm."""
+    swept values (`agents.training.sweep`), so one compiled function trains every arm."""
     if swept is None:
         return jax.vmap(lambda *args: fn(algorithm, *args), in_axes=in_axes)
     values = swept.run_values(algorithm.config.seeds)
@@ -261,13 +261,13 @@ def train(
     """Train `config` into `out_dir` (or continue the run there with `resume=True`).
 
     Returns `(algorithm, state)`. A new run needs a new or empty `out_dir`; `run_options` (JSON)
-    are stored with it (`checkpoint.read_run_options`). With `swept` (`agents.sweep`), every arm
+    are stored with it (`checkpoint.read_run_options`). With `swept` (`agents.training.sweep`), every arm
     of the grid trains beside the others in one compiled function, the state's leading axis
     being arms x seeds; a resume reads the grid back from the run. The run directory is locked for the
     call (`checkpoint.lock_run`). `stop_after_chunks` ends early after that many chunks of this
     call (the tests' stand-in for a killed run). Across processes (`jax.distributed`), process 0
     checks, locks and writes the run directory; the others only train and checkpoint with it.
-    `log` (`agents.trackers.TRACKERS`) also sends each chunk's metrics to TensorBoard or wandb.
+    `log` (`agents.training.trackers.TRACKERS`) also sends each chunk's metrics to TensorBoard or wandb.
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0

@@ -1,4 +1,4 @@
-"""DRQN: the DQN of `agents.dqn` with an LSTM core (paper: 256 units), trained on replayed
+"""DRQN: the DQN of `agents.learners.dqn` with an LSTM core (paper: 256 units), trained on replayed
 sequences whose first `burn_in` steps only warm the recurrent state (its carry is cut from the
 gradient), as in R2D2. Everything else (acting, replay, targets, the greedy policy) is the DQN's.
 """
@@ -8,8 +8,8 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
-from agents.config import option
-from agents.dqn import DQN, DQNConfig
+from agents.training.config import option
+from agents.learners.dqn import DQN, DQNConfig
 
 
 @dataclasses.dataclass(frozen=True)

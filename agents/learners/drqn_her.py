@@ -1,5 +1,5 @@
 """DRQN + hindsight relabelling (paper: "the transitions ... relabeled with D replaced by the grid
-at the terminal step; both stored"), on top of `agents.drqn`.
+at the terminal step; both stored"), on top of `agents.learners.drqn`.
 
 Each stored step also records where its brick landed and the cell's height (`drop_record`), and
 when a world's episode ends its final grid goes into a small ring per world (`FinalGrids`). A
@@ -23,9 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from agents.config import option
-from agents.offpolicy import RunnerState, Step, Worlds
-from agents.drqn import DRQN, DRQNConfig
+from agents.training.config import option
+from agents.common.offpolicy import RunnerState, Step, Worlds
+from agents.learners.drqn import DRQN, DRQNConfig
 from snac_jax.config import EnvConfig
 from snac_jax.transition import drop_reward
 

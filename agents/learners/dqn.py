@@ -1,11 +1,11 @@
 """DQN: acting epsilon-greedily into a replay buffer on device and learning from sampled windows,
-in one jitted loop (`agents.offpolicy` holds the loop, the buffer and the sampling). DRQN
-(`agents.drqn`), DRQN + hindsight (`agents.hindsight`) and Rainbow (`agents.rainbow`) extend the
+in one jitted loop (`agents.common.offpolicy` holds the loop, the buffer and the sampling). DRQN
+(`agents.learners.drqn`), DRQN + hindsight (`agents.learners.drqn_her`) and Rainbow (`agents.learners.rainbow`) extend the
 `DQN` class here by overriding its steps.
 
 The Q-network reads a stack of the last `frame_stack` inputs and, with DRQN, runs an LSTM whose
 burn-in steps only warm its state (their output carry is cut from the gradient). Targets are
-n-step returns (`agents.targets.n_step_targets`) bootstrapped from the target network, which is a
+n-step returns (`agents.common.targets.n_step_targets`) bootstrapped from the target network, which is a
 copy of the online network taken every `target_update_interval` gradient steps.
 """
 
@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from agents.config import option
-from agents.networks import QNetwork, stack_frames
-from agents.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
-from agents.targets import n_step_targets
+from agents.training.config import option
+from agents.common.networks import QNetwork, stack_frames
+from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
+from agents.common.targets import n_step_targets
 
 
 @dataclasses.dataclass(frozen=True)

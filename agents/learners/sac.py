@@ -1,5 +1,5 @@
 """Soft Actor-Critic for discrete actions (Christodoulou 2019, "Soft Actor-Critic for Discrete
-Action Settings"), on the on-device replay loop of `agents.offpolicy`.
+Action Settings"), on the on-device replay loop of `agents.common.offpolicy`.
 
 A categorical actor and two critics (each a Q-value per action) with Polyak-averaged target
 copies; the temperature alpha is learned (as log alpha) so that the policy's entropy tends to a
@@ -32,11 +32,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from agents.config import option
-from agents.inputs import ObsLayout
-from agents.networks import ObservationEncoder, scaled_init
-from agents.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
-from agents.targets import n_step_targets
+from agents.training.config import option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import ObservationEncoder, scaled_init
+from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
+from agents.common.targets import n_step_targets
 
 PARTS = ("actor", "critic", "log_alpha")  # what `params` holds; each part has its own Adam
 

@@ -1,7 +1,7 @@
 """Acting into a replay buffer on device and learning from windows sampled from it, in one jitted
-loop: what the Q-learners (`agents.dqn` and its extensions) and SAC (`agents.sac`) share.
+loop: what the Q-learners (`agents.learners.dqn` and its extensions) and SAC (`agents.learners.sac`) share.
 
-`ReplayLearner(config)`'s methods are pure and plug into the shared driver (`agents.driver`):
+`ReplayLearner(config)`'s methods are pure and plug into the shared driver (`agents.training.driver`):
 
 - `init(key) -> RunnerState` for one seed;
 - `update(state, env_params)`: every world acts for `rollout_steps` steps (`act`, the learner's
@@ -15,7 +15,7 @@ A learner subclass supplies its networks and optimiser (in `__init__`, after thi
 `init_params`, `action_scores`, `act`, `loss`, `update_target` and `acting_metrics`; it may replace
 the replay (`make_buffer`), take more keys to act with (`acting_keys`), and a gradient step of its
 own can reuse the optimiser step and target update (`apply_gradients`), as Rainbow's prioritised
-replay does (`agents.rainbow`).
+replay does (`agents.learners.rainbow`).
 
 Replay is a flashbax trajectory buffer on device: one row per world, time along the row, each
 entry a `Step`. A sample is `batch_size` windows of `sample_length` consecutive steps of one world
@@ -40,9 +40,9 @@ import numpy as np
 import optax
 from flax import struct
 
-from agents.config import TrainConfig, option
-from agents.inputs import ObsLayout
-from agents.networks import frames_with_history
+from agents.training.config import TrainConfig, option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import frames_with_history
 from snac_jax.policy import Policy
 
 

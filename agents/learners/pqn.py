@@ -3,12 +3,12 @@ with neither replay buffer nor target network, made stable by LayerNorm in the Q
 made fast by many vectorised worlds, trained end-to-end inside `jit`, PureJaxRL-style.
 
 One update: every world acts epsilon-greedily for `rollout_steps` steps (epsilon decays linearly),
-the rollout's Q(lambda) returns are computed (`agents.targets.q_lambda`), then `update_epochs`
+the rollout's Q(lambda) returns are computed (`agents.common.targets.q_lambda`), then `update_epochs`
 passes over `num_minibatches` minibatches of worlds regress Q(s, a) on them, as PPO's epochs do.
 PQN-RNN (`recurrent=True`, the default) has a GRU core and learns on each world's whole
 rollout from the carry it had at the rollout's start, as recurrent PPO does.
 
-`PQN(config)`'s methods are pure and plug into the shared driver (`agents.driver`): `init`,
+`PQN(config)`'s methods are pure and plug into the shared driver (`agents.training.driver`): `init`,
 `rollout`, `update`, `train_chunk` and `policy` (the greedy policy the evaluator runs).
 `make_train(config)` returns the whole run as a pure `train(key)`.
 
@@ -21,8 +21,8 @@ limit ends the return as a termination does: the observation holds the step coun
 part of the task, and the bootstrap reads a state (the count at the limit) no update trains on.
 DRQN and Rainbow treat the limit so.
 
-The module forks alone: besides `snac_jax` it reads only the library modules `agents.config`,
-`agents.inputs`, `agents.networks`, `agents.safe_drops` and `agents.targets`.
+The module forks alone: besides `snac_jax` it reads only the library modules `agents.training.config`,
+`agents.common.inputs`, `agents.common.networks`, `agents.common.safe_drops` and `agents.common.targets`.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.config import TrainConfig, option
-from agents.inputs import ObsLayout
-from agents.networks import LayerNormQNetwork
-from agents.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
-from agents.targets import q_lambda, truncation_values
+from agents.training.config import TrainConfig, option
+from agents.common.inputs import ObsLayout
+from agents.common.networks import LayerNormQNetwork
+from agents.common.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
+from agents.common.targets import q_lambda, truncation_values
 from snac_jax.policy import Policy
 
 
@@ -76,7 +76,7 @@ class PQNConfig(TrainConfig):
     stagger_starts: bool = option(True, "start each world a random number (up to an episode) of random steps in, "
                                   "so that the worlds' rollouts hold different parts of their episodes")
     safe_drops: bool = option(False, "never drop on the robot's last free neighbour, read from the window: that drop "
-                              "walls it in under the obstacle rule (agents.safe_drops)")
+                              "walls it in under the obstacle rule (agents.common.safe_drops)")
 
     def check(self) -> None:
         if self.safe_drops:

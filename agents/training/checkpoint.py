@@ -1,5 +1,5 @@
 """Run directories: orbax checkpoints of the runner state and the run's config.json
-(`agents.trained` loads a trained policy back from one).
+(`agents.training.trained` loads a trained policy back from one).
 
 A run directory holds `config.json`, `run.json` (the caller's options, e.g. the CLI's evaluation
 settings, restored on resume), `metrics.jsonl`, `checkpoints/<chunk>/` (orbax, written to a
@@ -23,8 +23,8 @@ from typing import Any, Iterator
 import jax
 import numpy as np
 
-from agents import schemas
-from agents.registry import config_from_json
+from agents.training import schemas
+from agents.training.registry import config_from_json
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
@@ -160,7 +160,7 @@ def write_run_options(directory: str | Path, options: dict[str, Any]) -> None:
 
 def read_run_options(directory: str | Path) -> dict[str, Any]:
     """The caller's options stored with the run (`{}` for runs that stored none), checked
-    against `agents.schemas.RUN_JSON` (a hand-edited `"no_eval": "false"` is refused, not read
+    against `agents.training.schemas.RUN_JSON` (a hand-edited `"no_eval": "false"` is refused, not read
     as true)."""
     path = Path(directory) / RUN_OPTIONS_FILE
     if not path.is_file():
@@ -375,7 +375,7 @@ def discard_after(directory: str | Path, chunk: int) -> list[int]:
 
 def read_config(directory: str | Path):
     """The config of run directory `directory` (its config.json, checked against
-    `agents.schemas.CONFIG_JSON`, then the config's own rules); errors name the file."""
+    `agents.training.schemas.CONFIG_JSON`, then the config's own rules); errors name the file."""
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"{directory} is not a training run directory: {CONFIG_FILE} is missing")

@@ -1,9 +1,9 @@
-"""The row and column histogram filter of `pqn-belief` (agents/belief.py), as pure functions each
+"""The row and column histogram filter of `pqn-belief` (agents/research/pqn_belief.py), as pure functions each
 checked by hand in tests/test_belief.py: the belief's moves, its correction by the window's
 padding, the design it expects around the robot and how well it knew the true position.
 
-Why a module of their own: the mapping filter (agents/belief_map.py) builds on the same moves
-and padding, and the network (agents/belief.py) reads both filters.
+Why a module of their own: the mapping filter (agents/research/belief_map.py) builds on the same moves
+and padding, and the network (agents/research/pqn_belief.py) reads both filters.
 """
 
 from __future__ import annotations

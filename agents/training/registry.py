@@ -16,10 +16,10 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from agents.config import TrainConfig
+from agents.training.config import TrainConfig
 from snac_jax.tasks import TASKS
 
-TUNED_DIR = Path(__file__).parent / "tuned"
+TUNED_DIR = Path(__file__).parents[1] / "tuned"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,23 +31,23 @@ class Entry:
 
 
 ALGORITHMS: dict[str, Entry] = {
-    "ppo": Entry("agents.ppo", "PPOConfig", "PPO", "PPO, with or without a GRU core (--[no-]recurrent)"),
-    "dqn": Entry("agents.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"),
-    "drqn": Entry("agents.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
-    "drqn-her": Entry("agents.hindsight", "DRQNHERConfig", "DRQNHER",
+    "ppo": Entry("agents.learners.ppo", "PPOConfig", "PPO", "PPO, with or without a GRU core (--[no-]recurrent)"),
+    "dqn": Entry("agents.learners.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"),
+    "drqn": Entry("agents.learners.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
+    "drqn-her": Entry("agents.learners.drqn_her", "DRQNHERConfig", "DRQNHER",
                       "DRQN + hindsight relabelling with the episode's final grid as the design"),
-    "pqn": Entry("agents.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
+    "pqn": Entry("agents.learners.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
                  "network (PQN-RNN or feed-forward: --[no-]recurrent)"),
-    "sac": Entry("agents.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
-    "rainbow": Entry("agents.rainbow", "RainbowConfig", "Rainbow",
+    "sac": Entry("agents.learners.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
+    "rainbow": Entry("agents.learners.rainbow", "RainbowConfig", "Rainbow",
                      "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
-    "ppo-privileged": Entry("agents.privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
+    "ppo-privileged": Entry("agents.research.ppo_privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
                             "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
-    "drqn-aux": Entry("agents.auxiliary", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
-    "pqn-aux": Entry("agents.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
-    "pqn-belief": Entry("agents.belief", "PQNBeliefConfig", "PQNBelief",
+    "drqn-aux": Entry("agents.research.drqn_aux", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
+    "pqn-aux": Entry("agents.research.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
+    "pqn-belief": Entry("agents.research.pqn_belief", "PQNBeliefConfig", "PQNBelief",
                         "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)"),
-    "ippo": Entry("agents.ippo", "IPPOConfig", "IPPO", "IPPO: shared-parameter PPO for several robots (snac_jax.multi); --robots N"),
+    "ippo": Entry("agents.learners.ippo", "IPPOConfig", "IPPO", "IPPO: shared-parameter PPO for several robots (snac_jax.multi); --robots N"),
 }
 
 

@@ -1,5 +1,5 @@
 """Factorised noisy layers (Fortunato et al. 2018, NoisyNet): exploration through learned
-parameter noise, for Rainbow's Q-network (`agents.networks.QNetwork` with `noisy`)."""
+parameter noise, for Rainbow's Q-network (`agents.common.networks.QNetwork` with `noisy`)."""
 
 from __future__ import annotations
 
@@ -52,5 +52,5 @@ class NoisyDense(nn.Module):
 
 
 def noisy_dense(sigma0: float, noise: bool, per_row: bool = False):
-    """A `agents.networks.Layer` of noisy layers: `(features, gain) -> NoisyDense` (its own init, no gain)."""
+    """A `agents.common.networks.Layer` of noisy layers: `(features, gain) -> NoisyDense` (its own init, no gain)."""
     return lambda features, gain: NoisyDense(features, sigma0=sigma0, noise=noise, per_row=per_row)

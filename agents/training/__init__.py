@@ -1,0 +1,1 @@
+"""The run machinery: configs, the registry, the driver, checkpoints, sweeps and `snac train`."""
