@@ -49,7 +49,14 @@ from flax import struct  # noqa: E402
 from bench.landmark_use import run_indices  # noqa: E402
 from snac_jax import episodes, metrics  # noqa: E402
 from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
-from snac_jax.evaluation import REPORT_EVAL_SEED, protocol_decide, protocol_episodes, protocol_start, require_episode_memory, run_episodes  # noqa: E402
+from snac_jax.evaluation import (
+    REPORT_EVAL_SEED,
+    protocol_decide,
+    protocol_episodes,
+    protocol_start,
+    require_episode_memory,
+    run_episodes,
+)  # noqa: E402
 from snac_jax.state import EnvState  # noqa: E402
 from snac_jax.tasks import make, task_spec  # noqa: E402
 
@@ -90,8 +97,9 @@ def _record(env, init, act, held, policy_params, env_params, keys, design_indice
         beliefs = jnp.zeros((num_steps + 1, rows, cols), jnp.float32)
         first = protocol_start(env, env_params, init, key, design_index, beliefs)
         state = first.state
-        final, states = episodes.scan_episode(env, env_params, decide, first, num_steps=num_steps,
-                                              record=lambda step: step.state)
+        final, states = episodes.scan_episode(
+            env, env_params, decide, first, num_steps=num_steps, record=lambda step: step.state
+        )
         _, policy_state, beliefs = final.agent
         beliefs = beliefs.at[final.state.time].set(held(policy_params, policy_state, final.obs))
         states = jax.tree.map(lambda s, rest: jnp.concatenate([s[None], rest]), state, states)
@@ -140,7 +148,7 @@ def episode_drops(grids, positions, bricks_used, beliefs, designs, pad, length: 
         filled[1:-1, 1:-1] = np.asarray(designs[t - 1]) > 0  # the design a change (SPEC §15) put in force
         cell = changed[0] - np.asarray(pad)
         d_row, d_col = (int(v) for v in cell - positions[t - 1])
-        moved = filled[1 + d_row: 1 + d_row + rows, 1 + d_col: 1 + d_col + cols]
+        moved = filled[1 + d_row : 1 + d_row + rows, 1 + d_col : 1 + d_col + cols]
         out.append((t, int(filled[1 + cell[0], 1 + cell[1]]), float((beliefs[t - 1] * moved).sum())))
     return np.asarray(out, np.float64).reshape(-1, 3)
 
@@ -151,10 +159,14 @@ def drop_tally(drops: list[np.ndarray]) -> dict[str, int]:
     fell in the first `EARLY` steps, and how many on-design drops the belief placed off it."""
     rows = np.concatenate([d for d in drops if len(d)] or [np.zeros((0, 3))])
     off, on = rows[rows[:, 1] == 0], rows[rows[:, 1] == 1]
-    return {"drops": len(rows), "on a brick already there": int((rows[:, 1] == -1).sum()),
-            "off the design": len(off), "off the design, believed off": int((off[:, 2] < OFF_DESIGN).sum()),
-            f"off the design, in the first {EARLY} steps": int((off[:, 0] <= EARLY).sum()),
-            "on the design, believed off": int((on[:, 2] < OFF_DESIGN).sum())}
+    return {
+        "drops": len(rows),
+        "on a brick already there": int((rows[:, 1] == -1).sum()),
+        "off the design": len(off),
+        "off the design, believed off": int((off[:, 2] < OFF_DESIGN).sum()),
+        f"off the design, in the first {EARLY} steps": int((off[:, 0] <= EARLY).sum()),
+        "on the design, believed off": int((on[:, 2] < OFF_DESIGN).sum()),
+    }
 
 
 def belief_numbers(belief: np.ndarray, position) -> tuple[float, int, tuple[int, int]]:
@@ -220,14 +232,23 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--run", type=Path, required=True, help="a `snac train pqn-belief` run directory")
     parser.add_argument("--out", type=Path, required=True, help="directory for the GIFs, PNGs and belief_episodes.json")
     parser.add_argument("--seed-index", type=int, default=0, help="the training seed whose policy plays (default 0)")
-    parser.add_argument("--arm", type=int, default=None,
-                        help="the arm of a sweep run (required for a sweep; a run of one arm has none)")
+    parser.add_argument(
+        "--arm", type=int, default=None, help="the arm of a sweep run (required for a sweep; a run of one arm has none)"
+    )
     parser.add_argument("--worst", type=positive_int, default=WORST, help=f"episodes drawn (default {WORST})")
-    parser.add_argument("--episodes", type=positive_int, default=None,
-                        help=f"episodes on a static design / per dynamic test design "
-                             f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
-    parser.add_argument("--eval-seed", type=seed, default=REPORT_EVAL_SEED,
-                        help=f"evaluation key (default {REPORT_EVAL_SEED}, the report key)")
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        help=f"episodes on a static design / per dynamic test design "
+        f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})",
+    )
+    parser.add_argument(
+        "--eval-seed",
+        type=seed,
+        default=REPORT_EVAL_SEED,
+        help=f"evaluation key (default {REPORT_EVAL_SEED}, the report key)",
+    )
     parser.add_argument("--fps", type=float, default=8.0, help="GIF frames per second (default 8)")
     return parser.parse_args(argv)
 
@@ -250,8 +271,9 @@ def analyse(args: argparse.Namespace) -> dict:
     dynamic = task_spec(config.task).dynamic
     count = args.episodes or (EPISODES_PER_TEST_DESIGN if dynamic else STATIC_EPISODES)
     env, params = make(config.task, **config.env_overrides)
-    setup = protocol_episodes(config.task, params, args.eval_seed, static_episodes=count,
-                              episodes_per_test_design=count)
+    setup = protocol_episodes(
+        config.task, params, args.eval_seed, static_episodes=count, episodes_per_test_design=count
+    )
     if args.worst > setup.num_episodes:
         raise ValueError(f"--worst must be in 1..{setup.num_episodes} (the episodes played), got {args.worst}")
     policy = trained.checkpoint_policy(env, args.run, index)
@@ -265,19 +287,40 @@ def analyse(args: argparse.Namespace) -> dict:
     for start in range(0, setup.num_episodes, batch_size):  # every played episode's drops, against its belief
         played_here = np.arange(start, min(start + batch_size, setup.num_episodes))
         batch = np.resize(played_here, batch_size)  # a short last batch filled out with its own episodes: one compile
-        played = jax.device_get(_record(env, policy.init, policy.act, algorithm.held_belief, policy.params,
-                                        setup.params, setup.keys[batch], jnp.asarray(setup.design_indices[batch]),
-                                        int(setup.params.max_steps_in_episode)))
+        played = jax.device_get(
+            _record(
+                env,
+                policy.init,
+                policy.act,
+                algorithm.held_belief,
+                policy.params,
+                setup.params,
+                setup.keys[batch],
+                jnp.asarray(setup.design_indices[batch]),
+                int(setup.params.max_steps_in_episode),
+            )
+        )
         for i, episode in enumerate(played_here.tolist()):
             one = jax.tree.map(lambda x: x[i], played)
-            drops.append(episode_drops(one.states.grid, one.states.position, one.states.bricks_used, one.beliefs,
-                                       one.states.design, env.config.pad, int(one.length)))
+            drops.append(
+                episode_drops(
+                    one.states.grid,
+                    one.states.position,
+                    one.states.bricks_used,
+                    one.beliefs,
+                    one.states.design,
+                    env.config.pad,
+                    int(one.length),
+                )
+            )
             if episode in drawn:
                 kept[episode] = one  # the drawn episodes, kept from the tally's recording
     recorded = jax.tree.map(lambda *parts: np.stack(parts), *[kept[episode] for episode in chosen.tolist()])
     if not np.array_equal(np.asarray(recorded.iou), np.asarray(scored.iou)[chosen]):
-        raise AssertionError(f"the replayed episodes {chosen.tolist()} end at IoU {np.asarray(recorded.iou).tolist()}, "
-                             f"the evaluator's at {np.asarray(scored.iou)[chosen].tolist()}")
+        raise AssertionError(
+            f"the replayed episodes {chosen.tolist()} end at IoU {np.asarray(recorded.iou).tolist()}, "
+            f"the evaluator's at {np.asarray(scored.iou)[chosen].tolist()}"
+        )
 
     rows = []
     for rank, episode in enumerate(chosen.tolist()):
@@ -295,27 +338,51 @@ def analyse(args: argparse.Namespace) -> dict:
         durations[-1] = max(durations[-1], 2000.0)  # hold the last frame
         save_gif(args.out / f"{stem}.gif", frames, durations_ms=durations)
         save_png(args.out / f"{stem}.png", frames[-1])
-        rows.append({"rank": rank + 1, "episode": episode, "design": design, "iou": float(recorded.iou[rank]),
-                     "length": length, "gif": f"{stem}.gif", "png": f"{stem}.png",
-                     "p_true": p_true, "argmax_distance": distance})
-        print(f"worst {rank + 1}: episode {episode} on {design}, IoU {rows[-1]['iou']:.3f}, {length} steps, "
-              f"final P(true position) {p_true[-1]:.3f}", file=sys.stderr)
+        rows.append(
+            {
+                "rank": rank + 1,
+                "episode": episode,
+                "design": design,
+                "iou": float(recorded.iou[rank]),
+                "length": length,
+                "gif": f"{stem}.gif",
+                "png": f"{stem}.png",
+                "p_true": p_true,
+                "argmax_distance": distance,
+            }
+        )
+        print(
+            f"worst {rank + 1}: episode {episode} on {design}, IoU {rows[-1]['iou']:.3f}, {length} steps, "
+            f"final P(true position) {p_true[-1]:.3f}",
+            file=sys.stderr,
+        )
 
     report = {
-        "run": str(args.run), "task": config.task, "algorithm": config.algorithm, "switches": config.switches,
-        "seed_index": seed_number, "arm": args.arm,
+        "run": str(args.run),
+        "task": config.task,
+        "algorithm": config.algorithm,
+        "switches": config.switches,
+        "seed_index": seed_number,
+        "arm": args.arm,
         "arm_settings": None if swept is None else swept.arm_settings(args.arm),
-        "eval_seed": args.eval_seed, "episodes_per_design": count, "episodes_played": setup.num_episodes,
+        "eval_seed": args.eval_seed,
+        "episodes_per_design": count,
+        "episodes_played": setup.num_episodes,
         "mean_iou": float(np.mean(scored.iou)),
-        "endings": None if env.config.design_change is not None else episode_endings(
-            scored.length, scored.bricks_used, np.asarray(setup.params.design_max_bricks)[np.asarray(scored.design_index)],
-            int(setup.params.max_steps_in_episode)),
+        "endings": None
+        if env.config.design_change is not None
+        else episode_endings(
+            scored.length,
+            scored.bricks_used,
+            np.asarray(setup.params.design_max_bricks)[np.asarray(scored.design_index)],
+            int(setup.params.max_steps_in_episode),
+        ),
         "drops": drop_tally(drops),
         "drops_note": f"every counted drop of the played episodes; believed off: the belief that chose it gave "
-                      f"its target under {OFF_DESIGN} chance of being a design cell",
+        f"its target under {OFF_DESIGN} chance of being a design cell",
         "belief": "joint over plan positions (brick_map)" if brick_map else "row marginal x column marginal",
         "steps": "entry t: after t steps; entries 0..length-1 chose the actions, entry length read the final "
-                 "observation",
+        "observation",
         "argmax_distance": "|row difference| + |column difference| in cells, argmax to the true position",
         "episodes": rows,
     }
@@ -333,8 +400,10 @@ def main(argv=None) -> int:
     endings = report["endings"]
     ended = "" if endings is None else "; ended: " + ", ".join(f"{name} {count}" for name, count in endings.items())
     print("drops: " + ", ".join(f"{name} {count}" for name, count in report["drops"].items()))
-    print(f"{len(report['episodes'])} of {report['episodes_played']} episodes drawn (mean IoU "
-          f"{report['mean_iou']:.3f}{ended}); wrote {args.out}/belief_episodes.json and a GIF and PNG per episode")
+    print(
+        f"{len(report['episodes'])} of {report['episodes_played']} episodes drawn (mean IoU "
+        f"{report['mean_iou']:.3f}{ended}); wrote {args.out}/belief_episodes.json and a GIF and PNG per episode"
+    )
     return 0
 
 

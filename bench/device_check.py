@@ -51,8 +51,13 @@ from bench.throughput import write_text  # noqa: E402  (atomic writes; does not 
 from snac_jax.cli.arguments import positive_int  # noqa: E402
 
 FULL = {"worlds": (4096, 65536, 1048576), "learn_worlds": (1024, 8192, 32768), "learn_updates": 5, "sweep_worlds": 1024}
-QUICK = {"worlds": (64,), "learn_worlds": (32,), "learn_updates": 2, "sweep_worlds": 32,
-         "tasks": ("1d-static-sin", "2d-dynamic-dense", "3d-static-sparse", "3d-dynamic-sparse")}
+QUICK = {
+    "worlds": (64,),
+    "learn_worlds": (32,),
+    "learn_updates": 2,
+    "sweep_worlds": 32,
+    "tasks": ("1d-static-sin", "2d-dynamic-dense", "3d-static-sparse", "3d-dynamic-sparse"),
+}
 LEARNERS = ("ppo", "pqn")
 LEARN_TASK = "1d-static-sin"
 STRATEGIES = ("loop", "select")
@@ -60,15 +65,29 @@ CALIBRATION_STEPS = 16
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, required=True, help="directory for device.json and device.md (nothing else is written)")
-    parser.add_argument("--quick", action="store_true", help="small batches and a tiny training: a smoke run of every part")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="directory for device.json and device.md (nothing else is written)"
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="small batches and a tiny training: a smoke run of every part"
+    )
     parser.add_argument("--tasks", nargs="+", default=None, help="tasks to step (default: all twelve)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="timed calls per point, median reported (>= 3)")
-    parser.add_argument("--point-s", type=float, default=20.0, help="longest predicted run of one stepping point (default 20)")
-    parser.add_argument("--budget-s", type=float, default=None,
-                        help="start no measurement after this many seconds (default 450; --quick 150)")
-    parser.add_argument("--skip", nargs="+", default=[], choices=("step", "learn", "readme", "gymnasium"), help="parts to leave out")
+    parser.add_argument(
+        "--point-s", type=float, default=20.0, help="longest predicted run of one stepping point (default 20)"
+    )
+    parser.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="start no measurement after this many seconds (default 450; --quick 150)",
+    )
+    parser.add_argument(
+        "--skip", nargs="+", default=[], choices=("step", "learn", "readme", "gymnasium"), help="parts to leave out"
+    )
     args = parser.parse_args(argv)
     if args.repeats < 3:
         parser.error("--repeats must be >= 3 (the median of at least three timed calls)")
@@ -133,13 +152,21 @@ def measure_stepping(report: Report, tasks: list[str], worlds: tuple[int, ...], 
                 key = jax.random.key(0)
                 try:
                     start = time.perf_counter()
-                    calibrate = random_rollout.lower(key, env, params, num_envs, CALIBRATION_STEPS, None, reset).compile()
+                    calibrate = random_rollout.lower(
+                        key, env, params, num_envs, CALIBRATION_STEPS, None, reset
+                    ).compile()
                     row["compile_s"] = round(time.perf_counter() - start, 2)
                     calibration_s = _median_seconds(calibrate, (key, params), args.repeats)
                     predicted = calibration_s * steps / CALIBRATION_STEPS
                     if predicted > args.point_s:
-                        report.add("step", {**row, "skipped": f"predicted {predicted:.0f} s > --point-s {args.point_s:g}",
-                                            "calibration_steps_per_s": num_envs * CALIBRATION_STEPS / calibration_s})
+                        report.add(
+                            "step",
+                            {
+                                **row,
+                                "skipped": f"predicted {predicted:.0f} s > --point-s {args.point_s:g}",
+                                "calibration_steps_per_s": num_envs * CALIBRATION_STEPS / calibration_s,
+                            },
+                        )
                         continue
                     full = random_rollout.lower(key, env, params, num_envs, steps, None, reset).compile()
                     # The calibration's 16 steps end no episode, so they miss what `loop` pays per reset:
@@ -149,15 +176,32 @@ def measure_stepping(report: Report, tasks: list[str], worlds: tuple[int, ...], 
                     episodes = int(jax.block_until_ready(full(key, params)).episodes)
                     first_s = time.perf_counter() - start
                     if first_s * args.repeats > args.point_s:
-                        report.add("step", {**row, "steps_per_s": num_envs * steps / first_s, "run_s": round(first_s, 4),
-                                            "episodes": episodes, "calls": 1})
+                        report.add(
+                            "step",
+                            {
+                                **row,
+                                "steps_per_s": num_envs * steps / first_s,
+                                "run_s": round(first_s, 4),
+                                "episodes": episodes,
+                                "calls": 1,
+                            },
+                        )
                         continue
                     seconds = _median_seconds(full, (key, params), args.repeats, warm=True)
                 except Exception as error:  # out of memory on this device: the row says so, the check goes on
-                    report.add("step", {**row, "skipped": f"{type(error).__name__}: {str(error).splitlines()[0][:160]}"})
+                    report.add(
+                        "step", {**row, "skipped": f"{type(error).__name__}: {str(error).splitlines()[0][:160]}"}
+                    )
                     continue
-                report.add("step", {**row, "steps_per_s": num_envs * steps / seconds, "run_s": round(seconds, 4),
-                                    "episodes": episodes})
+                report.add(
+                    "step",
+                    {
+                        **row,
+                        "steps_per_s": num_envs * steps / seconds,
+                        "run_s": round(seconds, 4),
+                        "episodes": episodes,
+                    },
+                )
 
 
 def measure_learning(report: Report, worlds: tuple[int, ...], updates: int, repeats: int) -> None:
@@ -180,8 +224,15 @@ def measure_learning(report: Report, worlds: tuple[int, ...], updates: int, repe
             train = train.lower(state, algorithm.env_params).compile()
             compile_s = time.perf_counter() - start
             seconds = _median_seconds(train, (state, algorithm.env_params), repeats)
-            report.add("learn", {**row, "rollout_steps": config.rollout_steps, "compile_s": round(compile_s, 2),
-                                 "env_steps_per_s": updates * config.steps_per_update / seconds})
+            report.add(
+                "learn",
+                {
+                    **row,
+                    "rollout_steps": config.rollout_steps,
+                    "compile_s": round(compile_s, 2),
+                    "env_steps_per_s": updates * config.steps_per_update / seconds,
+                },
+            )
 
 
 def measure_sweep(report: Report, num_envs: int, updates: int, repeats: int, arms: int = 8) -> None:
@@ -203,13 +254,21 @@ def measure_sweep(report: Report, num_envs: int, updates: int, repeats: int, arm
     seconds = {}
     for name, grid in (("one", None), ("sweep", swept)):
         state = initial_state(algorithm, None, grid)
-        chunk = jax.jit(per_run(algorithm, grid, lambda learner, s, p: learner.train_chunk(s, p, updates)[0], (0, None)))
+        chunk = jax.jit(
+            per_run(algorithm, grid, lambda learner, s, p: learner.train_chunk(s, p, updates)[0], (0, None))
+        )
         chunk = chunk.lower(state, algorithm.env_params).compile()
         seconds[name] = _median_seconds(chunk, (state, algorithm.env_params), repeats)
     steps = updates * config.steps_per_update
-    report.add("learn", {**row, "one_arm_env_steps_per_s": steps / seconds["one"],
-                         "sweep_env_steps_per_s": arms * steps / seconds["sweep"],
-                         "sweep_over_one_arm_time": seconds["sweep"] / seconds["one"]})
+    report.add(
+        "learn",
+        {
+            **row,
+            "one_arm_env_steps_per_s": steps / seconds["one"],
+            "sweep_env_steps_per_s": arms * steps / seconds["sweep"],
+            "sweep_over_one_arm_time": seconds["sweep"] / seconds["one"],
+        },
+    )
 
 
 def measure_readme_run(report: Report, quick: bool) -> None:
@@ -220,7 +279,17 @@ def measure_readme_run(report: Report, quick: bool) -> None:
         return
     scratch = Path(tempfile.mkdtemp(dir=report.out, prefix=".readme-run-"))
     tiny = ["--total-steps", "2048", "--num-envs", "16", "--eval-episodes", "2", "--chunks", "1"] if quick else []
-    command = [sys.executable, "-m", "snac_jax.cli", "train", "ppo", "--no-progress", "--out", str(scratch / "run"), *tiny]
+    command = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "ppo",
+        "--no-progress",
+        "--out",
+        str(scratch / "run"),
+        *tiny,
+    ]
     try:
         start = time.perf_counter()
         done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
@@ -230,7 +299,9 @@ def measure_readme_run(report: Report, quick: bool) -> None:
             return
         evaluation = json.loads((scratch / "run" / "eval.json").read_text())
         result = next(iter(evaluation.values()))
-        report.add("readme", {**row, "wall_s": round(wall, 1), "iou_mean": result["mean"], "episodes": result["episodes"]})
+        report.add(
+            "readme", {**row, "wall_s": round(wall, 1), "iou_mean": result["mean"], "episodes": result["episodes"]}
+        )
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -251,7 +322,9 @@ def measure_gymnasium(report: Report, num_envs: int, steps: int, repeats: int) -
         return
     vector = SNACVectorEnv(task, num_envs)
     vector.reset(seed=0)
-    actions = np.random.default_rng(0).integers(0, vector.single_action_space.n, size=(steps, num_envs)).astype(np.int32)
+    actions = (
+        np.random.default_rng(0).integers(0, vector.single_action_space.n, size=(steps, num_envs)).astype(np.int32)
+    )
 
     def loop():
         for a in actions:
@@ -268,22 +341,37 @@ def measure_gymnasium(report: Report, num_envs: int, steps: int, repeats: int) -
     key = jax.random.key(0)
     scan = random_rollout.lower(key, env, params, num_envs, steps).compile()
     scan_rate = num_envs * steps / _median_seconds(scan, (key, params), repeats)
-    report.add("gymnasium", {**row, "vector_env_steps_per_s": vector_rate, "scan_steps_per_s": scan_rate,
-                             "scan_over_vector": scan_rate / vector_rate})
+    report.add(
+        "gymnasium",
+        {
+            **row,
+            "vector_env_steps_per_s": vector_rate,
+            "scan_steps_per_s": scan_rate,
+            "scan_over_vector": scan_rate / vector_rate,
+        },
+    )
 
 
 def markdown(context: dict, parts: dict[str, list[dict]]) -> str:
-    lines = ["# Device check", "",
-             f"{context['device']} ({context['platform']}); jax {context['jax']}; commit {context['commit']}; "
-             f"{context['date']}; `{context['command']}`; {context.get('elapsed_s', 0):.0f} s in all. "
-             f"Medians of {context['repeats']} timed calls; `auto` resets by `{context['auto_reset']}` here.", ""]
+    lines = [
+        "# Device check",
+        "",
+        f"{context['device']} ({context['platform']}); jax {context['jax']}; commit {context['commit']}; "
+        f"{context['date']}; `{context['command']}`; {context.get('elapsed_s', 0):.0f} s in all. "
+        f"Medians of {context['repeats']} timed calls; `auto` resets by `{context['auto_reset']}` here.",
+        "",
+    ]
 
     def rate(value) -> str:
         return f"{value / 1e6:,.2f} M" if value is not None else ""
 
     if parts["step"]:
-        lines += ["## Stepping: env-steps/s, uniform-random actions, T = the step limit (resets counted)", "",
-                  "| task | worlds | loop | select | auto picks | episodes ended |", "|---|---:|---:|---:|---|---:|"]
+        lines += [
+            "## Stepping: env-steps/s, uniform-random actions, T = the step limit (resets counted)",
+            "",
+            "| task | worlds | loop | select | auto picks | episodes ended |",
+            "|---|---:|---:|---:|---|---:|",
+        ]
         points = {}
         for row in parts["step"]:
             points.setdefault((row["task"], row["num_envs"]), {})[row["reset"]] = row
@@ -294,42 +382,79 @@ def markdown(context: dict, parts: dict[str, list[dict]]) -> str:
                 if "steps_per_s" in row:
                     cells.append(rate(row["steps_per_s"]) + (" (one call)" if row.get("calls") == 1 else ""))
                 elif "calibration_steps_per_s" in row:
-                    cells.append(f"({rate(row['calibration_steps_per_s'])} over {CALIBRATION_STEPS} steps; {row['skipped']})")
+                    cells.append(
+                        f"({rate(row['calibration_steps_per_s'])} over {CALIBRATION_STEPS} steps; {row['skipped']})"
+                    )
                 else:
                     cells.append(row.get("skipped", ""))
             episodes = next((r["episodes"] for r in by_reset.values() if "episodes" in r), "")
-            lines.append(f"| {task} | {num_envs:,} | {cells[0]} | {cells[1] if len(cells) > 1 else ''} | "
-                         f"{context['auto_reset']} | {episodes} |")
+            lines.append(
+                f"| {task} | {num_envs:,} | {cells[0]} | {cells[1] if len(cells) > 1 else ''} | "
+                f"{context['auto_reset']} | {episodes} |"
+            )
     if parts["learn"]:
-        lines += ["", f"## Learning: env-steps/s with learning ({LEARN_TASK}, tuned settings but the worlds, one seed)", "",
-                  "| learner | worlds | rollout steps | compile s | env-steps/s |", "|---|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            f"## Learning: env-steps/s with learning ({LEARN_TASK}, tuned settings but the worlds, one seed)",
+            "",
+            "| learner | worlds | rollout steps | compile s | env-steps/s |",
+            "|---|---:|---:|---:|---:|",
+        ]
         for row in parts["learn"]:
             if "arms" in row:
                 continue
-            lines.append(f"| {row['algorithm']} | {row['num_envs']:,} | {row.get('rollout_steps', '')} | "
-                         f"{row.get('compile_s', '')} | {rate(row.get('env_steps_per_s')) or row.get('skipped', '')} |")
+            lines.append(
+                f"| {row['algorithm']} | {row['num_envs']:,} | {row.get('rollout_steps', '')} | "
+                f"{row.get('compile_s', '')} | {rate(row.get('env_steps_per_s')) or row.get('skipped', '')} |"
+            )
         for row in (r for r in parts["learn"] if "arms" in r):
-            lines += ["", f"A sweep of {row['arms']} learning rates ({row['algorithm']}, {row['num_envs']:,} worlds, one seed "
-                      "per arm) in one compiled chunk: " + (
-                          f"{row['sweep_over_one_arm_time']:.2f}x the time of one arm "
-                          f"({rate(row['sweep_env_steps_per_s'])} env-steps/s over all arms, one arm alone "
-                          f"{rate(row['one_arm_env_steps_per_s'])})" if "sweep_env_steps_per_s" in row else row["skipped"])]
+            lines += [
+                "",
+                f"A sweep of {row['arms']} learning rates ({row['algorithm']}, {row['num_envs']:,} worlds, one seed "
+                "per arm) in one compiled chunk: "
+                + (
+                    f"{row['sweep_over_one_arm_time']:.2f}x the time of one arm "
+                    f"({rate(row['sweep_env_steps_per_s'])} env-steps/s over all arms, one arm alone "
+                    f"{rate(row['one_arm_env_steps_per_s'])})"
+                    if "sweep_env_steps_per_s" in row
+                    else row["skipped"]
+                ),
+            ]
     for row in parts["readme"]:
-        lines += ["", "## The README's default run", "",
-                  f"`{row['command']}`: " + (f"{row['wall_s']} s from start to exit, greedy IoU {row['iou_mean']:.3f} "
-                                             f"over {row['episodes']} episodes" if "wall_s" in row else row["skipped"])]
+        lines += [
+            "",
+            "## The README's default run",
+            "",
+            f"`{row['command']}`: "
+            + (
+                f"{row['wall_s']} s from start to exit, greedy IoU {row['iou_mean']:.3f} "
+                f"over {row['episodes']} episodes"
+                if "wall_s" in row
+                else row["skipped"]
+            ),
+        ]
     for row in parts["gymnasium"]:
         lines += ["", "## Gymnasium vector env beside the jitted scan", ""]
-        lines.append(f"{row['task']}, {row['num_envs']:,} worlds x {row['steps']} steps: " + (
-            f"SNACVectorEnv {rate(row['vector_env_steps_per_s'])}, scan {rate(row['scan_steps_per_s'])} env-steps/s "
-            f"(scan / vector env = {row['scan_over_vector']:.1f})" if "scan_steps_per_s" in row else row["skipped"]))
+        lines.append(
+            f"{row['task']}, {row['num_envs']:,} worlds x {row['steps']} steps: "
+            + (
+                f"SNACVectorEnv {rate(row['vector_env_steps_per_s'])}, scan {rate(row['scan_steps_per_s'])} env-steps/s "
+                f"(scan / vector env = {row['scan_over_vector']:.1f})"
+                if "scan_steps_per_s" in row
+                else row["skipped"]
+            )
+        )
     return "\n".join(lines) + "\n"
 
 
 def commit() -> str:
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, cwd=ROOT).stdout
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, cwd=ROOT
+        ).stdout
         return head + (" (with uncommitted changes)" if dirty.strip() else "")
     except (OSError, subprocess.CalledProcessError):
         from importlib.metadata import version
@@ -350,15 +475,29 @@ def main(argv=None) -> int:
     tasks = args.tasks or list(sizes.get("tasks", TASKS))
     unknown = [t for t in tasks if t not in TASKS]
     if unknown:
-        print(f"device_check.py: error: unknown task(s) {', '.join(unknown)}; allowed: {', '.join(TASKS)}", file=sys.stderr)
+        print(
+            f"device_check.py: error: unknown task(s) {', '.join(unknown)}; allowed: {', '.join(TASKS)}",
+            file=sys.stderr,
+        )
         return 2
     device = jax.devices()[0]
-    context = {"device": getattr(device, "device_kind", str(device)) or platform.processor(), "platform": device.platform,
-               "cores": os.cpu_count(), "jax": jax.__version__, "commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-               "command": "python bench/device_check.py " + " ".join(sys.argv[1:] if argv is None else argv),
-               "repeats": args.repeats, "auto_reset": resolve_reset("auto"), "quick": args.quick}
+    context = {
+        "device": getattr(device, "device_kind", str(device)) or platform.processor(),
+        "platform": device.platform,
+        "cores": os.cpu_count(),
+        "jax": jax.__version__,
+        "commit": commit(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "command": "python bench/device_check.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "repeats": args.repeats,
+        "auto_reset": resolve_reset("auto"),
+        "quick": args.quick,
+    }
     report = Report(args.out, context, start, args.budget_s)
-    print(f"# device check on {context['device']} ({context['platform']}), jax {context['jax']}, budget {args.budget_s:.0f} s", flush=True)
+    print(
+        f"# device check on {context['device']} ({context['platform']}), jax {context['jax']}, budget {args.budget_s:.0f} s",
+        flush=True,
+    )
     if "step" not in args.skip:
         measure_stepping(report, tasks, sizes["worlds"], args)
     if "learn" not in args.skip:

@@ -65,15 +65,24 @@ def _record(env, init, act, held, inputs, policy_params, env_params, keys, desig
         policy_state, obs, position = episode.agent[1], episode.obs, episode.state.position
         belief = held(policy_params, policy_state, obs)
         hit = jnp.argmax(belief.reshape(-1)) == position[0] * cols + position[1]
-        return at(episode.state.time, record, (inputs(policy_params, policy_state, obs), position,
-                                               belief[position[0], position[1]], hit))
+        return at(
+            episode.state.time,
+            record,
+            (inputs(policy_params, policy_state, obs), position, belief[position[0], position[1]], hit),
+        )
 
     decide = protocol_decide(act, policy_params, lambda episode, action, record: keep(episode, record))
 
     def run(key, design_index):
         first = protocol_start(env, env_params, init, key, design_index, None)
-        step_shapes = jax.eval_shape(lambda: (inputs(policy_params, first.agent[1], first.obs), first.state.position,
-                                              jnp.float32(0), jnp.bool_(False)))
+        step_shapes = jax.eval_shape(
+            lambda: (
+                inputs(policy_params, first.agent[1], first.obs),
+                first.state.position,
+                jnp.float32(0),
+                jnp.bool_(False),
+            )
+        )
         record = jax.tree.map(lambda s: jnp.zeros((num_steps + 1,) + s.shape, s.dtype), step_shapes)
         first = first.replace(agent=first.agent[:2] + (record,))
         final = episodes.run_to_end(env, env_params, decide, first)
@@ -112,11 +121,16 @@ def score(p_true: np.ndarray, hit: np.ndarray, length: np.ndarray, num_steps: in
     edges = np.linspace(0, num_steps + 1, PARTS + 1)
 
     def summary(mask):
-        return ({"nll": float(nll[mask].mean()), "argmax_hit": float(hit[mask].mean()), "steps": int(mask.sum())}
-                if mask.any() else None)
+        return (
+            {"nll": float(nll[mask].mean()), "argmax_hit": float(hit[mask].mean()), "steps": int(mask.sum())}
+            if mask.any()
+            else None
+        )
 
-    return {"all": summary(valid),
-            "thirds": [summary(valid & (steps >= low) & (steps < high)) for low, high in zip(edges[:-1], edges[1:])]}
+    return {
+        "all": summary(valid),
+        "thirds": [summary(valid & (steps >= low) & (steps < high)) for low, high in zip(edges[:-1], edges[1:])],
+    }
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -125,22 +139,38 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, required=True, help="directory for filter_replay.json")
     parser.add_argument("--seed-index", type=int, default=None, help="one training seed (default: every seed)")
     parser.add_argument("--arm", type=int, default=None, help="the arm of a sweep run (required for a sweep)")
-    parser.add_argument("--weights", type=float, nargs="+", default=list(WEIGHTS),
-                        help=f"evidence weights of the bricks (default {' '.join(map(str, WEIGHTS))})")
-    parser.add_argument("--occupancy", action="store_true",
-                        help="in 3D, the replayed maps hold whether a cell has a brick, not how many "
-                             "(pqn-belief's brick_occupancy); 2D's always do")
-    parser.add_argument("--episodes", type=positive_int, default=None,
-                        help=f"episodes on a static design / per dynamic test design "
-                             f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
-    parser.add_argument("--eval-seed", type=seed, default=TUNING_EVAL_SEED,
-                        help=f"evaluation key (default {TUNING_EVAL_SEED}, the tuning key)")
+    parser.add_argument(
+        "--weights",
+        type=float,
+        nargs="+",
+        default=list(WEIGHTS),
+        help=f"evidence weights of the bricks (default {' '.join(map(str, WEIGHTS))})",
+    )
+    parser.add_argument(
+        "--occupancy",
+        action="store_true",
+        help="in 3D, the replayed maps hold whether a cell has a brick, not how many "
+        "(pqn-belief's brick_occupancy); 2D's always do",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        help=f"episodes on a static design / per dynamic test design "
+        f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})",
+    )
+    parser.add_argument(
+        "--eval-seed",
+        type=seed,
+        default=TUNING_EVAL_SEED,
+        help=f"evaluation key (default {TUNING_EVAL_SEED}, the tuning key)",
+    )
     return parser.parse_args(argv)
 
 
 def replay(args: argparse.Namespace) -> dict:
-    from agents.training import sweep, trained
     from agents.research.belief_map import drop_table
+    from agents.training import sweep, trained
     from agents.training.checkpoint import read_config
     from agents.training.registry import build_algorithm
     from snac_jax.atomic import atomic_write_json, check_writable
@@ -159,8 +189,9 @@ def replay(args: argparse.Namespace) -> dict:
     json_path = check_writable(args.out / "filter_replay.json", "--out")
     env, params = make(config.task, **config.env_overrides)
     count = args.episodes or (EPISODES_PER_TEST_DESIGN if task_spec(config.task).dynamic else STATIC_EPISODES)
-    setup = protocol_episodes(config.task, params, args.eval_seed, static_episodes=count,
-                              episodes_per_test_design=count)
+    setup = protocol_episodes(
+        config.task, params, args.eval_seed, static_episodes=count, episodes_per_test_design=count
+    )
     rows, cols = env.config.plan_shape
     num_steps = int(setup.params.max_steps_in_episode)
     drops, capped = drop_table(env.config), env.config.dim == 2 or args.occupancy
@@ -168,9 +199,20 @@ def replay(args: argparse.Namespace) -> dict:
     inputs, positions, held_p, held_hit, lengths, ious = [], [], [], [], [], []
     for _, index in indices:
         policy = trained.checkpoint_policy(env, args.run, index)
-        record, length, iou = jax.device_get(_record(
-            env, policy.init, policy.act, algorithm.held_belief, algorithm.filter_inputs, policy.params,
-            setup.params, setup.keys, jnp.asarray(setup.design_indices), num_steps))
+        record, length, iou = jax.device_get(
+            _record(
+                env,
+                policy.init,
+                policy.act,
+                algorithm.held_belief,
+                algorithm.filter_inputs,
+                policy.params,
+                setup.params,
+                setup.keys,
+                jnp.asarray(setup.design_indices),
+                num_steps,
+            )
+        )
         (step_inputs, position, p_true, hit) = record
         inputs.append(step_inputs)
         positions.append(position)
@@ -185,8 +227,10 @@ def replay(args: argparse.Namespace) -> dict:
 
     def scored(p_true, hit) -> dict:
         """`score` over every episode, and per training seed (its "all" part)."""
-        per_seed = {str(s): score(p_true[seed_of == s], hit[seed_of == s], length[seed_of == s], num_steps)["all"]
-                    for s, _ in indices}
+        per_seed = {
+            str(s): score(p_true[seed_of == s], hit[seed_of == s], length[seed_of == s], num_steps)["all"]
+            for s, _ in indices
+        }
         return {**score(p_true, hit, length, num_steps), "per_seed": per_seed}
 
     variants = {"held": scored(np.concatenate(held_p), np.concatenate(held_hit))}
@@ -194,11 +238,18 @@ def replay(args: argparse.Namespace) -> dict:
         p_true, hit = jax.device_get(_observe(inputs, position, jnp.float32(weight), rows, cols, drops, capped))
         variants[f"mapping, weight {weight:g}"] = scored(np.asarray(p_true), np.asarray(hit))
     report = {
-        "run": str(args.run), "task": config.task, "switches": config.switches, "brick_map": algorithm.config.brick_map,
+        "run": str(args.run),
+        "task": config.task,
+        "switches": config.switches,
+        "brick_map": algorithm.config.brick_map,
         "occupancy": capped,
-        "seed_indices": [s for s, _ in indices], "arm": args.arm, "eval_seed": args.eval_seed,
-        "episodes_per_design": count, "episodes": int(length.size),
-        "mean_iou": float(np.mean(np.concatenate(ious))), "mean_length": float(np.mean(length)),
+        "seed_indices": [s for s, _ in indices],
+        "arm": args.arm,
+        "eval_seed": args.eval_seed,
+        "episodes_per_design": count,
+        "episodes": int(length.size),
+        "mean_iou": float(np.mean(np.concatenate(ious))),
+        "mean_length": float(np.mean(length)),
         "nll": f"mean over steps 0..length of -log P(true position), P floored at {FLOOR:g}",
         "thirds": f"steps [0, {num_steps + 1}) cut into {PARTS} equal parts",
         "held": "the belief the policy read (its filter's row x column marginals, or a brick_map run's joint belief)",
@@ -209,8 +260,10 @@ def replay(args: argparse.Namespace) -> dict:
 
 
 def table(report: dict) -> str:
-    lines = ["| belief | NLL | NLL per seed | argmax on the truth | per seed | NLL by third of the step limit |",
-             "|---|---:|---|---:|---|---|"]
+    lines = [
+        "| belief | NLL | NLL per seed | argmax on the truth | per seed | NLL by third of the step limit |",
+        "|---|---:|---|---:|---|---|",
+    ]
     for name, row in report["variants"].items():
         thirds = ", ".join("—" if t is None else f"{t['nll']:.2f}" for t in row["thirds"])
         seeds = list(row["per_seed"].values())

@@ -36,8 +36,14 @@ from flax import struct  # noqa: E402
 
 from snac_jax import episodes, landmark_action, metrics  # noqa: E402
 from snac_jax.cli.arguments import positive_int, seed  # noqa: E402
-from snac_jax.evaluation import (REPORT_EVAL_SEED, ProtocolEpisodes, protocol_decide, protocol_episodes, protocol_start,  # noqa: E402
-                                 require_episode_memory)
+from snac_jax.evaluation import (
+    REPORT_EVAL_SEED,
+    ProtocolEpisodes,
+    protocol_decide,
+    protocol_episodes,
+    protocol_start,  # noqa: E402
+    require_episode_memory,
+)
 from snac_jax.tasks import make, task_spec  # noqa: E402
 
 STATIC_EPISODES = 100
@@ -101,7 +107,9 @@ def _rollout(env, init, act, policy_params, env_params, keys, design_indices) ->
     config = env.config
     (h, w), (pr, pc) = config.plan_shape, config.pad
 
-    decide = protocol_decide(act, policy_params, lambda episode, action, tally: tally_step(config, tally, episode.state, action))
+    decide = protocol_decide(
+        act, policy_params, lambda episode, action, tally: tally_step(config, tally, episode.state, action)
+    )
 
     def run(key, design_index):
         first = protocol_start(env, env_params, init, key, design_index, empty_tally(config.landmark_action))
@@ -111,7 +119,7 @@ def _rollout(env, init, act, policy_params, env_params, keys, design_indices) ->
             iou=metrics.iou(final.state),
             length=final.state.time,
             placed=config.landmark_action - final.state.landmarks_left,
-            new_cells=new[pr:pr + h, pc:pc + w],
+            new_cells=new[pr : pr + h, pc : pc + w],
             design_index=design_index,
             tally=final.agent[2],
         )
@@ -140,8 +148,7 @@ def run_indices(run: Path, swept, seeds: int, arm: int | None, seed_index: int |
         raise ValueError(f"--arm {arm} given, but {run} is not a sweep (it trained one arm): leave --arm out")
     if swept is not None and (arm is None or not 0 <= arm < swept.num_arms):
         got = "none given" if arm is None else f"got {arm}"
-        raise ValueError(f"{run} is a sweep of {swept.num_arms} arms: --arm must be in 0..{swept.num_arms - 1} "
-                         f"({got})")
+        raise ValueError(f"{run} is a sweep of {swept.num_arms} arms: --arm must be in 0..{swept.num_arms - 1} ({got})")
     if seed_index is not None and not 0 <= seed_index < seeds:
         raise ValueError(f"--seed-index must be in 0..{seeds - 1} for {run}, got {seed_index}")
     first = 0 if arm is None else arm * seeds
@@ -161,11 +168,18 @@ def episode_rows(result: LandmarkEpisodes, names: list[str]) -> list[dict]:
     for i in range(result.iou.shape[0]):
         t = jax.tree.map(lambda x: np.asarray(x[i]), result.tally)
         used = t.steps >= 0
-        rows.append({
-            "design": names[int(result.design_index[i])], "iou": float(result.iou[i]), "length": int(result.length[i]),
-            "attempts": int(t.attempts), "placed": int(result.placed[i]), "steps": t.steps[used].tolist(),
-            "cells": np.stack([t.rows[used], t.cols[used]], 1).tolist(), "on_design": t.on_design[used].tolist(),
-        })
+        rows.append(
+            {
+                "design": names[int(result.design_index[i])],
+                "iou": float(result.iou[i]),
+                "length": int(result.length[i]),
+                "attempts": int(t.attempts),
+                "placed": int(result.placed[i]),
+                "steps": t.steps[used].tolist(),
+                "cells": np.stack([t.rows[used], t.cols[used]], 1).tolist(),
+                "on_design": t.on_design[used].tolist(),
+            }
+        )
     return rows
 
 
@@ -220,17 +234,35 @@ def plot_heatmaps(maps: dict[str, np.ndarray], outline: np.ndarray | None, title
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", type=Path, required=True, help="a `snac train` run directory trained with landmark_action")
+    parser.add_argument(
+        "--run", type=Path, required=True, help="a `snac train` run directory trained with landmark_action"
+    )
     parser.add_argument("--out", type=Path, required=True, help="directory for landmark_use.json and landmark_use.png")
-    parser.add_argument("--seed-index", type=int, default=None,
-                        help="one training seed (default: every seed of the run, or of its --arm)")
-    parser.add_argument("--arm", type=int, default=None,
-                        help="the arm of a sweep run to analyse (required for a sweep; a run of one arm has none)")
-    parser.add_argument("--episodes", type=positive_int, default=None,
-                        help=f"episodes on a static design / per dynamic test design "
-                             f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})")
-    parser.add_argument("--eval-seed", type=seed, default=REPORT_EVAL_SEED,
-                        help=f"evaluation key (default {REPORT_EVAL_SEED}, the report key)")
+    parser.add_argument(
+        "--seed-index",
+        type=int,
+        default=None,
+        help="one training seed (default: every seed of the run, or of its --arm)",
+    )
+    parser.add_argument(
+        "--arm",
+        type=int,
+        default=None,
+        help="the arm of a sweep run to analyse (required for a sweep; a run of one arm has none)",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        help=f"episodes on a static design / per dynamic test design "
+        f"(default {STATIC_EPISODES} / {EPISODES_PER_TEST_DESIGN})",
+    )
+    parser.add_argument(
+        "--eval-seed",
+        type=seed,
+        default=REPORT_EVAL_SEED,
+        help=f"evaluation key (default {REPORT_EVAL_SEED}, the report key)",
+    )
     return parser.parse_args(argv)
 
 
@@ -243,16 +275,19 @@ def analyse(args: argparse.Namespace) -> dict:
     config = read_config(args.run)
     k = parse_switches(config.switches).get("landmark_action", 0)
     if not k:
-        raise ValueError(f"{args.run} was trained without landmark_action (switches {config.switches!r}): "
-                         "its policy has no placement action to analyse")
+        raise ValueError(
+            f"{args.run} was trained without landmark_action (switches {config.switches!r}): "
+            "its policy has no placement action to analyse"
+        )
     swept = sweep.load(args.run)
     indices = run_indices(args.run, swept, config.seeds, args.arm, args.seed_index)
     json_path = check_writable(args.out / "landmark_use.json", "--out")
     dynamic = task_spec(config.task).dynamic
     count = args.episodes or (EPISODES_PER_TEST_DESIGN if dynamic else STATIC_EPISODES)
     env, params = make(config.task, **config.env_overrides)
-    setup = protocol_episodes(config.task, params, args.eval_seed, static_episodes=count,
-                              episodes_per_test_design=count)
+    setup = protocol_episodes(
+        config.task, params, args.eval_seed, static_episodes=count, episodes_per_test_design=count
+    )
     names = list(setup.names)
     seeds, maps, rows_all = {}, {}, []
     shared = None  # the seeds of one arm share the network: the first's functions compile once for all
@@ -269,19 +304,31 @@ def analyse(args: argparse.Namespace) -> dict:
         rows_all += rows
         seeds[str(seed_number)] = {**summarize(rows, k), "episodes_detail": rows}
         maps[f"seed {seed_number}"] = np.asarray(result.new_cells).sum(0)
-        print(f"seed {seed_number}: {seeds[str(seed_number)]['mean_placed']:.2f} placed per episode, "
-              f"IoU {seeds[str(seed_number)]['mean_iou']:.3f}", file=sys.stderr)
+        print(
+            f"seed {seed_number}: {seeds[str(seed_number)]['mean_placed']:.2f} placed per episode, "
+            f"IoU {seeds[str(seed_number)]['mean_iou']:.3f}",
+            file=sys.stderr,
+        )
     if len(maps) > 1:
         maps["pooled"] = sum(maps.values())
     outline = None if dynamic else np.asarray(setup.params.designs[0]) > 0
     report = {
-        "run": str(args.run), "task": config.task, "algorithm": config.algorithm, "switches": config.switches,
-        "arm": args.arm, "arm_settings": None if swept is None else swept.arm_settings(args.arm),
-        "landmark_action": k, "eval_seed": args.eval_seed, "episodes_per_design": count, "designs": names,
-        "step_origin": 0, "on_design": "against the design in force at the placement's step",
+        "run": str(args.run),
+        "task": config.task,
+        "algorithm": config.algorithm,
+        "switches": config.switches,
+        "arm": args.arm,
+        "arm_settings": None if swept is None else swept.arm_settings(args.arm),
+        "landmark_action": k,
+        "eval_seed": args.eval_seed,
+        "episodes_per_design": count,
+        "designs": names,
+        "step_origin": 0,
+        "on_design": "against the design in force at the placement's step",
         "heatmap": "landmark cells per plan position, summed over episodes; "
-                   + ("outline: the task's design" if outline is not None else "no outline: designs vary by episode"),
-        "pooled": summarize(rows_all, k), "seeds": seeds,
+        + ("outline: the task's design" if outline is not None else "no outline: designs vary by episode"),
+        "pooled": summarize(rows_all, k),
+        "seeds": seeds,
     }
     atomic_write_json(json_path, report)
     arm = "" if swept is None else f", arm {args.arm} ({swept.label(args.arm)})"
@@ -298,9 +345,11 @@ def main(argv=None) -> int:
         print(f"landmark_use.py: error: {error}", file=sys.stderr)
         return 2
     pooled = report["pooled"]
-    print(f"{pooled['episodes']} episodes: {pooled['mean_placed']:.2f} landmarks placed per episode, "
-          f"{pooled['fraction_with_placement']:.0%} of episodes place one; wrote {args.out}/landmark_use.json, "
-          f"{args.out}/landmark_use.png")
+    print(
+        f"{pooled['episodes']} episodes: {pooled['mean_placed']:.2f} landmarks placed per episode, "
+        f"{pooled['fraction_with_placement']:.0%} of episodes place one; wrote {args.out}/landmark_use.json, "
+        f"{args.out}/landmark_use.png"
+    )
     return 0
 
 

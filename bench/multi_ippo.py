@@ -30,8 +30,12 @@ RECORD = ROOT / "bench" / "results" / "table" / "multi" / "ippo"
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--record", type=Path, default=RECORD, help=f"the preset's committed cells (default {RECORD.relative_to(ROOT)})")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--record", type=Path, default=RECORD, help=f"the preset's committed cells (default {RECORD.relative_to(ROOT)})"
+    )
     parser.add_argument("--out", type=Path, required=True, help="directory for multi_ippo.json and .md")
     args = parser.parse_args(argv)
     if not args.record.is_dir() or not sorted(args.record.glob("*.json")):
@@ -47,29 +51,42 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def row(path: Path) -> dict:
     """One cell's row, from its raw copy (checked against its schema on the way in)."""
-    from agents.training import schemas
     from agents.table.statistics import cell_summary
+    from agents.training import schemas
 
     raw = schemas.load(path, schemas.RAW_CELL_JSON)
     seeds = list(raw["eval"].values())
     iou = cell_summary([s["mean"] for s in seeds])
-    return {"task": raw["cell"]["task"], "robots": int(raw["config"]["robots"]), "cell": path.name,
-            "env_steps": raw["cell"]["budget"]["env_steps"], "seeds": len(seeds), "mean_iou": iou["mean"],
-            "ci95": iou["ci95"], "seed_iou": iou["seeds"], "mean_length": sum(s["mean_length"] for s in seeds) / len(seeds),
-            "seed_length": [s["mean_length"] for s in seeds],
-            "mean_bricks_used": sum(s["mean_bricks_used"] for s in seeds) / len(seeds), "eval_seed": raw["cell"]["eval_seed"]}
+    return {
+        "task": raw["cell"]["task"],
+        "robots": int(raw["config"]["robots"]),
+        "cell": path.name,
+        "env_steps": raw["cell"]["budget"]["env_steps"],
+        "seeds": len(seeds),
+        "mean_iou": iou["mean"],
+        "ci95": iou["ci95"],
+        "seed_iou": iou["seeds"],
+        "mean_length": sum(s["mean_length"] for s in seeds) / len(seeds),
+        "seed_length": [s["mean_length"] for s in seeds],
+        "mean_bricks_used": sum(s["mean_bricks_used"] for s in seeds) / len(seeds),
+        "eval_seed": raw["cell"]["eval_seed"],
+    }
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| task | robots | team steps/seed | mean IoU [95% CI across seeds] | per seed | mean length (steps) "
-             "| length vs 1 robot | per seed | mean bricks |", "|---|---:|---:|---|---|---:|---:|---|---:|"]
+    lines = [
+        "| task | robots | team steps/seed | mean IoU [95% CI across seeds] | per seed | mean length (steps) "
+        "| length vs 1 robot | per seed | mean bricks |",
+        "|---|---:|---:|---|---|---:|---:|---|---:|",
+    ]
     single = {r["task"]: r["mean_length"] for r in rows if r["robots"] == 1}
     for r in rows:
         ratio = f"{r['mean_length'] / single[r['task']]:.2f}" if r["task"] in single else "—"
         lines.append(
             f"| {r['task']} | {r['robots']} | {r['env_steps'] / 1e6:g}M | {r['mean_iou']:.3f} [{r['ci95'][0]:.3f}, "
             f"{r['ci95'][1]:.3f}] | {', '.join(f'{v:.3f}' for v in r['seed_iou'])} | {r['mean_length']:.1f} | {ratio} "
-            f"| {', '.join(f'{v:.0f}' for v in r['seed_length'])} | {r['mean_bricks_used']:.1f} |")
+            f"| {', '.join(f'{v:.0f}' for v in r['seed_length'])} | {r['mean_bricks_used']:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -39,14 +39,27 @@ DEFAULT_ROBOTS = (1, 2, 4)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--tasks", nargs="+", default=list(DEFAULT_TASKS), help=f"task ids (default {' '.join(DEFAULT_TASKS)})")
-    parser.add_argument("--robots", nargs="+", type=positive_int, default=list(DEFAULT_ROBOTS),
-                        help="robot counts N (default 1 2 4)")
-    parser.add_argument("--episodes", type=positive_int, default=None,
-                        help="episodes per design (default: the protocol's, 500 static, 200 per test design)")
-    parser.add_argument("--seed", type=seed, default=None,
-                        help="evaluation key (default: the reporting key, snac_jax.evaluation.REPORT_EVAL_SEED)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--tasks", nargs="+", default=list(DEFAULT_TASKS), help=f"task ids (default {' '.join(DEFAULT_TASKS)})"
+    )
+    parser.add_argument(
+        "--robots", nargs="+", type=positive_int, default=list(DEFAULT_ROBOTS), help="robot counts N (default 1 2 4)"
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        help="episodes per design (default: the protocol's, 500 static, 200 per test design)",
+    )
+    parser.add_argument(
+        "--seed",
+        type=seed,
+        default=None,
+        help="evaluation key (default: the reporting key, snac_jax.evaluation.REPORT_EVAL_SEED)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="directory for multi_results.json and .md")
     args = parser.parse_args(argv)
     from snac_jax import multi
@@ -71,16 +84,27 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def measure(task: str, num_robots: int, episodes: int | None, eval_seed: int) -> dict:
     """One row: the protocol's numbers for the handcrafted split of `num_robots` on `task`."""
-    from snac_jax.policies.team import team_policy
     from snac_jax.multi.evaluation import evaluate_team_task
+    from snac_jax.policies.team import team_policy
 
     counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
     team = evaluate_team_task(task, partial(team_policy, "handcrafted"), num_robots, seed=eval_seed, **counts)
     r = team.result
-    return {"task": task, "robots": num_robots, "episodes": r.episodes, "mean_iou": r.mean, "ci95": r.ci95,
-            "min_iou": r.min, "std_iou": r.std, "mean_length": r.mean_length, "finished_fraction": team.finished_fraction,
-            "max_steps": team.max_steps, "mean_bricks_used": r.mean_bricks_used, "per_design": r.per_design,
-            "wall_s": r.wall_s}
+    return {
+        "task": task,
+        "robots": num_robots,
+        "episodes": r.episodes,
+        "mean_iou": r.mean,
+        "ci95": r.ci95,
+        "min_iou": r.min,
+        "std_iou": r.std,
+        "mean_length": r.mean_length,
+        "finished_fraction": team.finished_fraction,
+        "max_steps": team.max_steps,
+        "mean_bricks_used": r.mean_bricks_used,
+        "per_design": r.per_design,
+        "wall_s": r.wall_s,
+    }
 
 
 def markdown(rows: list[dict], context: dict) -> str:
@@ -113,13 +137,24 @@ def main(argv=None) -> int:
         for n in args.robots:
             row = measure(task, n, args.episodes, args.seed)
             rows.append(row)
-            print(f"{task} N={n}: IoU {row['mean_iou']:.3f} [{row['ci95'][0]:.3f}, {row['ci95'][1]:.3f}], "
-                  f"length {row['mean_length']:.1f}, ended by termination {row['finished_fraction']:.3f} "
-                  f"({row['wall_s']:.1f} s)", flush=True)
-    episodes = ("the protocol's episodes (500 per static task, 200 per test design)" if args.episodes is None
-                else f"{args.episodes} episodes per design")
-    context = {"command": " ".join(["python", "bench/multi_results.py", *(argv if argv is not None else sys.argv[1:])]),
-               "seed": args.seed, "episodes": episodes, "episodes_per_design": args.episodes, **device_context()}
+            print(
+                f"{task} N={n}: IoU {row['mean_iou']:.3f} [{row['ci95'][0]:.3f}, {row['ci95'][1]:.3f}], "
+                f"length {row['mean_length']:.1f}, ended by termination {row['finished_fraction']:.3f} "
+                f"({row['wall_s']:.1f} s)",
+                flush=True,
+            )
+    episodes = (
+        "the protocol's episodes (500 per static task, 200 per test design)"
+        if args.episodes is None
+        else f"{args.episodes} episodes per design"
+    )
+    context = {
+        "command": " ".join(["python", "bench/multi_results.py", *(argv if argv is not None else sys.argv[1:])]),
+        "seed": args.seed,
+        "episodes": episodes,
+        "episodes_per_design": args.episodes,
+        **device_context(),
+    }
     table = markdown(rows, context)
     write_pair(args.out, "multi_results", {"context": context, "rows": rows}, table)
     print(table)

@@ -41,10 +41,19 @@ DEFAULT_ROBOTS = (1, 2, 4)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--tasks", nargs="+", default=list(DEFAULT_TASKS), help=f"task ids (default {' '.join(DEFAULT_TASKS)})")
-    parser.add_argument("--robots", nargs="+", type=positive_int, default=list(DEFAULT_ROBOTS),
-                        help="robot counts N (default 1 2 4; counts a task's plan cannot hold are skipped)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--tasks", nargs="+", default=list(DEFAULT_TASKS), help=f"task ids (default {' '.join(DEFAULT_TASKS)})"
+    )
+    parser.add_argument(
+        "--robots",
+        nargs="+",
+        type=positive_int,
+        default=list(DEFAULT_ROBOTS),
+        help="robot counts N (default 1 2 4; counts a task's plan cannot hold are skipped)",
+    )
     parser.add_argument("--num-envs", type=positive_int, default=1024, help="worlds stepped together (default 1024)")
     parser.add_argument("--steps", type=positive_int, default=500, help="steps per timed call (default 500)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="timed calls per point, median reported (>= 3)")
@@ -121,8 +130,12 @@ def measure(run, num_envs: int, num_steps: int, num_robots: int, repeats: int) -
         jax.block_until_ready(compiled(jax.random.key(repeat + 1)))
         times.append(time.perf_counter() - start)
     env_steps = num_envs * num_steps / statistics.median(times)
-    return {"env_steps_per_s": env_steps, "robot_steps_per_s": env_steps * num_robots, "compile_s": compile_s,
-            "run_s": statistics.median(times)}
+    return {
+        "env_steps_per_s": env_steps,
+        "robot_steps_per_s": env_steps * num_robots,
+        "compile_s": compile_s,
+        "run_s": statistics.median(times),
+    }
 
 
 def markdown(rows: list[dict], context: dict) -> str:
@@ -139,21 +152,24 @@ def markdown(rows: list[dict], context: dict) -> str:
     for row in rows:
         single = next(r for r in rows if r["task"] == row["task"] and r["env"] == "single")
         ratio = row["env_steps_per_s"] / single["env_steps_per_s"]
-        lines.append(f"| {row['task']} | {row['env']} | {row['env_steps_per_s'] / 1e6:.3f} M | "
-                     f"{row['robot_steps_per_s'] / 1e6:.3f} M | {ratio:.2f} | {row['compile_s']:.1f} |")
+        lines.append(
+            f"| {row['task']} | {row['env']} | {row['env_steps_per_s'] / 1e6:.3f} M | "
+            f"{row['robot_steps_per_s'] / 1e6:.3f} M | {ratio:.2f} | {row['compile_s']:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import jax
 
     from snac_jax import make, multi
 
     rows = []
     for task in args.tasks:
         env, params = make(task)
-        point = measure(rollout(env, params, args.num_envs, args.steps, None), args.num_envs, args.steps, 1, args.repeats)
+        point = measure(
+            rollout(env, params, args.num_envs, args.steps, None), args.num_envs, args.steps, 1, args.repeats
+        )
         rows.append({"task": task, "env": "single", "num_robots": 1, **point})
         print(f"{task} single: {point['env_steps_per_s']:,.0f} env-steps/s", flush=True)
         for n in args.robots:
@@ -163,8 +179,10 @@ def main(argv=None) -> int:
             run = rollout(team, team.default_params, args.num_envs, args.steps, team.agents)
             point = measure(run, args.num_envs, args.steps, n, args.repeats)
             rows.append({"task": task, "env": f"multi N={n}", "num_robots": n, **point})
-            print(f"{task} N={n}: {point['env_steps_per_s']:,.0f} env-steps/s, {point['robot_steps_per_s']:,.0f} robot-steps/s",
-                  flush=True)
+            print(
+                f"{task} N={n}: {point['env_steps_per_s']:,.0f} env-steps/s, {point['robot_steps_per_s']:,.0f} robot-steps/s",
+                flush=True,
+            )
     context = {**device_context(), "num_envs": args.num_envs, "steps": args.steps, "repeats": args.repeats}
     table = markdown(rows, context)
     write_pair(args.out, "multi_throughput", {"context": context, "rows": rows}, table)

@@ -43,7 +43,12 @@ MAX_STEPS_3D_DYNAMIC = 1000
 MOVES = ((0, -1), (0, 1), (1, 0), (-1, 0))
 
 # SPEC §7: the triangle cell-count rules, low < count (< high).
-TRIANGLE_COUNTS = {(2, "dense"): (50, None), (2, "sparse"): (20, None), (3, "dense"): (50, 110), (3, "sparse"): (20, 110)}
+TRIANGLE_COUNTS = {
+    (2, "dense"): (50, None),
+    (2, "sparse"): (20, None),
+    (3, "dense"): (50, 110),
+    (3, "sparse"): (20, 110),
+}
 
 
 # --- designs (SPEC §7) -----------------------------------------------------------------------
@@ -175,8 +180,10 @@ class NumpyEnv:
 
     def reset(self, design=None, landmarks=None) -> np.ndarray:
         """Start an episode; returns the observation. `landmarks`: a plan-shaped bool mask."""
-        self.design = self._new_design() if design is None else np.asarray(design, dtype=np.int64).reshape(
-            (PLAN_1D,) if self.dim == 1 else (PLAN_2D, PLAN_2D)
+        self.design = (
+            self._new_design()
+            if design is None
+            else np.asarray(design, dtype=np.int64).reshape((PLAN_1D,) if self.dim == 1 else (PLAN_2D, PLAN_2D))
         )
         ws = self.ws
         if self.dim == 1:

@@ -39,14 +39,27 @@ STEMS = ("per_design.json", "per_design.md")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--preset", required=True, help="a preset with cells under <results>/table/")
     parser.add_argument("--algorithm", required=True, help="an algorithm of that preset")
     parser.add_argument("--out", type=Path, required=True, help="directory for per_design.json and .md")
-    parser.add_argument("--results", type=Path, default=RESULTS, help=f"results directory (default {RESULTS.relative_to(ROOT)})")
-    parser.add_argument("--handcrafted", type=Path, default=None,
-                        help="the handcrafted policy's record, keyed by column (default <results>/handcrafted_report_key.json)")
-    parser.add_argument("--task", action="append", choices=DYNAMIC, help="only these dynamic tasks (repeatable; default all with a cell)")
+    parser.add_argument(
+        "--results", type=Path, default=RESULTS, help=f"results directory (default {RESULTS.relative_to(ROOT)})"
+    )
+    parser.add_argument(
+        "--handcrafted",
+        type=Path,
+        default=None,
+        help="the handcrafted policy's record, keyed by column (default <results>/handcrafted_report_key.json)",
+    )
+    parser.add_argument(
+        "--task",
+        action="append",
+        choices=DYNAMIC,
+        help="only these dynamic tasks (repeatable; default all with a cell)",
+    )
     return parser.parse_args(argv)
 
 
@@ -67,11 +80,17 @@ def cells(results: Path, preset: str, algorithm: str, tasks: list[str] | None) -
         raise refuse(f"--preset {preset}: no such preset under {table}; presets present: {present(table)}")
     if not (table / preset / algorithm).is_dir():
         raise refuse(f"--algorithm {algorithm}: not in preset {preset}; algorithms present: {present(table / preset)}")
-    found = {t: table / preset / algorithm / f"{t}.json" for t in DYNAMIC if (table / preset / algorithm / f"{t}.json").is_file()}
+    found = {
+        t: table / preset / algorithm / f"{t}.json"
+        for t in DYNAMIC
+        if (table / preset / algorithm / f"{t}.json").is_file()
+    }
     missing = sorted(set(tasks or []) - set(found))
     if missing or not found:
-        raise refuse(f"{preset}/{algorithm} has no cell of {', '.join(missing) or 'any dynamic task'}; "
-                     f"its dynamic cells: {', '.join(found) or 'none'}")
+        raise refuse(
+            f"{preset}/{algorithm} has no cell of {', '.join(missing) or 'any dynamic task'}; "
+            f"its dynamic cells: {', '.join(found) or 'none'}"
+        )
     return {t: p for t, p in found.items() if tasks is None or t in tasks}
 
 
@@ -80,23 +99,45 @@ def compare(task: str, seeds: dict, hand: dict, where: str, hand_where: str) -> 
     evaluation keys or the design sets differ."""
     for name, row in seeds.items():
         if row["seed"] != hand["seed"]:
-            raise refuse(f"{where}: {name!r} is scored with evaluation key {row['seed']}, {hand_where} with "
-                         f"{hand['seed']}; different keys are not comparable: give --handcrafted a record scored with "
-                         f"key {row['seed']}")
+            raise refuse(
+                f"{where}: {name!r} is scored with evaluation key {row['seed']}, {hand_where} with "
+                f"{hand['seed']}; different keys are not comparable: give --handcrafted a record scored with "
+                f"key {row['seed']}"
+            )
         if row.get("overrides") != hand.get("overrides"):
-            raise refuse(f"{where}: {name!r} is scored with overrides {row.get('overrides')}, {hand_where} with "
-                         f"{hand.get('overrides')}; only the same conditions are comparable")
+            raise refuse(
+                f"{where}: {name!r} is scored with overrides {row.get('overrides')}, {hand_where} with "
+                f"{hand.get('overrides')}; only the same conditions are comparable"
+            )
         if set(row["per_design"]) != set(hand["per_design"]):
-            raise refuse(f"{where}: {name!r} has designs {list(row['per_design'])}, {hand_where} "
-                         f"has {list(hand['per_design'])}; only the same designs are comparable")
+            raise refuse(
+                f"{where}: {name!r} has designs {list(row['per_design'])}, {hand_where} "
+                f"has {list(hand['per_design'])}; only the same designs are comparable"
+            )
     rows = []
     for design in hand["per_design"]:  # the evaluator writes the designs in their index order
         values = [row["per_design"][design]["mean"] for row in seeds.values()]
         handcrafted = hand["per_design"][design]["mean"]
         mean = sum(values) / len(values)
-        side = "above" if all(v > handcrafted for v in values) else "below" if all(v < handcrafted for v in values) else "mixed"
-        rows.append({"design": design, "mean": mean, "lowest_seed": min(values), "highest_seed": max(values),
-                     "seeds": values, "handcrafted": handcrafted, "difference": mean - handcrafted, "seeds_vs_handcrafted": side})
+        side = (
+            "above"
+            if all(v > handcrafted for v in values)
+            else "below"
+            if all(v < handcrafted for v in values)
+            else "mixed"
+        )
+        rows.append(
+            {
+                "design": design,
+                "mean": mean,
+                "lowest_seed": min(values),
+                "highest_seed": max(values),
+                "seeds": values,
+                "handcrafted": handcrafted,
+                "difference": mean - handcrafted,
+                "seeds_vs_handcrafted": side,
+            }
+        )
     return rows
 
 
@@ -106,16 +147,23 @@ def per_task(paths: dict[str, Path], handcrafted: dict, hand_path: Path) -> dict
     tasks = {}
     for task, path in paths.items():
         if task not in handcrafted:
-            raise refuse(f"{hand_path} has no column {task}; its columns: {', '.join(handcrafted)} (pick tasks with --task "
-                         f"{' --task '.join(t for t in paths if t in handcrafted) or '...'})")
+            raise refuse(
+                f"{hand_path} has no column {task}; its columns: {', '.join(handcrafted)} (pick tasks with --task "
+                f"{' --task '.join(t for t in paths if t in handcrafted) or '...'})"
+            )
         try:
             raw = read_raw(path)
         except ValueError as error:
             raise refuse(str(error)) from error
         rows = compare(task, raw["eval"], handcrafted[task], str(path), f"{hand_path} [{task!r}]")
         summary = {side: sum(r["seeds_vs_handcrafted"] == side for r in rows) for side in ("above", "below", "mixed")}
-        tasks[task] = {"cell": str(path), "eval_seed": handcrafted[task]["seed"], "training_seeds": len(raw["eval"]),
-                       "rows": rows, "summary": summary}
+        tasks[task] = {
+            "cell": str(path),
+            "eval_seed": handcrafted[task]["seed"],
+            "training_seeds": len(raw["eval"]),
+            "rows": rows,
+            "summary": summary,
+        }
     return tasks
 
 
@@ -123,13 +171,21 @@ def markdown(command: str, tasks: dict[str, dict]) -> str:
     lines = [f"`{command}`", ""]
     for task, t in tasks.items():
         s = t["summary"]
-        lines += [f"## {task}", "", f"Evaluation key {t['eval_seed']}, {t['training_seeds']} training seeds; designs where "
-                  f"every seed is above the handcrafted policy: {s['above']}, every seed below: {s['below']}, "
-                  f"mixed: {s['mixed']} (of {len(t['rows'])}).", "",
-                  "| test design | learner mean | lowest seed | highest seed | handcrafted | Δ (learner − handcrafted) | seeds |",
-                  "|---|---:|---:|---:|---:|---:|---|"]
-        lines += [f"| {r['design']} | {r['mean']:.3f} | {r['lowest_seed']:.3f} | {r['highest_seed']:.3f} | "
-                  f"{r['handcrafted']:.3f} | {r['difference']:+.3f} | {r['seeds_vs_handcrafted']} |" for r in t["rows"]]
+        lines += [
+            f"## {task}",
+            "",
+            f"Evaluation key {t['eval_seed']}, {t['training_seeds']} training seeds; designs where "
+            f"every seed is above the handcrafted policy: {s['above']}, every seed below: {s['below']}, "
+            f"mixed: {s['mixed']} (of {len(t['rows'])}).",
+            "",
+            "| test design | learner mean | lowest seed | highest seed | handcrafted | Δ (learner − handcrafted) | seeds |",
+            "|---|---:|---:|---:|---:|---:|---|",
+        ]
+        lines += [
+            f"| {r['design']} | {r['mean']:.3f} | {r['lowest_seed']:.3f} | {r['highest_seed']:.3f} | "
+            f"{r['handcrafted']:.3f} | {r['difference']:+.3f} | {r['seeds_vs_handcrafted']} |"
+            for r in t["rows"]
+        ]
         lines.append("")
     return "\n".join(lines)
 
@@ -152,8 +208,18 @@ def main(argv=None) -> int:
         raise refuse(f"--out {args.out}: {error}") from error
     command = " ".join(["python", "bench/per_design.py", *(argv if argv is not None else sys.argv[1:])])
     table = markdown(command, tasks)
-    write_pair(args.out, "per_design", {"command": command, "preset": args.preset, "algorithm": args.algorithm,
-                                        "handcrafted": str(hand_path), "tasks": tasks}, table)
+    write_pair(
+        args.out,
+        "per_design",
+        {
+            "command": command,
+            "preset": args.preset,
+            "algorithm": args.algorithm,
+            "handcrafted": str(hand_path),
+            "tasks": tasks,
+        },
+        table,
+    )
     print(table)
     return 0
 

@@ -42,13 +42,24 @@ VERDICTS = ("good", "poor", "bad")
 
 def snac(work: Path, *argv: str, timeout: float = 600) -> dict:
     """`python -m snac_jax.cli ARGV` in `work`: exit status, stdout, stderr, seconds."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy",
-           "PYTHONPATH": str(ROOT)}
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "SDL_VIDEODRIVER": "dummy",
+        "SDL_AUDIODRIVER": "dummy",
+        "PYTHONPATH": str(ROOT),
+    }
     env.pop("SNAC_TRACEBACK", None)
     start = time.perf_counter()
     try:
-        done = subprocess.run([sys.executable, "-m", "snac_jax.cli", *argv], cwd=work, env=env, capture_output=True,
-                              text=True, timeout=timeout)
+        done = subprocess.run(
+            [sys.executable, "-m", "snac_jax.cli", *argv],
+            cwd=work,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
         code, out, err = done.returncode, done.stdout, done.stderr
     except subprocess.TimeoutExpired as expired:
         code, out, err = "timeout", expired.stdout or "", expired.stderr or ""
@@ -61,8 +72,15 @@ def snac_interrupted(work: Path, argv, when: Path, timeout: float = 600) -> dict
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
     env.pop("SNAC_TRACEBACK", None)
     start = time.perf_counter()
-    process = subprocess.Popen([sys.executable, "-m", "snac_jax.cli", *argv], cwd=work, env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    process = subprocess.Popen(
+        [sys.executable, "-m", "snac_jax.cli", *argv],
+        cwd=work,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     while not when.exists() and process.poll() is None and time.perf_counter() - start < timeout:
         time.sleep(0.05)
     if process.poll() is None:
@@ -75,7 +93,9 @@ def snac_interrupted(work: Path, argv, when: Path, timeout: float = 600) -> dict
         out, err = process.communicate()
         code = "timeout"
     # the run's own progress lines are not the interruption's: keep what follows the last of them
-    err = "\n".join(line for line in err.splitlines() if not line.startswith(("ppo on", "worlds split", "compiled a chunk")))
+    err = "\n".join(
+        line for line in err.splitlines() if not line.startswith(("ppo on", "worlds split", "compiled a chunk"))
+    )
     return {"code": code, "out": out, "err": err, "seconds": round(time.perf_counter() - start, 1)}
 
 
@@ -95,9 +115,17 @@ def judge_refusal(result: dict, phrase: str) -> tuple[str, str]:
 def run_cli_case(work: Path, case: dict) -> dict:
     holder = None
     if "hold_lock" in case:
-        holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); "
-                                   "fcntl.flock(f, fcntl.LOCK_EX); print('locked', flush=True); time.sleep(600)",
-                                   str(case["hold_lock"] / ".lock")], stdout=subprocess.PIPE, text=True)
+        holder = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); "
+                "fcntl.flock(f, fcntl.LOCK_EX); print('locked', flush=True); time.sleep(600)",
+                str(case["hold_lock"] / ".lock"),
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         holder.stdout.readline()
     try:
         if "interrupt_when" in case:
@@ -125,15 +153,25 @@ def run_cli_case(work: Path, case: dict) -> dict:
         lines = [line for line in (result["err"] + result["out"]).strip().splitlines() if line.strip()]
         verdict = "good" if ok else ("poor" if result["code"] == 0 else "bad")
         note = f"exit {result['code']}: {lines[-1] if lines else ''}"
-    return {"what": case["what"], "input": "snac " + " ".join(case["argv"]), "verdict": verdict, "note": note[:300],
-            "seconds": result["seconds"]}
+    return {
+        "what": case["what"],
+        "input": "snac " + " ".join(case["argv"]),
+        "verdict": verdict,
+        "note": note[:300],
+        "seconds": result["seconds"],
+    }
 
 
 def api_cases(work: Path, skip_memory: bool) -> list[dict]:
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, str(ROOT / "bench" / "robustness_api.py"), str(work),
-                           "skip-memory" if skip_memory else "all"], capture_output=True, text=True, env=env, cwd=work,
-                          timeout=1200)
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "robustness_api.py"), str(work), "skip-memory" if skip_memory else "all"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=work,
+        timeout=1200,
+    )
     if done.returncode:
         raise RuntimeError(done.stderr[-3000:])
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -142,26 +180,72 @@ def api_cases(work: Path, skip_memory: bool) -> list[dict]:
 def other_cases(work: Path) -> list[dict]:
     """The run's files, the golden-trace tests, the throughput bench, and a SIGKILL."""
     results = []
-    modes = {name: oct((work / "run" / name).stat().st_mode & 0o777) for name in
-             ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json") if (work / "run" / name).exists()}
-    results.append({"what": "file modes of a run (umask 022)", "input": "stat run/*", "note": json.dumps(modes),
-                    "verdict": "good" if set(modes.values()) == {"0o644"} else "bad"})
+    modes = {
+        name: oct((work / "run" / name).stat().st_mode & 0o777)
+        for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")
+        if (work / "run" / name).exists()
+    }
+    results.append(
+        {
+            "what": "file modes of a run (umask 022)",
+            "input": "stat run/*",
+            "note": json.dumps(modes),
+            "verdict": "good" if set(modes.values()) == {"0o644"} else "bad",
+        }
+    )
 
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "SNAC_GOLDEN_TRACES": str(work / "empty_traces.json")}
-    tests = ["tests/test_conformance.py::test_replay_matches_golden_trace",
-             "tests/test_numpy_engine.py::test_numpy_engine_replays_every_golden_trace"]
-    done = subprocess.run([sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", "-q", *tests], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=600)
+    tests = [
+        "tests/test_conformance.py::test_replay_matches_golden_trace",
+        "tests/test_numpy_engine.py::test_numpy_engine_replays_every_golden_trace",
+    ]
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", "-q", *tests],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     summary = done.stdout.strip().splitlines()[-1]
-    results.append({"what": "SNAC_GOLDEN_TRACES pointing at an empty file", "input": "pytest " + " ".join(tests),
-                    "note": summary, "verdict": "good" if done.returncode == 1 and "passed" not in summary else "bad"})
+    results.append(
+        {
+            "what": "SNAC_GOLDEN_TRACES pointing at an empty file",
+            "input": "pytest " + " ".join(tests),
+            "note": summary,
+            "verdict": "good" if done.returncode == 1 and "passed" not in summary else "bad",
+        }
+    )
 
-    done = subprocess.run([sys.executable, str(ROOT / "bench" / "throughput.py"), "--tasks", "1d-static-sin", "--num-envs",
-                           "1", "--steps", "10", "--numpy-steps", "100", "--no-e2e", "--json", str(work / "rows.json")],
-                          capture_output=True, text=True, cwd=work, env={**os.environ, "JAX_PLATFORMS": "cpu"})
-    results.append({"what": "bench/throughput.py --json PATH (without --out)", "input": "python bench/throughput.py --json PATH",
-                    "note": ((done.stderr + done.stdout).strip().splitlines() or [""])[-1][:200],
-                    "verdict": "good" if done.returncode == 2 and not (work / "rows.json").exists() else "bad"})
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "throughput.py"),
+            "--tasks",
+            "1d-static-sin",
+            "--num-envs",
+            "1",
+            "--steps",
+            "10",
+            "--numpy-steps",
+            "100",
+            "--no-e2e",
+            "--json",
+            str(work / "rows.json"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
+    results.append(
+        {
+            "what": "bench/throughput.py --json PATH (without --out)",
+            "input": "python bench/throughput.py --json PATH",
+            "note": ((done.stderr + done.stdout).strip().splitlines() or [""])[-1][:200],
+            "verdict": "good" if done.returncode == 2 and not (work / "rows.json").exists() else "bad",
+        }
+    )
 
     results.append(sigkill_case(work))
     return results
@@ -173,8 +257,13 @@ def sigkill_case(work: Path) -> dict:
     argv = ["train", "ppo", "--task", "1d-static-gauss", *TINY, "--total-steps", "1024", "--chunks", "8", "--no-eval"]
     snac(work, *argv, "--out", "straight")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
-    child = subprocess.Popen([sys.executable, "-m", "snac_jax.cli", *argv, "--out", "killed"], cwd=work, env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    child = subprocess.Popen(
+        [sys.executable, "-m", "snac_jax.cli", *argv, "--out", "killed"],
+        cwd=work,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     metrics = work / "killed" / "metrics.jsonl"
     while child.poll() is None and not (metrics.is_file() and metrics.read_text().count("\n") >= 2):
         time.sleep(0.02)
@@ -183,19 +272,27 @@ def sigkill_case(work: Path) -> dict:
     resumed = snac(work, "train", "ppo", "--resume", "killed", "--no-progress")
 
     def lines(name):
-        return [(r["chunk"], r["iou"], r["return"]) for r in
-                (json.loads(line) for line in (work / name / "metrics.jsonl").read_text().splitlines() if line)]
+        return [
+            (r["chunk"], r["iou"], r["return"])
+            for r in (json.loads(line) for line in (work / name / "metrics.jsonl").read_text().splitlines() if line)
+        ]
 
     same = resumed["code"] == 0 and lines("killed") == lines("straight")
-    return {"what": "SIGKILL after the second chunk is logged, then --resume", "input": "snac " + " ".join(argv),
-            "verdict": "good" if same else "bad",
-            "note": f"killed with exit {child.returncode}; resumed metrics equal the uninterrupted run's: {same}"}
+    return {
+        "what": "SIGKILL after the second chunk is logged, then --resume",
+        "input": "snac " + " ".join(argv),
+        "verdict": "good" if same else "bad",
+        "note": f"killed with exit {child.returncode}; resumed metrics equal the uninterrupted run's: {same}",
+    }
 
 
 def markdown(results: list[dict], seconds: float, before: dict | None = None) -> str:
     def count(rows):
-        return ", ".join(f"{sum(r['verdict'] == v for r in rows)} {v}" for v in (*VERDICTS, "not run")
-                         if v != "not run" or any(r["verdict"] == v for r in rows))
+        return ", ".join(
+            f"{sum(r['verdict'] == v for r in rows)} {v}"
+            for v in (*VERDICTS, "not run")
+            if v != "not run" or any(r["verdict"] == v for r in rows)
+        )
 
     lines = [
         "# Robustness: bad and edge inputs, re-measured",
@@ -208,7 +305,8 @@ def markdown(results: list[dict], seconds: float, before: dict | None = None) ->
         "Paths are relative to a scratch folder holding a tiny trained run `run` (`--max-steps 40 --eval-episodes 2`) "
         "and damaged copies of it.",
         "",
-        f"**Now: {count(results)}.**" + ("" if before is None else f" Before the fixes: {count(list(before.values()))}."),
+        f"**Now: {count(results)}.**"
+        + ("" if before is None else f" Before the fixes: {count(list(before.values()))}."),
         "",
     ]
     if before is not None:
@@ -223,8 +321,10 @@ def markdown(results: list[dict], seconds: float, before: dict | None = None) ->
     if before is None:
         lines += ["| # | input | command | verdict | what happened |", "|---:|---|---|---|---|"]
     else:
-        lines += ["| # | input | command | before | what happened before | now | what happens now |",
-                  "|---:|---|---|---|---|---|---|"]
+        lines += [
+            "| # | input | command | before | what happened before | now | what happens now |",
+            "|---:|---|---|---|---|---|---|",
+        ]
     for i, r in enumerate(results, start=1):
         note = r["note"].replace("|", "\\|").replace("\n", " ")
         command = r["input"].replace("|", "\\|")
@@ -239,12 +339,25 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="directory for robustness.json and robustness.md")
     parser.add_argument("--only", default=None, help="run only the CLI cases whose description contains this")
-    parser.add_argument("--skip-memory", action="store_true",
-                        help="leave out the oversized inputs (for code without the memory checks: they would exhaust memory)")
-    parser.add_argument("--before", type=Path, default=None, metavar="JSON",
-                        help="robustness.json of the same cases on the code before the fixes: shown as a column")
-    parser.add_argument("--from-json", type=Path, default=None, metavar="JSON",
-                        help="run nothing: rebuild robustness.md from an earlier robustness.json (and --before)")
+    parser.add_argument(
+        "--skip-memory",
+        action="store_true",
+        help="leave out the oversized inputs (for code without the memory checks: they would exhaust memory)",
+    )
+    parser.add_argument(
+        "--before",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="robustness.json of the same cases on the code before the fixes: shown as a column",
+    )
+    parser.add_argument(
+        "--from-json",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="run nothing: rebuild robustness.md from an earlier robustness.json (and --before)",
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     before = None if args.before is None else {r["what"]: r for r in load_results(args.before)[0]}
@@ -262,8 +375,15 @@ def main(argv=None) -> int:
             if args.only and args.only not in case["what"]:
                 continue
             if case.get("memory") and args.skip_memory:
-                results.append({"what": case["what"], "input": "snac " + " ".join(case["argv"]), "verdict": "not run",
-                                "note": "memory case skipped (--skip-memory)", "seconds": 0})
+                results.append(
+                    {
+                        "what": case["what"],
+                        "input": "snac " + " ".join(case["argv"]),
+                        "verdict": "not run",
+                        "note": "memory case skipped (--skip-memory)",
+                        "seconds": 0,
+                    }
+                )
                 continue
             results.append(run_cli_case(work, case))
             print(f"{results[-1]['verdict']:5s} {results[-1]['what']} ({results[-1]['seconds']} s)", flush=True)

@@ -46,18 +46,41 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def snac_train(scratch: Path, name: str, extra: list[str], args) -> dict:
     out = scratch / name
-    command = [sys.executable, "-m", "snac_jax.cli", "train", "ppo", "--recurrent", "--task", args.task, "--no-progress",
-               "--total-steps", str(args.total_steps), "--chunks", "2", "--eval-episodes", "2", "--out", str(out), *extra]
+    command = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "ppo",
+        "--recurrent",
+        "--task",
+        args.task,
+        "--no-progress",
+        "--total-steps",
+        str(args.total_steps),
+        "--chunks",
+        "2",
+        "--eval-episodes",
+        "2",
+        "--out",
+        str(out),
+        *extra,
+    ]
     if args.num_envs:
         command += ["--num-envs", str(args.num_envs)]
     start = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
     wall = time.perf_counter() - start
     if done.returncode:
-        raise SystemExit(f"sweep_cost.py: error: {' '.join(command[2:])} failed: {done.stderr.strip().splitlines()[-1:]}")
+        raise SystemExit(
+            f"sweep_cost.py: error: {' '.join(command[2:])} failed: {done.stderr.strip().splitlines()[-1:]}"
+        )
     metrics = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines() if line]
-    return {"command": "snac " + " ".join(command[3:]).replace(str(scratch) + "/", ""), "wall_s": round(wall, 1),
-            "training_s": metrics[-1]["wall_s"]}
+    return {
+        "command": "snac " + " ".join(command[3:]).replace(str(scratch) + "/", ""),
+        "wall_s": round(wall, 1),
+        "training_s": metrics[-1]["wall_s"],
+    }
 
 
 def main(argv=None) -> int:
@@ -76,19 +99,34 @@ def main(argv=None) -> int:
     import jax
 
     total = sum(r["wall_s"] for r in singles)
-    result = {"machine": f"{platform.processor() or platform.machine()} ({jax.devices()[0].platform})", "jax": jax.__version__,
-              "task": args.task, "total_steps_per_arm": args.total_steps, "sweep": sweep, "singles": singles,
-              "sweep_over_singles": sweep["wall_s"] / total, "sweep_over_one": sweep["wall_s"] / singles[0]["wall_s"]}
+    result = {
+        "machine": f"{platform.processor() or platform.machine()} ({jax.devices()[0].platform})",
+        "jax": jax.__version__,
+        "task": args.task,
+        "total_steps_per_arm": args.total_steps,
+        "sweep": sweep,
+        "singles": singles,
+        "sweep_over_singles": sweep["wall_s"] / total,
+        "sweep_over_one": sweep["wall_s"] / singles[0]["wall_s"],
+    }
     write_text(args.out / "sweep_cost.json", json.dumps(result, indent=1) + "\n")
-    lines = ["# A sweep in one program beside the arms one by one", "",
-             f"{result['machine']}, jax {result['jax']}; PPO-RNN on {args.task}, {args.total_steps:,} env steps per arm, one "
-             f"seed, the tuned settings but the learning rate; `python bench/sweep_cost.py --out DIR`.", "",
-             "| what | wall s (process start to exit) | training s (chunks only) |", "|---|---:|---:|",
-             f"| `--sweep learning-rate={','.join(VALUES)}` | {sweep['wall_s']} | {sweep['training_s']} |"]
+    lines = [
+        "# A sweep in one program beside the arms one by one",
+        "",
+        f"{result['machine']}, jax {result['jax']}; PPO-RNN on {args.task}, {args.total_steps:,} env steps per arm, one "
+        f"seed, the tuned settings but the learning rate; `python bench/sweep_cost.py --out DIR`.",
+        "",
+        "| what | wall s (process start to exit) | training s (chunks only) |",
+        "|---|---:|---:|",
+        f"| `--sweep learning-rate={','.join(VALUES)}` | {sweep['wall_s']} | {sweep['training_s']} |",
+    ]
     lines += [f"| `--learning-rate {v}` | {r['wall_s']} | {r['training_s']} |" for v, r in zip(VALUES, singles)]
-    lines += [f"| the four one by one | {total:.1f} | {sum(r['training_s'] for r in singles):.1f} |", "",
-              f"The sweep took {result['sweep_over_singles']:.2f}x the wall time of the four runs one by one, and "
-              f"{result['sweep_over_one']:.2f}x that of one run."]
+    lines += [
+        f"| the four one by one | {total:.1f} | {sum(r['training_s'] for r in singles):.1f} |",
+        "",
+        f"The sweep took {result['sweep_over_singles']:.2f}x the wall time of the four runs one by one, and "
+        f"{result['sweep_over_one']:.2f}x that of one run.",
+    ]
     write_text(args.out / "sweep_cost.md", "\n".join(lines) + "\n")
     print(f"wrote {args.out / 'sweep_cost.json'} and {args.out / 'sweep_cost.md'}")
     return 0

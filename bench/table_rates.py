@@ -31,7 +31,6 @@ import time
 from agents.table.rates import RATES_FILE, load_rates
 
 
-
 def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: int, evaluate: bool) -> dict:
     import jax
 
@@ -54,10 +53,12 @@ def measure(algorithm: str, task: str, chunk_steps: int, repeats: int, seeds: in
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     steps = updates * config.steps_per_update * seeds * repeats
     entry = {
-        "wall_steps_per_s": round(steps / wall), "cpu_steps_per_s": round(steps / cpu), "seeds": seeds,
+        "wall_steps_per_s": round(steps / wall),
+        "cpu_steps_per_s": round(steps / cpu),
+        "seeds": seeds,
         "load_avg": [round(load, 2), round(os.getloadavg()[0], 2)],
         "measured": f"bench/table_rates.py, tuned config, {repeats} chunks of {updates * config.steps_per_update:,} "
-                    f"env steps per seed after a warm-up chunk, {time.strftime('%Y-%m-%d')}",
+        f"env steps per seed after a warm-up chunk, {time.strftime('%Y-%m-%d')}",
     }
     if evaluate:
         params = jax.tree.map(lambda x: x[0], state.params)
@@ -92,9 +93,11 @@ def calibrated(entry: dict, reference: dict | None, reference_task: str, cores: 
         return entry
     cores = reference["idle_steps_per_s"] / reference["cpu_steps_per_s"]
     entry["steps_per_s"] = round(entry["cpu_steps_per_s"] * cores)
-    entry["source"] = (f"{entry['measured']}: CPU-time rate x {cores:.2f} (the idle wall rate of {reference_task}, "
-                       f"{reference['idle_steps_per_s']:,}/s, over its CPU-time rate in the same run, "
-                       f"{reference['cpu_steps_per_s']:,}/s)")
+    entry["source"] = (
+        f"{entry['measured']}: CPU-time rate x {cores:.2f} (the idle wall rate of {reference_task}, "
+        f"{reference['idle_steps_per_s']:,}/s, over its CPU-time rate in the same run, "
+        f"{reference['cpu_steps_per_s']:,}/s)"
+    )
     return entry
 
 
@@ -114,12 +117,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algorithms", nargs="+", required=True)
     parser.add_argument("--tasks", nargs="+", required=True, help="environment task ids")
-    parser.add_argument("--chunk-steps", type=int, default=100_000, help="env steps per seed per chunk (at least one update)")
+    parser.add_argument(
+        "--chunk-steps", type=int, default=100_000, help="env steps per seed per chunk (at least one update)"
+    )
     parser.add_argument("--repeats", type=int, default=2, help="timed chunks")
     parser.add_argument("--seeds", type=int, default=1)
-    parser.add_argument("--reference", default="1d-static-sin", help="task whose idle rate calibrates the CPU-time rates")
-    parser.add_argument("--cores", type=float, default=None,
-                        help="without an idle reference: steps_per_s = CPU-time rate x CORES (default: the wall rate)")
+    parser.add_argument(
+        "--reference", default="1d-static-sin", help="task whose idle rate calibrates the CPU-time rates"
+    )
+    parser.add_argument(
+        "--cores",
+        type=float,
+        default=None,
+        help="without an idle reference: steps_per_s = CPU-time rate x CORES (default: the wall rate)",
+    )
     parser.add_argument("--eval", action="store_true", help="also time the reporting protocol on seed 0's policy")
     parser.add_argument("--write", action="store_true", help=f"merge the entries into {RATES_FILE}")
     args = parser.parse_args()
@@ -140,8 +151,12 @@ def main() -> None:
             reference = {"idle_steps_per_s": idle["steps_per_s"], "cpu_steps_per_s": ref["cpu_steps_per_s"]}
             print(json.dumps({"algorithm": algorithm, "reference": args.reference, **ref}), flush=True)
         for task in args.tasks:
-            entry = calibrated(measure(algorithm, task, args.chunk_steps, args.repeats, args.seeds, args.eval),
-                               reference, args.reference, args.cores)
+            entry = calibrated(
+                measure(algorithm, task, args.chunk_steps, args.repeats, args.seeds, args.eval),
+                reference,
+                args.reference,
+                args.cores,
+            )
             print(json.dumps({"algorithm": algorithm, "task": task, **entry}), flush=True)
             if args.write:
                 rates = load_rates()

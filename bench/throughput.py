@@ -64,23 +64,54 @@ def device_counts(text: str) -> list[int]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--tasks", nargs="+", default=None, help="task ids (default: all twelve)")
-    parser.add_argument("--num-envs", nargs="+", type=positive_int, default=None, help=f"batch sizes N (default {DEFAULT_NUM_ENVS})")
-    parser.add_argument("--steps", type=positive_int, default=None, help="steps per rollout T (default 1000; covers the 1D/2D step limits)")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per point, median reported (>= 3)")
-    parser.add_argument("--devices", type=device_counts, default=None,
-                        help="device counts to measure, e.g. 'all' (default: one per core), '1', '1,all'")
-    parser.add_argument("--reset", nargs="+", choices=RESET_STRATEGIES, default=["auto"],
-                        help="auto-reset strategies to measure (default: auto, the backend's own); "
-                             "select is what vmap(env.step) computes")
-    parser.add_argument("--numpy-steps", type=positive_int, default=None, help="steps of the NumPy baseline per task (default 20000)")
+    parser.add_argument(
+        "--num-envs", nargs="+", type=positive_int, default=None, help=f"batch sizes N (default {DEFAULT_NUM_ENVS})"
+    )
+    parser.add_argument(
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="steps per rollout T (default 1000; covers the 1D/2D step limits)",
+    )
+    parser.add_argument(
+        "--repeats", type=positive_int, default=3, help="timed repeats per point, median reported (>= 3)"
+    )
+    parser.add_argument(
+        "--devices",
+        type=device_counts,
+        default=None,
+        help="device counts to measure, e.g. 'all' (default: one per core), '1', '1,all'",
+    )
+    parser.add_argument(
+        "--reset",
+        nargs="+",
+        choices=RESET_STRATEGIES,
+        default=["auto"],
+        help="auto-reset strategies to measure (default: auto, the backend's own); "
+        "select is what vmap(env.step) computes",
+    )
+    parser.add_argument(
+        "--numpy-steps", type=positive_int, default=None, help="steps of the NumPy baseline per task (default 20000)"
+    )
     parser.add_argument("--no-e2e", action="store_true", help="skip timing `snac rollout` end to end")
     parser.add_argument("--quick", action="store_true", help="every task at N=64, T=100: a smoke run (< 2 min)")
-    parser.add_argument("--from-json", type=Path, default=None, metavar="PATH",
-                        help="measure nothing: rebuild the table and plots from the rows of an earlier run")
-    parser.add_argument("--out", type=Path, required=True,
-                        help="directory for everything written: rows, table, plots (bench/results for the committed ones)")
+    parser.add_argument(
+        "--from-json",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="measure nothing: rebuild the table and plots from the rows of an earlier run",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="directory for everything written: rows, table, plots (bench/results for the committed ones)",
+    )
     args = parser.parse_args(argv)
     if args.repeats < 3:
         parser.error("--repeats must be >= 3 (the median of at least three timed calls)")
@@ -188,24 +219,44 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
     columns = sorted({(r["devices_requested"], reset_of(r)) for r in rows}, key=lambda c: (c[1], c[0]))
     largest = max(r["num_envs"] for r in rows)
     lines += [f"## Headline: N = {largest}", ""]
-    header = "| task | " + " | ".join(f"{d} device{'s' if d > 1 else ''}, {step} reset" for d, step in columns) + " | NumPy | JAX / NumPy (best) |"
+    header = (
+        "| task | "
+        + " | ".join(f"{d} device{'s' if d > 1 else ''}, {step} reset" for d, step in columns)
+        + " | NumPy | JAX / NumPy (best) |"
+    )
     lines += [header, "|" + "---|" * (len(columns) + 3)]
     for task in dict.fromkeys(r["task"] for r in rows):
         cells = []
         best = None
         for d, step in columns:
-            match = [r for r in rows if r["task"] == task and r["num_envs"] == largest and r["devices_requested"] == d and reset_of(r) == step]
+            match = [
+                r
+                for r in rows
+                if r["task"] == task
+                and r["num_envs"] == largest
+                and r["devices_requested"] == d
+                and reset_of(r) == step
+            ]
             cells.append(f"{match[0]['steps_per_s'] / 1e6:.2f} M" if match else "")
             if match and (best is None or match[0]["steps_per_s"] > best["steps_per_s"]):
                 best = match[0]
         if best:
-            lines.append(f"| {task} | " + " | ".join(cells) + f" | {best['numpy_steps_per_s'] / 1e3:.0f} k | {best['ratio']:.0f}x |")
+            lines.append(
+                f"| {task} | "
+                + " | ".join(cells)
+                + f" | {best['numpy_steps_per_s'] / 1e3:.0f} k | {best['ratio']:.0f}x |"
+            )
     for fam in FAMILIES:
         fam_rows = [r for r in rows if family(r["task"]) == fam]
         if not fam_rows:
             continue
-        lines += ["", f"## {fam.upper()}", "", "| task | N | devices | reset | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
-                  "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            f"## {fam.upper()}",
+            "",
+            "| task | N | devices | reset | env-steps/s | compile s | XLA buffers MB | peak RSS MB | NumPy steps/s | JAX / NumPy |",
+            "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
+        ]
         for r in fam_rows:
             xla = f"{r['xla_buffers_mb']:.0f}" if r["xla_buffers_mb"] is not None else ""
             lines.append(
@@ -213,7 +264,13 @@ def markdown(rows: list[dict], e2e: list[dict], context: dict) -> str:
                 f"{r['peak_rss_mb']:.0f} | {r['numpy_steps_per_s']:,.0f} | {r['ratio']:.1f} |"
             )
     if e2e:
-        lines += ["", "## `snac rollout` end to end (process start to exit)", "", "| command | wall s | its own report |", "|---|---:|---|"]
+        lines += [
+            "",
+            "## `snac rollout` end to end (process start to exit)",
+            "",
+            "| command | wall s | its own report |",
+            "|---|---:|---|",
+        ]
         for item in e2e:
             report = item["output"].replace("\n", "; ")
             lines.append(f"| `{item['command']}` | {item['wall_s']:.2f} | {report} |")
@@ -236,7 +293,9 @@ def plot(rows: list[dict], out: Path) -> list[Path]:
             colour = f"C{i}"
             for d, step in sorted({(r["devices_requested"], reset_of(r)) for r in fam_rows}):
                 points = sorted(
-                    (r["num_envs"], r["steps_per_s"]) for r in fam_rows if r["task"] == task and r["devices_requested"] == d and reset_of(r) == step
+                    (r["num_envs"], r["steps_per_s"])
+                    for r in fam_rows
+                    if r["task"] == task and r["devices_requested"] == d and reset_of(r) == step
                 )
                 style = ("-" if d > 1 else "--") + ("o" if step == "loop" else "x")
                 label = f"{task} ({d} dev, {step})"
@@ -320,7 +379,10 @@ def main(argv=None) -> int:
         "repeats": args.repeats,
         "load_start": load(),
     }
-    print(f"# {len(tasks)} tasks, N in {args.num_envs}, T={args.steps}, devices {args.devices}, load {context['load_start']}", flush=True)
+    print(
+        f"# {len(tasks)} tasks, N in {args.num_envs}, T={args.steps}, devices {args.devices}, load {context['load_start']}",
+        flush=True,
+    )
     from snac_jax.batched_step import resolve_reset
 
     steps = list(dict.fromkeys(resolve_reset(r) for r in args.reset))
@@ -334,7 +396,11 @@ def main(argv=None) -> int:
                 # A point that runs on as many devices as one already measured is that point
                 # (N = 1 runs on one device whatever was asked), not a second compilation.
                 same = (task, num_envs, usable_devices(num_envs, requested), step)
-                result = measured[same] if same in measured else measure_jax(task, num_envs, args.steps, requested, args.repeats, step)
+                result = (
+                    measured[same]
+                    if same in measured
+                    else measure_jax(task, num_envs, args.steps, requested, args.repeats, step)
+                )
                 measured[same] = result
                 row = {
                     "task": task,

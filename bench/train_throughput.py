@@ -37,14 +37,25 @@ import time
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algorithm", choices=("ppo", "pqn", "pqn-belief"), default="ppo",
-                        help="the on-policy learner to time (each trains from rollouts of many worlds)")
-    parser.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE...]",
-                        help="settings over the tuned ones, timed as a row more (repeatable; the tuned row is always timed)")
+    parser.add_argument(
+        "--algorithm",
+        choices=("ppo", "pqn", "pqn-belief"),
+        default="ppo",
+        help="the on-policy learner to time (each trains from rollouts of many worlds)",
+    )
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE[,NAME=VALUE...]",
+        help="settings over the tuned ones, timed as a row more (repeatable; the tuned row is always timed)",
+    )
     parser.add_argument("--tasks", nargs="+", default=["1d-static-sin", "2d-static-dense"])
     parser.add_argument("--recurrent", choices=("yes", "no", "both"), default="yes")
     parser.add_argument("--updates", type=int, default=10, help="timed updates per repeat")
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats per configuration (the median is reported)")
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timed repeats per configuration (the median is reported)"
+    )
     parser.add_argument("--num-envs", type=int, default=None, help="default: the tuned value per task")
     parser.add_argument("--devices", type=int, default=1, help="CPU devices (default 1, as `snac train` uses)")
     for option in ("hidden-size", "rnn-size", "update-epochs", "num-minibatches", "rollout-steps"):
@@ -62,25 +73,44 @@ def main() -> None:
         parser.error(str(error))
     import jax
 
+    from agents.common.networks import param_count
     from agents.training.driver import initial_state
     from agents.training.registry import build_algorithm, make_config
-    from agents.common.networks import param_count
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
-    print(f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s) "
-          f"({jax.devices()[0].device_kind}; {os.cpu_count()} CPU cores); "
-          f"median of {args.repeats} repeats of {args.updates} updates")
-    print("| task | network | worlds | steps x epochs x minibatches | params | compile s | "
-          "env-steps/s with learning | acting only (same run) | learning's share of the time | "
-          "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |")
+    print(
+        f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s) "
+        f"({jax.devices()[0].device_kind}; {os.cpu_count()} CPU cores); "
+        f"median of {args.repeats} repeats of {args.updates} updates"
+    )
+    print(
+        "| task | network | worlds | steps x epochs x minibatches | params | compile s | "
+        "env-steps/s with learning | acting only (same run) | learning's share of the time | "
+        "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |"
+    )
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []  # every configuration made (and so checked) before the first is compiled
     for task, recurrent, settings in itertools.product(args.tasks, networks, variants):
         try:
-            rows.append((task, recurrent, settings, make_config(
-                args.algorithm, task, recurrent=recurrent, num_envs=args.num_envs, hidden_size=args.hidden_size,
-                rnn_size=args.rnn_size, update_epochs=args.update_epochs, num_minibatches=args.num_minibatches,
-                rollout_steps=args.rollout_steps, **settings)))
+            rows.append(
+                (
+                    task,
+                    recurrent,
+                    settings,
+                    make_config(
+                        args.algorithm,
+                        task,
+                        recurrent=recurrent,
+                        num_envs=args.num_envs,
+                        hidden_size=args.hidden_size,
+                        rnn_size=args.rnn_size,
+                        update_epochs=args.update_epochs,
+                        num_minibatches=args.num_minibatches,
+                        rollout_steps=args.rollout_steps,
+                        **settings,
+                    ),
+                )
+            )
         except ValueError as error:
             parser.error(f"{task}: {error}")
     for task, recurrent, settings, config in rows:
@@ -111,10 +141,13 @@ def main() -> None:
         matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
         kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
         kind += f", hidden {config.hidden_size}" + "".join(f"; {name}={value}" for name, value in settings.items())
-        print(f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
-              f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
-              f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
-              f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |", flush=True)
+        print(
+            f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
+            f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
+            f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
+            f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |",
+            flush=True,
+        )
 
 
 def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
@@ -132,12 +165,16 @@ def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
         name, sep, value = (part.strip() for part in item.partition("="))
         name = name.replace("-", "_")
         if not sep or not value or name not in fields:
-            raise ValueError(f"--variant takes NAME=VALUE[,NAME=VALUE...] with NAME one of {algorithm}'s settings "
-                             f"({', '.join(fields)}), got {item!r}")
+            raise ValueError(
+                f"--variant takes NAME=VALUE[,NAME=VALUE...] with NAME one of {algorithm}'s settings "
+                f"({', '.join(fields)}), got {item!r}"
+            )
         if name in settings:
             raise ValueError(f"--variant: {name} is named twice in {text!r}")
         if name in own_flags:
-            raise ValueError(f"--variant: {name} has its own flag (--{name.replace('_', '-')}), which sets it for every row")
+            raise ValueError(
+                f"--variant: {name} has its own flag (--{name.replace('_', '-')}), which sets it for every row"
+            )
         kind = fields[name].kind
         if kind is bool:
             if value.lower() not in ("true", "false"):

@@ -15,8 +15,12 @@ def device_context() -> dict:
     import jax
 
     device = jax.devices()[0]
-    return {"machine": platform.processor() or platform.machine(), "backend": jax.default_backend(),
-            "device": getattr(device, "device_kind", str(device)), "jax": jax.__version__}
+    return {
+        "machine": platform.processor() or platform.machine(),
+        "backend": jax.default_backend(),
+        "device": getattr(device, "device_kind", str(device)),
+        "jax": jax.__version__,
+    }
 
 
 def write_pair(out: Path, stem: str, payload: dict, table: str) -> None:

@@ -29,9 +29,23 @@ from snac_jax.evaluation import run_episodes
 from snac_jax.policy import Policy
 
 CONFIG = {
-    "TASK": "1d-static-sin", "ENV_KWARGS": {}, "NUM_ENVS": 64, "NUM_STEPS": 64, "TOTAL_TIMESTEPS": 5_000_000,
-    "UPDATE_EPOCHS": 4, "NUM_MINIBATCHES": 4, "LR": 1e-3, "GAMMA": 0.99, "GAE_LAMBDA": 0.95, "CLIP_EPS": 0.2,
-    "ENT_COEF": 0.01, "ENT_COEF_END": 0.0, "VF_COEF": 0.5, "MAX_GRAD_NORM": 0.5, "REWARD_SCALE": 0.1, "HIDDEN": 64,
+    "TASK": "1d-static-sin",
+    "ENV_KWARGS": {},
+    "NUM_ENVS": 64,
+    "NUM_STEPS": 64,
+    "TOTAL_TIMESTEPS": 5_000_000,
+    "UPDATE_EPOCHS": 4,
+    "NUM_MINIBATCHES": 4,
+    "LR": 1e-3,
+    "GAMMA": 0.99,
+    "GAE_LAMBDA": 0.95,
+    "CLIP_EPS": 0.2,
+    "ENT_COEF": 0.01,
+    "ENT_COEF_END": 0.0,
+    "VF_COEF": 0.5,
+    "MAX_GRAD_NORM": 0.5,
+    "REWARD_SCALE": 0.1,
+    "HIDDEN": 64,
 }
 
 
@@ -75,11 +89,16 @@ def make_train(config):
 
     def train(key):
         key, key_init, key_reset = jax.random.split(key, 3)
-        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, config["NUM_ENVS"]), env_params)
+        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(
+            jax.random.split(key_reset, config["NUM_ENVS"]), env_params
+        )
         none = jnp.full(obs.shape[:1], num_actions)  # "no last action" at an episode's start
-        schedule = optax.linear_schedule(config["LR"], 0.0, num_updates * config["UPDATE_EPOCHS"] * config["NUM_MINIBATCHES"])
+        schedule = optax.linear_schedule(
+            config["LR"], 0.0, num_updates * config["UPDATE_EPOCHS"] * config["NUM_MINIBATCHES"]
+        )
         train_state = TrainState.create(
-            apply_fn=network.apply, params=network.init(key_init, inputs(obs, obs, none, num_actions)[0]),
+            apply_fn=network.apply,
+            params=network.init(key_init, inputs(obs, obs, none, num_actions)[0]),
             tx=optax.chain(optax.clip_by_global_norm(config["MAX_GRAD_NORM"]), optax.adam(schedule, eps=1e-5)),
         )
 
@@ -91,10 +110,12 @@ def make_train(config):
             pi = distrax.Categorical(logits=logits)
             action = pi.sample(seed=key_act)
             next_obs, env_state, reward, terminated, truncated, info = step(
-                jax.random.split(key_step, config["NUM_ENVS"]), env_state, action, env_params)
+                jax.random.split(key_step, config["NUM_ENVS"]), env_state, action, env_params
+            )
             done = terminated | truncated  # a truncation is treated as an ending here, for brevity
-            transition = Transition(net_obs, action, pi.log_prob(action), value, reward * config["REWARD_SCALE"], done,
-                                    info["final_iou"])
+            transition = Transition(
+                net_obs, action, pi.log_prob(action), value, reward * config["REWARD_SCALE"], done, info["final_iou"]
+            )
             seen = (next_obs, jnp.where(done[:, None], next_obs, obs), jnp.where(done, num_actions, action))
             return (train_state, env_state, seen, key), transition
 
@@ -132,7 +153,9 @@ def make_train(config):
                 key, key_perm = jax.random.split(key)
                 flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), (batch, advantages, targets))
                 order = jax.random.permutation(key_perm, config["NUM_ENVS"] * config["NUM_STEPS"])
-                minibatches = jax.tree.map(lambda x: x[order].reshape((config["NUM_MINIBATCHES"], -1) + x.shape[1:]), flat)
+                minibatches = jax.tree.map(
+                    lambda x: x[order].reshape((config["NUM_MINIBATCHES"], -1) + x.shape[1:]), flat
+                )
 
                 def minibatch(train_state, minibatch):
                     loss, grads = jax.value_and_grad(loss_fn)(train_state.params, *minibatch, ent_coef)
@@ -142,8 +165,11 @@ def make_train(config):
                 return (train_state, key), losses
 
             (train_state, key), losses = jax.lax.scan(epoch, (train_state, key), None, config["UPDATE_EPOCHS"])
-            metrics = {"loss": losses.mean(), "episodes": batch.done.sum(),
-                       "iou_sum": jnp.where(batch.done, batch.iou, 0.0).sum()}
+            metrics = {
+                "loss": losses.mean(),
+                "episodes": batch.done.sum(),
+                "iou_sum": jnp.where(batch.done, batch.iou, 0.0).sum(),
+            }
             return (train_state, env_state, seen, key), metrics
 
         progress = jnp.linspace(0.0, 1.0, num_updates)
@@ -177,6 +203,8 @@ if __name__ == "__main__":
     start = time.perf_counter()
     train_state, metrics = jax.jit(make_train(CONFIG))(jax.random.key(0))
     last = np.asarray(metrics["iou_sum"])[-10:].sum() / max(1, np.asarray(metrics["episodes"])[-10:].sum())
-    print(f"trained {CONFIG['TOTAL_TIMESTEPS']:,} steps on {CONFIG['TASK']} in {time.perf_counter() - start:.0f} s; "
-          f"mean IoU of the sampled episodes that ended in the last 10 updates: {last:.3f}")
+    print(
+        f"trained {CONFIG['TOTAL_TIMESTEPS']:,} steps on {CONFIG['TASK']} in {time.perf_counter() - start:.0f} s; "
+        f"mean IoU of the sampled episodes that ended in the last 10 updates: {last:.3f}"
+    )
     print(f"greedy IoU over 100 episodes: {greedy_iou(CONFIG, train_state.params):.3f}")

@@ -60,7 +60,9 @@ def step_batch(
     with `resolve_reset` before tracing). Traced inside the caller's jit."""
     if resolve_reset(reset) == "select":
         return jax.vmap(env.step, in_axes=(0, 0, 0, None))(keys, states, actions, params)
-    _, stepped, reward, terminated, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(keys, states, actions, params)
+    _, stepped, reward, terminated, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(
+        keys, states, actions, params
+    )
     truncated = jax.vmap(env.is_truncated, in_axes=(0, None))(stepped, params)
     done = terminated | truncated
     ended = jnp.nonzero(done, size=done.shape[0], fill_value=0)[0]
@@ -69,7 +71,9 @@ def step_batch(
         world = ended[i]
         _, fresh = env.reset_env(keys[world], params)
         return jax.tree.map(
-            lambda batch, leaf: jax.lax.dynamic_update_index_in_dim(batch, leaf.astype(batch.dtype), world, 0), states, fresh
+            lambda batch, leaf: jax.lax.dynamic_update_index_in_dim(batch, leaf.astype(batch.dtype), world, 0),
+            states,
+            fresh,
         )
 
     states = jax.lax.fori_loop(0, jnp.sum(done, dtype=jnp.int32), reset_one, stepped)

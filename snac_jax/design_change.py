@@ -30,8 +30,10 @@ def check(dynamic: bool, value: Any, max_steps: int, pinned: bool, bank_size: in
     if not dynamic:
         raise ValueError("design_change applies to dynamic tasks only (a static task has one design)")
     if pinned:
-        raise ValueError("design_change cannot be combined with test_design: a pinned design has no other to change "
-                         "to (the evaluation protocol pairs the test designs itself, SPEC §15)")
+        raise ValueError(
+            "design_change cannot be combined with test_design: a pinned design has no other to change "
+            "to (the evaluation protocol pairs the test designs itself, SPEC §15)"
+        )
     if bank_size < 2:
         raise ValueError(f"design_change needs a design bank of at least 2 designs, got design_bank_size={bank_size}")
     return (int(pair[0]), int(pair[1]))

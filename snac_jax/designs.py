@@ -149,6 +149,7 @@ def sample_triangle(key: jax.Array, dim: int, density: str) -> jax.Array:
 def sample_design(key: jax.Array, dim: int, density: str | None, excluded: jax.Array | None = None) -> jax.Array:
     """One training design of a dynamic task, of the plan shape, int16, never equal to any of
     `excluded` (E, *plan_shape): a draw that equals one is redrawn with `fold_in(key, attempt)`."""
+
     def draw(k):
         return sample_sine(k) if dim == 1 else sample_triangle(k, dim, density)
 

@@ -136,8 +136,10 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         for name, shape in expected.items():
             got = tuple(getattr(params, name).shape)
             if got != shape:
-                raise ValueError(f"params.{name} has shape {got}, {self!r} needs {shape}: params of another task? "
-                                 "(snac_jax.make builds the matching pair)")
+                raise ValueError(
+                    f"params.{name} has shape {got}, {self!r} needs {shape}: params of another task? "
+                    "(snac_jax.make builds the matching pair)"
+                )
 
     def check_state(self, state: EnvState) -> None:
         """`ValueError` unless `state` has this task's grid and design shapes."""
@@ -254,7 +256,12 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         return self.get_obs(state, params), state, reward, terminated, truncated, info, state_stepped
 
     def step_batch(
-        self, keys: jax.Array, states: EnvState, actions: jax.Array, params: EnvParams | None = None, reset: str = "auto"
+        self,
+        keys: jax.Array,
+        states: EnvState,
+        actions: jax.Array,
+        params: EnvParams | None = None,
+        reset: str = "auto",
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
         """`jax.vmap(env.step, in_axes=(0, 0, 0, None))` bit for bit, with the auto-reset computed
         the way that suits the backend: `reset` is `"loop"` (reset the ended worlds one by one:
@@ -306,9 +313,11 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         batch axis, not the plan).
         """
         grid, one = tuple(state.grid.shape), self.config.grid_shape
-        if len(grid) > len(one) and grid[-len(one):] == one:
-            raise ValueError(f"env.privileged takes one world's state, got a batch of shape {grid[:-len(one)]}: "
-                             "jax.vmap(env.privileged, in_axes=(0, None))(states, params)")
+        if len(grid) > len(one) and grid[-len(one) :] == one:
+            raise ValueError(
+                f"env.privileged takes one world's state, got a batch of shape {grid[: -len(one)]}: "
+                "jax.vmap(env.privileged, in_axes=(0, None))(states, params)"
+            )
         self.check_state(state)
         (pr, pc), (h, w) = self.config.pad, self.config.plan_shape
         return PrivilegedState(
@@ -376,5 +385,5 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
             high = high.at[layout.design].set(jnp.max(params.designs).astype(jnp.float32))
         if layout.position is not None:
             plan_high = np.asarray(config.plan_shape, np.float32) - 1
-            high = high.at[layout.position].set(plan_high[-(layout.position.stop - layout.position.start):])
+            high = high.at[layout.position].set(plan_high[-(layout.position.stop - layout.position.start) :])
         return spaces.Box(jnp.asarray(low), high, (layout.size,), jnp.float32)

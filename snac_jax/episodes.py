@@ -27,7 +27,8 @@ and returns what `record` keeps of each.
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -94,10 +95,19 @@ def _advance(env, params: EnvParams, decide: Decide, episode: Episode, x) -> tup
     else:
         obs, state, reward, terminated, info = env.step_with_stride(episode.state, move.action, move.stride, params)
     truncated = env.is_truncated(state, params)
-    stepped = Episode(obs=obs, state=state, agent=agent, episode_return=episode.episode_return + reward,
-                      done=terminated | truncated)
-    return stepped, Step(live=~episode.done, action=move.action, stride=info["stride"], obs=obs, state=state,
-                         reward=reward, terminated=terminated, truncated=truncated)
+    stepped = Episode(
+        obs=obs, state=state, agent=agent, episode_return=episode.episode_return + reward, done=terminated | truncated
+    )
+    return stepped, Step(
+        live=~episode.done,
+        action=move.action,
+        stride=info["stride"],
+        obs=obs,
+        state=state,
+        reward=reward,
+        terminated=terminated,
+        truncated=truncated,
+    )
 
 
 def run_to_end(env, params: EnvParams, decide: Decide, episode: Episode) -> Episode:

@@ -25,8 +25,9 @@ import dataclasses
 import math
 import time
 import zlib
+from collections.abc import Callable
 from functools import partial
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -185,8 +186,11 @@ def episode_bytes(env: SNACEnv, params: EnvParams, policy: Policy) -> int:
 
 def require_episode_memory(env: SNACEnv, params: EnvParams, policy: Policy, num_episodes: int) -> None:
     """`ValueError` with the estimate if `num_episodes` episodes at once would not fit."""
-    memory.require(f"{num_episodes:,} episodes at once", num_episodes * episode_bytes(env, params, policy),
-                   "evaluate fewer episodes")
+    memory.require(
+        f"{num_episodes:,} episodes at once",
+        num_episodes * episode_bytes(env, params, policy),
+        "evaluate fewer episodes",
+    )
 
 
 def test_design_params(task_id: str, params: EnvParams) -> EnvParams:
@@ -243,8 +247,9 @@ class TaskResult:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_episodes(cls, task: str, strata: dict[str, np.ndarray], lengths, bricks_used, returns,
-                      seed: int, wall_s: float) -> "TaskResult":
+    def from_episodes(
+        cls, task: str, strata: dict[str, np.ndarray], lengths, bricks_used, returns, seed: int, wall_s: float
+    ) -> TaskResult:
         """The protocol's statistics from the final IoUs of each stratum (a design or a 1D
         shape) and the episodes' lengths, bricks and returns."""
         stats = summarize(strata)
@@ -302,8 +307,13 @@ class ProtocolEpisodes:
         return _episode_keys(self.key, self.num_episodes)
 
 
-def protocol_episodes(env_task: str, params, seed: int, static_episodes: int = STATIC_EPISODES,
-                      episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN) -> ProtocolEpisodes:
+def protocol_episodes(
+    env_task: str,
+    params,
+    seed: int,
+    static_episodes: int = STATIC_EPISODES,
+    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN,
+) -> ProtocolEpisodes:
     """The designs and keys of the protocol's episodes on `env_task` with evaluation key `seed`,
     `params` being the task's as `make` built them (the single robot's `EnvParams` or a team's).
 
@@ -328,8 +338,10 @@ def check_protocol_args(static_episodes, episodes_per_test_design, seed, overrid
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
         raise ValueError(f"seed must be an int in 0..{MAX_SEED}, got {seed!r}")
     if "test_design" in overrides:
-        raise ValueError("test_design pins one design, but the protocol scores a dynamic task on all ten of its "
-                         "test designs (a static task has none): leave it out")
+        raise ValueError(
+            "test_design pins one design, but the protocol scores a dynamic task on all ten of its "
+            "test designs (a static task has none): leave it out"
+        )
 
 
 def evaluate_task(
@@ -361,8 +373,9 @@ def evaluate_task(
             raise ValueError(f"expected a Policy or a builder returning one, got {type(episode_policy).__name__}")
         setup = protocol_episodes(env_task, params, seed, static_episodes, episodes_per_test_design)
         require_episode_memory(env, setup.params, episode_policy, setup.num_episodes)
-        result = jax.device_get(run_episodes(env, setup.params, episode_policy, setup.key, setup.design_indices,
-                                             num_devices))
+        result = jax.device_get(
+            run_episodes(env, setup.params, episode_policy, setup.key, setup.design_indices, num_devices)
+        )
         invalid = np.asarray(result.invalid_actions)
         if invalid.any():
             raise ValueError(
@@ -377,6 +390,11 @@ def evaluate_task(
 
     everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
     return TaskResult.from_episodes(
-        task=task, strata=strata, lengths=everything.length, bricks_used=everything.bricks_used,
-        returns=everything.episode_return, seed=seed, wall_s=wall_s,
+        task=task,
+        strata=strata,
+        lengths=everything.length,
+        bricks_used=everything.bricks_used,
+        returns=everything.episode_return,
+        seed=seed,
+        wall_s=wall_s,
     )

@@ -85,8 +85,10 @@ def _check_registered_task(task_id: str, registered_task_id: str | None) -> None
     without this check `make("SNAC/1d-static-sin-v0", task_id="2d-static-dense")` would build a
     2D world that every wrapper, log and `env.spec` names as the 1D task."""
     if registered_task_id is not None and task_id != registered_task_id:
-        raise ValueError(f"{env_id(registered_task_id)} is the task {registered_task_id}, not task_id={task_id!r}: "
-                         f"make {env_id(task_id)!r} instead")
+        raise ValueError(
+            f"{env_id(registered_task_id)} is the task {registered_task_id}, not task_id={task_id!r}: "
+            f"make {env_id(task_id)!r} instead"
+        )
 
 
 def _check_render_mode(metadata: dict[str, Any], render_mode: str | None) -> str | None:
@@ -163,8 +165,9 @@ class SNACGymEnv(gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
-    def __init__(self, task_id: str, render_mode: str | None = None, registered_task_id: str | None = None,
-                 **overrides: Any):
+    def __init__(
+        self, task_id: str, render_mode: str | None = None, registered_task_id: str | None = None, **overrides: Any
+    ):
         _check_registered_task(task_id, registered_task_id)
         self.render_mode = _check_render_mode(self.metadata, render_mode)
         self.jax_env, self.env_params = make(task_id, **overrides)
@@ -206,7 +209,9 @@ class SNACGymEnv(gymnasium.Env):
             raise gymnasium.error.ResetNeeded(f"the episode ended ({self._ended}): call reset() before step()")
         if not self.action_space.contains(action):
             raise ValueError(f"action must be an int in 0..{self.action_space.n - 1}, got {action!r}")
-        self._key, self._state, packed = _step_one(self.jax_env, self._key, self._state, np.int32(action), self.env_params)
+        self._key, self._state, packed = _step_one(
+            self.jax_env, self._key, self._state, np.int32(action), self.env_params
+        )
         obs, reward, terminated, truncated, iou, stride = _unpack(np.asarray(packed), self.observation_space.shape[0])
         if terminated or truncated:
             self._ended = "terminated" if terminated else "truncated"
@@ -241,8 +246,15 @@ class SNACVectorEnv(VectorEnv):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS, "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, task_id: str, num_envs: int = 1, render_mode: str | None = None,
-                 registered_task_id: str | None = None, reset: str = "auto", **overrides: Any):
+    def __init__(
+        self,
+        task_id: str,
+        num_envs: int = 1,
+        render_mode: str | None = None,
+        registered_task_id: str | None = None,
+        reset: str = "auto",
+        **overrides: Any,
+    ):
         _check_registered_task(task_id, registered_task_id)
         self.reset_strategy = resolve_reset(reset)  # how ended worlds are reset: the backend's own by default
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:

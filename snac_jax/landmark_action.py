@@ -23,8 +23,10 @@ def check(dim: int, value: Any) -> int:
     """The `landmark_action` override as an int K, or a one-line `ValueError` naming what is allowed."""
     ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and 0 <= value <= MAX_LANDMARK_ACTION
     if not ok:
-        raise ValueError(f"landmark_action must be an int in 0..{MAX_LANDMARK_ACTION} (landmarks an episode may "
-                         f"place; 0 = off), got {value!r}")
+        raise ValueError(
+            f"landmark_action must be an int in 0..{MAX_LANDMARK_ACTION} (landmarks an episode may "
+            f"place; 0 = off), got {value!r}"
+        )
     if value and dim == 1:
         raise ValueError("landmark_action needs a 2D or 3D task; every 1D column belongs to the design")
     return int(value)

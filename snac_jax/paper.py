@@ -56,9 +56,10 @@ def load_paper_results(path: str | Path | None = None) -> dict[str, Any]:
     for method, row in results["methods"].items():
         unknown = sorted(set(row) - set(PAPER_TASKS)) if isinstance(row, dict) else None
         if unknown is None or unknown:
-            raise ValueError(f"{path or 'paper_results.json'}: methods.{method} must map the paper's columns "
-                             f"({', '.join(PAPER_TASKS)}) to {{avg, min}}"
-                             + (f"; unknown column(s) {unknown}" if unknown else ""))
+            raise ValueError(
+                f"{path or 'paper_results.json'}: methods.{method} must map the paper's columns "
+                f"({', '.join(PAPER_TASKS)}) to {{avg, min}}" + (f"; unknown column(s) {unknown}" if unknown else "")
+            )
     return results
 
 
@@ -67,8 +68,6 @@ def paper_row(results: dict[str, Any], method: str | None) -> dict[str, dict[str
     if method is None:
         return {}
     return results["methods"].get(method, {})
-
-
 
 
 def _fmt(value, digits: int = 3) -> str:

@@ -17,9 +17,10 @@ from __future__ import annotations
 import functools
 import importlib
 import re
+from collections.abc import Callable
 from importlib import metadata
 from importlib.metadata import entry_points
-from typing import Any, Callable
+from typing import Any
 
 COMMANDS = "snac_jax.commands"
 CHECKPOINT_LOADERS = "snac_jax.checkpoint_loaders"
@@ -76,8 +77,10 @@ def checkpoint_loader() -> Callable:
     """The installed loader of trained policies; a clear error if no package provides one."""
     loaders = list(entry_points(group=CHECKPOINT_LOADERS))
     if not loaders:
-        raise ValueError(f"no package provides a checkpoint loader (entry point group {CHECKPOINT_LOADERS!r}); "
-                         f'install the project with its learners: pip install "{DISTRIBUTION}[train]"')
+        raise ValueError(
+            f"no package provides a checkpoint loader (entry point group {CHECKPOINT_LOADERS!r}); "
+            f'install the project with its learners: pip install "{DISTRIBUTION}[train]"'
+        )
     return loaders[0].load()
 
 

@@ -16,7 +16,8 @@ carry it); the loops call it through `call_act`, which checks that while tracing
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,13 +46,18 @@ def call_act(act: Callable, params: Any, policy_state: Any, obs: jax.Array, key:
     dtypes are static: the check runs once while tracing and costs nothing per step."""
     out = act(params, policy_state, obs, key)
     if not (isinstance(out, (tuple, list)) and len(out) == 2):
-        got = f"a bare {_avals(out)} value" if hasattr(out, "dtype") or isinstance(out, (int, float)) else (
-            f"a {type(out).__name__}" + (f" of {len(out)}" if isinstance(out, (tuple, list)) else ""))
+        got = (
+            f"a bare {_avals(out)} value"
+            if hasattr(out, "dtype") or isinstance(out, (int, float))
+            else (f"a {type(out).__name__}" + (f" of {len(out)}" if isinstance(out, (tuple, list)) else ""))
+        )
         raise ValueError(f"policy.act must return (action, policy_state), got {got}")
     action, new_state = out
     action = jnp.asarray(action)
     if action.shape != () or not jnp.issubdtype(action.dtype, jnp.integer):
-        raise ValueError(f"policy.act must return one integer action (shape ()), got {action.dtype}{list(action.shape)}")
+        raise ValueError(
+            f"policy.act must return one integer action (shape ()), got {action.dtype}{list(action.shape)}"
+        )
     expected, got = _avals(policy_state), _avals(new_state)
     if jax.tree.structure(policy_state) != jax.tree.structure(new_state) or expected != got:
         raise ValueError(f"policy.act must return a policy_state like the one it was given, {expected}, got {got}")

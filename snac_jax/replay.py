@@ -21,8 +21,20 @@ from snac_jax.tasks import make
 GOLDEN_TRACES_ENV_VAR = "SNAC_GOLDEN_TRACES"
 
 
-TRACE_KEYS = ("variant", "dim", "max_steps", "max_bricks", "design", "actions", "strides", "rewards", "dones",
-              "observations", "final_grid", "final_iou")
+TRACE_KEYS = (
+    "variant",
+    "dim",
+    "max_steps",
+    "max_bricks",
+    "design",
+    "actions",
+    "strides",
+    "rewards",
+    "dones",
+    "observations",
+    "final_grid",
+    "final_iou",
+)
 
 
 def load_traces(path: str | os.PathLike) -> list[dict]:
@@ -39,14 +51,20 @@ def load_traces(path: str | os.PathLike) -> list[dict]:
     except (OSError, EOFError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: not a readable golden-trace file ({type(error).__name__}: {error})") from error
     if not isinstance(traces, list) or not traces:
-        raise ValueError(f"{path}: expected a non-empty JSON list of traces, got {type(traces).__name__} of length "
-                         f"{len(traces) if isinstance(traces, (list, dict)) else '-'}")
+        raise ValueError(
+            f"{path}: expected a non-empty JSON list of traces, got {type(traces).__name__} of length "
+            f"{len(traces) if isinstance(traces, (list, dict)) else '-'}"
+        )
     for number, trace in enumerate(traces):
         missing = [k for k in TRACE_KEYS if not isinstance(trace, dict) or k not in trace]
         steps = len(trace.get("actions", ())) if isinstance(trace, dict) else 0
         lengths = None if missing else {len(trace[k]) for k in ("actions", "strides", "rewards", "dones")}
         if missing or not steps or lengths != {steps} or len(trace["observations"]) != steps + 1:
-            why = f"lacks {missing}" if missing else "its actions, strides, rewards, dones and observations disagree in length"
+            why = (
+                f"lacks {missing}"
+                if missing
+                else "its actions, strides, rewards, dones and observations disagree in length"
+            )
             raise ValueError(f"{path}: trace {number} is incomplete: {why}")
     return traces
 
@@ -93,8 +111,10 @@ def replay(env: SNACEnv, params: EnvParams, actions, strides) -> dict[str, np.nd
     actions, strides = np.asarray(actions), np.asarray(strides)
     steps = len(actions)
     if actions.shape != (steps,) or strides.shape != (steps,) or not steps:
-        raise ValueError(f"replay needs one stride per action and at least one action, got {actions.shape[:1]} "
-                         f"actions and {strides.shape[:1]} strides")
+        raise ValueError(
+            f"replay needs one stride per action and at least one action, got {actions.shape[:1]} "
+            f"actions and {strides.shape[:1]} strides"
+        )
     for name, values in (("actions", actions), ("strides", strides)):
         if not np.issubdtype(values.dtype, np.integer):
             raise ValueError(f"{name} must be integers, got {values.dtype}")
@@ -102,7 +122,9 @@ def replay(env: SNACEnv, params: EnvParams, actions, strides) -> dict[str, np.nd
     check_range("strides", strides, 1, MAX_STRIDE)
     padded = -(-steps // REPLAY_CHUNK) * REPLAY_CHUNK
     pad = lambda x: jnp.asarray(np.pad(np.asarray(x, np.int32), (0, padded - steps), constant_values=1))
-    obs0, (obs, rewards, terminated, truncated, ious, grids, bricks) = _replay_scan(env, params, pad(actions), pad(strides))
+    obs0, (obs, rewards, terminated, truncated, ious, grids, bricks) = _replay_scan(
+        env, params, pad(actions), pad(strides)
+    )
     (pr, pc), (h, w) = env.config.pad, env.config.plan_shape
     grid = np.asarray(grids[steps - 1])[pr : pr + h, pc : pc + w]
     return {

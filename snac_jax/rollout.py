@@ -27,10 +27,12 @@ class EpisodeStats:
     iou_max: jax.Array  # float32 (0.0 when none ended)
 
     @classmethod
-    def empty(cls) -> "EpisodeStats":
-        return cls(episodes=jnp.zeros((), jnp.int32), iou_sum=jnp.zeros(()), iou_min=jnp.ones(()), iou_max=jnp.zeros(()))
+    def empty(cls) -> EpisodeStats:
+        return cls(
+            episodes=jnp.zeros((), jnp.int32), iou_sum=jnp.zeros(()), iou_min=jnp.ones(()), iou_max=jnp.zeros(())
+        )
 
-    def add(self, done: jax.Array, final_iou: jax.Array) -> "EpisodeStats":
+    def add(self, done: jax.Array, final_iou: jax.Array) -> EpisodeStats:
         return EpisodeStats(
             episodes=self.episodes + jnp.sum(done),
             iou_sum=self.iou_sum + jnp.sum(jnp.where(done, final_iou, 0.0)),
@@ -38,7 +40,7 @@ class EpisodeStats:
             iou_max=jnp.maximum(self.iou_max, jnp.max(jnp.where(done, final_iou, 0.0))),
         )
 
-    def combine(self) -> "EpisodeStats":
+    def combine(self) -> EpisodeStats:
         """Merge statistics stacked along a leading axis (one entry per device)."""
         return EpisodeStats(
             episodes=jnp.sum(self.episodes),
@@ -58,7 +60,9 @@ def uniform_actions(key: jax.Array, num_envs: int, num_actions: int) -> jax.Arra
     return (threefry.bits(key, num_envs) % jnp.uint32(num_actions)).astype(jnp.int32)
 
 
-def _rollout(key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, reset: str) -> EpisodeStats:
+def _rollout(
+    key: jax.Array, env: SNACEnv, params: EnvParams, num_envs: int, num_steps: int, reset: str
+) -> EpisodeStats:
     """`num_envs` worlds on one device: per step, one hash per env for the env key, one for the
     action and one inside the step, stepped by `env.step_batch` with the concrete `reset`
     strategy (the same worlds whichever it is)."""
@@ -112,5 +116,7 @@ def random_rollout(
         stats = _rollout(device_key[0], env, params, per_device, num_steps, reset)
         return jax.tree.map(lambda x: x[None], stats)
 
-    run = jax.shard_map(shard, mesh=mesh, in_specs=(devices.ENVS, jax.sharding.PartitionSpec()), out_specs=devices.ENVS, check_vma=False)
+    run = jax.shard_map(
+        shard, mesh=mesh, in_specs=(devices.ENVS, jax.sharding.PartitionSpec()), out_specs=devices.ENVS, check_vma=False
+    )
     return run(jax.random.split(key, mesh.devices.size), params).combine()

@@ -18,8 +18,9 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 from snac_jax.designs import NUM_TEST_DESIGNS
 from snac_jax.tasks import MAX_INT32, MAX_SEED, TASKS
@@ -100,7 +101,9 @@ class Int(Spec):
         return "ints" + _range(self.low, self.high, f"{self.low}..{self.high}")
 
     def check(self, value: Any, field: str) -> None:
-        if not (_is_int(value) and (self.low is None or value >= self.low) and (self.high is None or value <= self.high)):
+        if not (
+            _is_int(value) and (self.low is None or value >= self.low) and (self.high is None or value <= self.high)
+        ):
             raise mismatch(field, self.describe(), value)
 
 
@@ -111,7 +114,9 @@ class Number(Spec):
         self.low, self.high = low, high
 
     def _range(self) -> str:
-        return _range(self.low, self.high, f"[{self.low:g}, {self.high:g}]" if None not in (self.low, self.high) else "")
+        return _range(
+            self.low, self.high, f"[{self.low:g}, {self.high:g}]" if None not in (self.low, self.high) else ""
+        )
 
     def describe(self) -> str:
         return "a finite number" + self._range()
@@ -120,7 +125,9 @@ class Number(Spec):
         return "finite numbers" + self._range()
 
     def check(self, value: Any, field: str) -> None:
-        if not (_is_number(value) and (self.low is None or value >= self.low) and (self.high is None or value <= self.high)):
+        if not (
+            _is_number(value) and (self.low is None or value >= self.low) and (self.high is None or value <= self.high)
+        ):
             raise mismatch(field, self.describe(), value)
 
 
@@ -224,8 +231,11 @@ class Object(Spec):
 
     def check(self, value: Any, field: str) -> None:
         if not isinstance(value, dict):
-            raise Mismatch(f"{field} must be an object, got {type(value).__name__}" if field
-                            else f"must hold a JSON object, got {type(value).__name__}")
+            raise Mismatch(
+                f"{field} must be an object, got {type(value).__name__}"
+                if field
+                else f"must hold a JSON object, got {type(value).__name__}"
+            )
         allowed = {**self.required, **self.optional}
         unknown = [k for k in value if k not in allowed]
         if unknown:
@@ -249,8 +259,11 @@ class MapOf(Spec):
 
     def check(self, value: Any, field: str) -> None:
         if not isinstance(value, dict):
-            raise Mismatch(f"{field} must be an object, got {type(value).__name__}" if field
-                            else f"must hold a JSON object, got {type(value).__name__}")
+            raise Mismatch(
+                f"{field} must be an object, got {type(value).__name__}"
+                if field
+                else f"must hold a JSON object, got {type(value).__name__}"
+            )
         if len(value) < self.min_items:
             raise Mismatch(f"{field or 'it'} must have at least {self.min_items} entries, got {len(value)}")
         for key, item in value.items():

@@ -32,14 +32,21 @@ class TaskSpec:
 
 
 STEP_LIMITS: dict[tuple[int, bool], int] = {
-    (1, False): 750, (1, True): 750, (2, False): 600, (2, True): 600, (3, False): 1300, (3, True): 1000,
+    (1, False): 750,
+    (1, True): 750,
+    (2, False): 600,
+    (2, True): 600,
+    (3, False): 1300,
+    (3, True): 1000,
 }
 """The step limit (truncation) of a task by (dimension, dynamic) (SPEC §1): every other place
 reads it from here (`task_spec(task).max_steps`)."""
 
 _SPECS: dict[str, TaskSpec] = {
-    **{f"1d-static-{s}": TaskSpec(dim=1, dynamic=False, design=f"1d-static-{s}", max_steps=STEP_LIMITS[1, False])
-       for s in ("sin", "gauss", "step")},
+    **{
+        f"1d-static-{s}": TaskSpec(dim=1, dynamic=False, design=f"1d-static-{s}", max_steps=STEP_LIMITS[1, False])
+        for s in ("sin", "gauss", "step")
+    },
     "1d-dynamic": TaskSpec(dim=1, dynamic=True, design="sine", max_steps=STEP_LIMITS[1, True]),
 }
 for _dim in (2, 3):
@@ -155,8 +162,10 @@ def test_design_names(task_id: str) -> list[str]:
     """The designs.json keys of a dynamic task's ten test designs."""
     spec = task_spec(task_id)
     if not spec.dynamic:
-        raise ValueError(f"{task_id!r} is a static task and has no test designs; dynamic tasks: "
-                         f"{', '.join(t for t in TASKS if _SPECS[t].dynamic)}")
+        raise ValueError(
+            f"{task_id!r} is a static task and has no test designs; dynamic tasks: "
+            f"{', '.join(t for t in TASKS if _SPECS[t].dynamic)}"
+        )
     return [f"{task_id}-test{i}" for i in range(designs.NUM_TEST_DESIGNS)]
 
 
@@ -192,8 +201,7 @@ def _stride_probs(value: Any) -> tuple[float, float, float]:
         probs = ()
     if len(probs) != 3 or any(not math.isfinite(p) or p < 0 for p in probs) or abs(sum(probs) - 1) > 1e-6:
         raise ValueError(
-            f"stride_probs must be three non-negative probabilities for strides 1, 2, 3 summing to 1, "
-            f"got {value!r}"
+            f"stride_probs must be three non-negative probabilities for strides 1, 2, 3 summing to 1, got {value!r}"
         )
     return probs
 
@@ -237,8 +245,13 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     max_steps = _require_int("max_steps", overrides.get("max_steps", spec.max_steps), 1, MAX_INT32)
     landmark_placements = landmark_action.check(spec.dim, overrides.get("landmark_action", 0))
     bank_size = overrides.get("design_bank_size", DEFAULT_DESIGN_BANK_SIZE)
-    change = design_change.check(spec.dynamic, overrides.get("design_change"), max_steps, "test_design" in overrides,
-                                 bank_size if isinstance(bank_size, int) else 2)
+    change = design_change.check(
+        spec.dynamic,
+        overrides.get("design_change"),
+        max_steps,
+        "test_design" in overrides,
+        bank_size if isinstance(bank_size, int) else 2,
+    )
 
     for name in ("test_design", "design_bank_size", "design_seed"):
         if name in overrides and not spec.dynamic:
@@ -252,8 +265,7 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
         size = _require_int("design_bank_size", overrides.get("design_bank_size", DEFAULT_DESIGN_BANK_SIZE), 1)
         seed = _require_int("design_seed", overrides.get("design_seed", 0), 0, MAX_SEED)
         density = None if spec.dim == 1 else spec.design
-        memory.require(f"a bank of {size:,} designs", size * _bank_bytes_per_design(spec.dim),
-                       "lower design_bank_size")
+        memory.require(f"a bank of {size:,} designs", size * _bank_bytes_per_design(spec.dim), "lower design_bank_size")
         design_stack = designs.design_bank(spec.dim, density, size, seed)
     else:
         design_stack = designs.fixed_design(spec.design)[None]
@@ -280,8 +292,9 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
     return SNACEnv(config, params), params
 
 
-def make_params(design_stack: np.ndarray, dim: int, stride_probs=DEFAULT_STRIDE_PROBS,
-                max_steps: int = MAX_INT32) -> EnvParams:
+def make_params(
+    design_stack: np.ndarray, dim: int, stride_probs=DEFAULT_STRIDE_PROBS, max_steps: int = MAX_INT32
+) -> EnvParams:
     """`EnvParams` whose resets draw from `design_stack` (K, *plan_shape). `make` passes the
     task's step limit; a caller that only wants the design fields (a swapped design stack) may
     leave `max_steps` out."""

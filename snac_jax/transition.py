@@ -103,18 +103,14 @@ def transition(
 
     # Drops: onto the own cell, or onto a neighbour with the neighbour-drop action table.
     counted = is_drop & (target_value != PADDING)  # a drop toward padding spends nothing
-    on_landmark = (
-        state.landmarks[target[0], target[1]] if state.landmarks is not None else jnp.asarray(False)
-    )
+    on_landmark = state.landmarks[target[0], target[1]] if state.landmarks is not None else jnp.asarray(False)
     placed = counted & ~on_landmark
     height = target_value.astype(jnp.int32) + 1
     new_value = jnp.minimum(height, 1) if config.binary_grid else height
     plan_target = jnp.clip(target - offset, 0, jnp.asarray(config.plan_shape) - 1)
     design_height = state.design[plan_target[0], plan_target[1]].astype(jnp.int32)
     old_value = jnp.maximum(target_value.astype(jnp.int32), 0)
-    grid = state.grid.at[target[0], target[1]].set(
-        jnp.where(placed, new_value, target_value).astype(state.grid.dtype)
-    )
+    grid = state.grid.at[target[0], target[1]].set(jnp.where(placed, new_value, target_value).astype(state.grid.dtype))
     overlap = state.overlap + jnp.where(
         placed, jnp.minimum(new_value, design_height) - jnp.minimum(old_value, design_height), 0
     )
@@ -140,4 +136,3 @@ def transition(
     if config.design_change is not None:
         new_state = design_change.apply(config, new_state)
     return new_state, reward.astype(jnp.float32), terminated
-

@@ -24,9 +24,11 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", "-1")
 import jax  # noqa: E402  (after the variables above, which jax reads when it is imported)
 import pytest  # noqa: E402
 
-for _name, _value in (("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"]),
-                      ("jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])),
-                      ("jax_compilation_cache_max_size", int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"]))):
+for _name, _value in (
+    ("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"]),
+    ("jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])),
+    ("jax_compilation_cache_max_size", int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"])),
+):
     jax.config.update(_name, _value)  # in case a plugin imported jax before this module
 
 from snac_jax.replay import GOLDEN_TRACES_ENV_VAR, load_traces  # noqa: E402

@@ -57,8 +57,25 @@ def check_each_seed_evaluates_from_the_checkpoint(train_stdout: str, out: Path, 
     assert trained[f"{task} (seed 0)"] != trained[f"{task} (seed 1)"]
     for index, flag in ((0, []), (1, ["--seed-index", "1"])):
         path = out / f"eval-again-{index}.json"
-        again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2",
-                                "--json", str(path), *flag], capture_output=True, text=True, env=env, timeout=600)
+        again = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "snac_jax.cli",
+                "eval",
+                "--checkpoint",
+                str(out),
+                "--episodes",
+                "2",
+                "--json",
+                str(path),
+                *flag,
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
         assert again.returncode == 0, again.stderr[-3000:]
         result = json.loads(path.read_text())
         assert {key: measured(r) for key, r in result.items()} == {task: trained[f"{task} (seed {index})"]}, index

@@ -29,8 +29,12 @@ def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
     found = set()
     package = _module_name(path) if path.name == "__init__.py" else _module_name(path).rpartition(".")[0]
     tree = ast.parse(path.read_text())
-    typing_only = {id(inner) for node in ast.walk(tree) if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
-                   for inner in ast.walk(node)}  # annotations only: nothing is imported at run time
+    typing_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+        for inner in ast.walk(node)
+    }  # annotations only: nothing is imported at run time
     for node in ast.walk(tree):
         if id(node) in typing_only:
             continue
@@ -39,7 +43,9 @@ def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             names = [base] + [f"{base}.{alias.name}" for alias in node.names]
         else:
             continue
@@ -57,8 +63,11 @@ def _graph() -> dict[str, set[str]]:
 
 
 def test_the_library_never_imports_the_learners():
-    offenders = {m: sorted(i for i in deps if i.split(".")[0] == "agents")
-                 for m, deps in _graph().items() if m.split(".")[0] == "snac_jax"}
+    offenders = {
+        m: sorted(i for i in deps if i.split(".")[0] == "agents")
+        for m, deps in _graph().items()
+        if m.split(".")[0] == "snac_jax"
+    }
     assert not {m: d for m, d in offenders.items() if d}
 
 
@@ -96,15 +105,21 @@ def test_no_import_circles():
 
 
 def test_no_module_is_over_the_line_limit():
-    long = {str(p.relative_to(ROOT)): n for package in (*PACKAGES, "bench")
-            for p in (ROOT / package).rglob("*.py") if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    long = {
+        str(p.relative_to(ROOT)): n
+        for package in (*PACKAGES, "bench")
+        for p in (ROOT / package).rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > MAX_LINES
+    }
     assert not long
 
 
 # Phrases of a lab notebook: numbered log entries, pilots, machines, measured scores, speeds and
 # wall times, a curve's progress. Data files and code state a setting and its reason; the
 # measurements behind it live on the learner's page under bench/results/.
-_COUNT = r"(?:[\d.,]+(?:\s?[-–]\s?[\d.,]+)?|an?|one|two|three|four|five|six|seven|eight|nine|ten|\w+teen|\w+ty|several|many)"
+_COUNT = (
+    r"(?:[\d.,]+(?:\s?[-–]\s?[\d.,]+)?|an?|one|two|three|four|five|six|seven|eight|nine|ten|\w+teen|\w+ty|several|many)"
+)
 NARRATION = re.compile(
     r"\bsessions? \d|\b(?:issue|log entry|entry) #?\d|\bpilots?\b|"
     r"\b(older|slower|faster|busy) (cpu|machine|vm)\b|\bgreedy (protocol )?iou\b|"
@@ -125,24 +140,36 @@ def _toml_prose(text: str) -> list[tuple[int, str]]:
         found += [(number, m.group(0)) for m in re.finditer(r'"(?:[^"\\]|\\.)*"|\'[^\']*\'', line)]
         code = re.sub(r'"(?:[^"\\]|\\.)*"|\'[^\']*\'', "", line)
         if "#" in code:
-            found.append((number, code[code.index("#"):]))
+            found.append((number, code[code.index("#") :]))
     return found
 
 
 def test_the_narration_check_reads_its_phrases():
-    for narrated in ("Session 21's pilot", "took 10 minutes for three seeds", "took 56-57 minutes",
-                     "ran about ten times slower", "several times slower", "was still rising at 20M",
-                     "64 was level with 128", "issue 21's ablation", "(beyond.md, sessions 11-12)"):
+    for narrated in (
+        "Session 21's pilot",
+        "took 10 minutes for three seeds",
+        "took 56-57 minutes",
+        "ran about ten times slower",
+        "several times slower",
+        "was still rising at 20M",
+        "64 was level with 128",
+        "issue 21's ablation",
+        "(beyond.md, sessions 11-12)",
+    ):
         assert NARRATION.search(narrated), narrated
     for plain in ("the 30-minute table cell", "three times the step size", "the issue tracker", "a pilot_light"):
         assert not NARRATION.search(plain), plain
     assert _toml_prose('x = 0.001  # lr, chosen on 1d-static-sin\ns = "took 5 minutes"') == [
-        (1, "# lr, chosen on 1d-static-sin"), (2, '"took 5 minutes"')]
+        (1, "# lr, chosen on 1d-static-sin"),
+        (2, '"took 5 minutes"'),
+    ]
 
 
 def test_data_files_and_docs_do_not_narrate_measurements():
     found = []
-    for path in sorted(p for folder in NARRATION_DOCS for p in (ROOT / folder).rglob("*") if p.suffix in (".toml", ".md")):
+    for path in sorted(
+        p for folder in NARRATION_DOCS for p in (ROOT / folder).rglob("*") if p.suffix in (".toml", ".md")
+    ):
         text = path.read_text()
         lines = _toml_prose(text) if path.suffix == ".toml" else list(enumerate(text.splitlines(), 1))
         found += [f"{path.relative_to(ROOT)}:{n}: {line.strip()[:120]}" for n, line in lines if NARRATION.search(line)]
@@ -172,13 +199,32 @@ def test_docstrings_do_not_narrate_measurements():
     assert not found, "\n".join(found)
 
 
-LEARNER_MODULES = {"agents.learners.ppo", "agents.learners.pqn", "agents.learners.dqn", "agents.learners.drqn", "agents.learners.drqn_her", "agents.learners.rainbow",
-                   "agents.learners.sac", "agents.common.offpolicy", "agents.research.ppo_privileged", "agents.research.drqn_aux", "agents.research.pqn_aux",
-                   "agents.research.pqn_belief"}
+LEARNER_MODULES = {
+    "agents.learners.ppo",
+    "agents.learners.pqn",
+    "agents.learners.dqn",
+    "agents.learners.drqn",
+    "agents.learners.drqn_her",
+    "agents.learners.rainbow",
+    "agents.learners.sac",
+    "agents.common.offpolicy",
+    "agents.research.ppo_privileged",
+    "agents.research.drqn_aux",
+    "agents.research.pqn_aux",
+    "agents.research.pqn_belief",
+}
 # Names through which a variant (ppo-privileged, pqn-aux, drqn-aux, pqn-belief) would reach into its
 # base learner: hook methods that do nothing in the base, and arguments the base passes and ignores.
-VARIANT_HOOKS = ("_privileged", "_auxiliary_losses", "auxiliary_losses", "_auxiliary_targets", "_step", "privileged",
-                 "auxiliary_heads", "sown")
+VARIANT_HOOKS = (
+    "_privileged",
+    "_auxiliary_losses",
+    "auxiliary_losses",
+    "_auxiliary_targets",
+    "_step",
+    "privileged",
+    "auxiliary_heads",
+    "sown",
+)
 
 
 def test_ppo_and_pqn_fork_alone():

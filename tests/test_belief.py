@@ -16,15 +16,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from agents.research.belief_filter import (
+    belief_cross_entropy,
+    correct_belief,
+    expected_design_window,
+    filter_step,
+    move_belief,
+    padding_agrees,
+    start_belief,
+)
 from agents.research.drqn_aux import move_directions
 from agents.research.pqn_belief import BeliefQNetwork
-from agents.research.belief_filter import (belief_cross_entropy, correct_belief, expected_design_window, filter_step,
-                           move_belief, padding_agrees, start_belief)
 from agents.training.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 
-TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
-            hidden_size=16, rnn_size=16)
+TINY = dict(
+    total_steps=2 * 16 * 8,
+    num_envs=16,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    hidden_size=16,
+    rnn_size=16,
+)
 
 
 def test_expected_window_by_hand_in_1d():
@@ -67,7 +81,9 @@ def test_a_move_shifts_the_belief_by_the_cells_and_stops_at_the_ends():
     np.testing.assert_allclose(move_belief(at_1, jnp.array([0.0, 0, 0, 1]), jnp.array(1.0)), [0, 0, 0, 0, 1])
     np.testing.assert_allclose(move_belief(at_1, one_or_two, jnp.array(0.0)), at_1)  # a drop: no move
     spread = jnp.array([0.5, 0.0, 0.0, 0.5, 0.0])
-    np.testing.assert_allclose(move_belief(spread, jnp.array([0.5, 0.5, 0, 0]), jnp.array(1.0)), [0.25, 0.25, 0, 0.25, 0.25])
+    np.testing.assert_allclose(
+        move_belief(spread, jnp.array([0.5, 0.5, 0, 0]), jnp.array(1.0)), [0.25, 0.25, 0, 0.25, 0.25]
+    )
 
 
 def test_padding_keeps_the_positions_whose_window_reaches_off_the_plan_there():
@@ -93,15 +109,18 @@ def test_filter_step_by_hand():
     reset = jnp.array([True])
     right = jnp.array([[0.0, 1.0]])
     b_row, b_col = filter_step(start, reset, jnp.array([[0.0, 0.0, 1.0, 0.0]]), right, jnp.asarray(at_start))
-    np.testing.assert_allclose(b_col[0], start_belief(cols), atol=1e-5)  # a reset ignores the move: the episode's first step
+    np.testing.assert_allclose(
+        b_col[0], start_belief(cols), atol=1e-5
+    )  # a reset ignores the move: the episode's first step
     top_row = np.zeros((1,) + window, bool)
     top_row[0, 0, :] = True  # two or three cells right of the corner: only the top row is off the plan
     b_row, b_col = filter_step((b_row, b_col), ~reset, jnp.array([[0.0, 0.0, 0.5, 0.5]]), right, jnp.asarray(top_row))
     np.testing.assert_allclose(b_row[0], [1, 0, 0, 0], atol=1e-5)
     np.testing.assert_allclose(b_col[0], [0, 0, 0.5, 0.5, 0, 0], atol=1e-5)
     # No padding anywhere: rows 0 and 3 would show it above or below, so the row belief leaves them.
-    b_row, _ = filter_step((jnp.full((1, rows), 0.25), b_col), ~reset, jnp.array([[1.0, 0, 0, 0]]), right,
-                           jnp.zeros((1,) + window, bool))
+    b_row, _ = filter_step(
+        (jnp.full((1, rows), 0.25), b_col), ~reset, jnp.array([[1.0, 0, 0, 0]]), right, jnp.zeros((1,) + window, bool)
+    )
     np.testing.assert_allclose(b_row[0], [0, 0.5, 0.5, 0], atol=1e-5)
 
 
@@ -118,7 +137,9 @@ def random_episode_steps(env, params, worlds: int, steps: int):
         yield obs, previous, reset, last_action, cells, state.position
         action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
         before, previous = state.position, obs
-        obs, state, _, terminated, truncated, _ = step(jax.random.split(jax.random.key(t), worlds), state, action, params)
+        obs, state, _, terminated, truncated, _ = step(
+            jax.random.split(jax.random.key(t), worlds), state, action, params
+        )
         reset, last_action = terminated | truncated, action
         cells = jnp.abs(state.position - before).sum(-1)
 
@@ -150,13 +171,18 @@ def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(ta
     robot's position at every step, through auto-resets, as the acting path computes it."""
     agent = build_algorithm(make_config("pqn-belief", task, **TINY, max_steps=30))
     network, layout, worlds = agent.network, agent.layout, 16
-    run_filter = jax.jit(lambda belief, logits, net_obs, reset: network.apply(
-        {}, belief, logits, net_obs, reset, method=BeliefQNetwork._filter))
-    belief, ends = network.initial_carry(worlds)[:, network.rnn_size:], 0
+    run_filter = jax.jit(
+        lambda belief, logits, net_obs, reset: network.apply(
+            {}, belief, logits, net_obs, reset, method=BeliefQNetwork._filter
+        )
+    )
+    belief, ends = network.initial_carry(worlds)[:, network.rnn_size :], 0
     episode_steps = random_episode_steps(agent.env, agent.env_params, worlds, 70)
     for t, (obs, previous, reset, last_action, cells, position) in enumerate(episode_steps):
         net_obs = layout.with_previous_step(obs, previous, last_action, reset)
-        belief, (b_row, b_col), _ = run_filter(belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None])
+        belief, (b_row, b_col), _ = run_filter(
+            belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None]
+        )
         np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), position[:, 0], err_msg=f"row, step {t}")
         np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), position[:, 1], err_msg=f"column, step {t}")
         ends += int(reset.sum()) if t else 0
@@ -179,8 +205,10 @@ def test_belief_cross_entropy_by_hand():
 
 def test_move_directions_of_each_dimension():
     np.testing.assert_array_equal(move_directions(make("1d-static-sin")[0].config), [(0, -1), (0, 1), (0, 0)])
-    np.testing.assert_array_equal(move_directions(make("3d-static-dense")[0].config),
-                                  [(0, -1), (0, 1), (1, 0), (-1, 0), (0, 0), (0, 0), (0, 0), (0, 0)])
+    np.testing.assert_array_equal(
+        move_directions(make("3d-static-dense")[0].config),
+        [(0, -1), (0, 1), (1, 0), (-1, 0), (0, 0), (0, 0), (0, 0), (0, 0)],
+    )
     # the landmark placement (SPEC §14) moves nobody: one more (0, 0) row, after the table's
     with_placement = move_directions(make("2d-static-sparse", landmark_action=4)[0].config)
     np.testing.assert_array_equal(with_placement, [*move_directions(make("2d-static-sparse")[0].config), (0, 0)])
@@ -229,8 +257,10 @@ def test_a_wider_egocentric_view_without_the_design_encoder():
     # the Q head's hidden layer reads the GRU output (16), the 15 x 15 view and the 7 x 7 window's "missing"
     assert params["Dense_0"]["kernel"].shape == (16 + 225 + 49, 16)
     default = build_algorithm(make_config("pqn-belief", "1d-dynamic", **TINY))
-    assert default.network.view_shape == (1, 5) and "DesignEncoder_0" in jax.jit(default.init)(
-        jax.random.key(0)).params["params"]["ObservationEncoder_0"]
+    assert (
+        default.network.view_shape == (1, 5)
+        and "DesignEncoder_0" in jax.jit(default.init)(jax.random.key(0)).params["params"]["ObservationEncoder_0"]
+    )
     assert build_algorithm(make_config("pqn-belief", "1d-dynamic", **TINY, view_radius=4)).network.view_shape == (1, 9)
     with pytest.raises(ValueError, match=r"view_radius must be 0 or in 3\.\.19 on 2d-static-dense, got 2"):
         make_config("pqn-belief", "2d-static-dense", view_radius=2)
@@ -250,8 +280,11 @@ def test_each_belief_needs_the_loss_that_trains_it():
 
 
 def test_the_filters_move_head_learns_from_the_move_loss_only():
-    agent = build_algorithm(make_config("pqn-belief", "3d-dynamic-dense", **TINY, belief_filter=True, move_coef=0.01,
-                                        position_coef=0.0, max_steps=5))
+    agent = build_algorithm(
+        make_config(
+            "pqn-belief", "3d-dynamic-dense", **TINY, belief_filter=True, move_coef=0.01, position_coef=0.0, max_steps=5
+        )
+    )
     assert agent.network.carry_size == 16 + 20 + 20  # the GRU's state, then the row and column beliefs
     state = jax.jit(agent.init)(jax.random.key(0))
     assert "auxiliary_heads" not in state.params["params"]  # no head on the GRU state: the move head is the filter's
@@ -277,10 +310,38 @@ def test_the_filters_move_head_learns_from_the_move_loss_only():
 def test_cli_trains_two_seeds_and_evaluates(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn-belief", "--task", "1d-dynamic", "--seeds", "2",
-           "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8", "--num-minibatches", "2",
-           "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "1", "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "pqn-belief",
+        "--task",
+        "1d-dynamic",
+        "--seeds",
+        "2",
+        "--total-steps",
+        "256",
+        "--num-envs",
+        "8",
+        "--rollout-steps",
+        "8",
+        "--num-minibatches",
+        "2",
+        "--hidden-size",
+        "8",
+        "--rnn-size",
+        "8",
+        "--max-steps",
+        "40",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "1",
+        "--no-progress",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for name in ("config.json", "metrics.jsonl", "eval.json"):
@@ -304,8 +365,21 @@ def test_the_cli_refuses_a_view_wider_than_the_plan_in_one_line(tmp_path, capsys
     from snac_jax.cli import main
 
     monkeypatch.delenv("SNAC_TRACEBACK", raising=False)
-    argv = ["train", "pqn-belief", "--task", "2d-static-dense", "--view-radius", "100000", "--total-steps", "256",
-            "--num-envs", "16", "--no-progress", "--out", str(tmp_path / "run")]
+    argv = [
+        "train",
+        "pqn-belief",
+        "--task",
+        "2d-static-dense",
+        "--view-radius",
+        "100000",
+        "--total-steps",
+        "256",
+        "--num-envs",
+        "16",
+        "--no-progress",
+        "--out",
+        str(tmp_path / "run"),
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("snac train pqn-belief: error: view_radius must be 0 or in 3..19 on 2d-static-dense")

@@ -14,8 +14,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bench.belief_episodes import (HEAT_ANCHORS, _record, belief_numbers, drop_tally, episode_drops, episode_endings,
-                                   heat_colours, main, worst_episodes)
+from bench.belief_episodes import (
+    HEAT_ANCHORS,
+    _record,
+    belief_numbers,
+    drop_tally,
+    episode_drops,
+    episode_endings,
+    heat_colours,
+    main,
+    worst_episodes,
+)
 from snac_jax.evaluation import protocol_episodes, run_episodes
 from snac_jax.tasks import make
 
@@ -48,7 +57,9 @@ def test_drops_against_the_belief_by_hand():
     grids = np.stack([empty] * 4)
     grids[1:, 1, 1] = 1  # step 1: a brick on (0, 0), off the design
     grids[2:, 2, 2] = 1  # step 2: a brick on (1, 1), on the design
-    positions = np.array([[0, 0], [1, 1], [1, 1], [1, 1]])  # the robot on (0, 0) for the first drop, on (1, 1) for the others
+    positions = np.array(
+        [[0, 0], [1, 1], [1, 1], [1, 1]]
+    )  # the robot on (0, 0) for the first drop, on (1, 1) for the others
     bricks_used = np.array([0, 1, 2, 3])  # step 3: a drop on (1, 1) again, which changes no cell
     beliefs = np.zeros((4, 2, 3))
     beliefs[0, 0, 0], beliefs[0, 0, 1] = 0.7, 0.3  # P(on a design cell) 0.3 when the first brick dropped
@@ -59,16 +70,24 @@ def test_drops_against_the_belief_by_hand():
     # a neighbour drop (3D): the robot at (0, 0) drops on (0, 1); the belief is moved one column
     grids_3d = np.stack([empty, empty.copy()])
     grids_3d[1, 1, 2] = 1
-    rows = episode_drops(grids_3d, np.array([[0, 0], [0, 0]]), np.array([0, 1]), beliefs[:2],
-                         np.stack([design] * 2), (1, 1), 1)
+    rows = episode_drops(
+        grids_3d, np.array([[0, 0], [0, 0]]), np.array([0, 1]), beliefs[:2], np.stack([design] * 2), (1, 1), 1
+    )
     np.testing.assert_allclose(rows, [[1, 1, 0.7]])  # P 0.7 at (0, 0) moves to (0, 1); 0.3 at (0, 1) to (0, 2)
     # the design changed after the first step (SPEC §15): the second brick is judged by the new one, off it
     changed = np.stack([design, 1 - design, 1 - design, 1 - design])
     assert episode_drops(grids, positions, bricks_used, beliefs, changed, (1, 1), 3)[:2, 1].tolist() == [0, 0]
-    tally = drop_tally([episode_drops(grids, positions, bricks_used, beliefs, np.stack([design] * 4), (1, 1), 3),
-                        np.zeros((0, 3))])
-    assert tally == {"drops": 3, "on a brick already there": 1, "off the design": 1, "off the design, believed off": 1,
-                     "off the design, in the first 20 steps": 1, "on the design, believed off": 1}
+    tally = drop_tally(
+        [episode_drops(grids, positions, bricks_used, beliefs, np.stack([design] * 4), (1, 1), 3), np.zeros((0, 3))]
+    )
+    assert tally == {
+        "drops": 3,
+        "on a brick already there": 1,
+        "off the design": 1,
+        "off the design, believed off": 1,
+        "off the design, in the first 20 steps": 1,
+        "on the design, believed off": 1,
+    }
 
 
 def test_heat_colours_run_from_the_first_anchor_to_the_last():
@@ -89,8 +108,9 @@ def _untrained(**options):
     obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
     start = policy.init(None, None)
     net_obs = agent.layout.acting_inputs(obs, start)
-    params = agent.network.init(jax.random.key(1), start["carry"][None], net_obs[None, None],
-                                start["reset"][None, None])
+    params = agent.network.init(
+        jax.random.key(1), start["carry"][None], net_obs[None, None], start["reset"][None, None]
+    )
     return agent, policy._replace(params=params)
 
 
@@ -110,8 +130,13 @@ def test_the_held_belief_is_the_one_the_q_head_reads(brick_map):
     def step(policy_state, obs, state, key):
         held = agent.held_belief(policy.params, policy_state, obs)
         net_obs = layout.acting_inputs(obs, policy_state)
-        _, sown = network.apply(policy.params, policy_state["carry"][None], net_obs[None, None],
-                                policy_state["reset"][None, None], mutable="intermediates")
+        _, sown = network.apply(
+            policy.params,
+            policy_state["carry"][None],
+            net_obs[None, None],
+            policy_state["reset"][None, None],
+            mutable="intermediates",
+        )
         p_row, p_col = sown["intermediates"]["belief"][0]
         action, policy_state = policy.act(policy.params, policy_state, obs, key)
         obs, state, *_ = env.step_env(key, state, action, env_params)
@@ -123,7 +148,7 @@ def test_the_held_belief_is_the_one_the_q_head_reads(brick_map):
         np.testing.assert_allclose(held.sum(), 1.0, atol=1e-5)
         np.testing.assert_allclose(held.sum(axis=1), p_row, atol=1e-6)
         np.testing.assert_allclose(held.sum(axis=0), p_col, atol=1e-6)
-        carried = policy_state["carry"][network.rnn_size:]
+        carried = policy_state["carry"][network.rnn_size :]
         if brick_map:  # the joint the filter carries on (then the map's mean and variance), not a product
             np.testing.assert_array_equal(held, carried[: rows * cols].reshape(rows, cols))
         else:
@@ -153,8 +178,19 @@ def test_record_plays_the_evaluators_episodes_and_keeps_a_belief_per_state():
     setup = protocol_episodes(TASK, params, 5, episodes_per_test_design=1)
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = np.array([7, 2, 0, 9])
-    recorded = jax.device_get(_record(env, policy.init, policy.act, _flat_belief, None, setup.params,
-                                      setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]), 40))
+    recorded = jax.device_get(
+        _record(
+            env,
+            policy.init,
+            policy.act,
+            _flat_belief,
+            None,
+            setup.params,
+            setup.keys[chosen],
+            jnp.asarray(setup.design_indices[chosen]),
+            40,
+        )
+    )
     assert len(set(np.asarray(scored.iou)[chosen].tolist())) > 1 and (np.asarray(scored.iou)[chosen] > 0).any()
     np.testing.assert_array_equal(recorded.iou, np.asarray(scored.iou)[chosen])
     np.testing.assert_array_equal(recorded.length, np.asarray(scored.length)[chosen])
@@ -163,7 +199,7 @@ def test_record_plays_the_evaluators_episodes_and_keeps_a_belief_per_state():
         assert np.asarray(recorded.states.time[i, : length + 1]).tolist() == list(range(length + 1))
         mass = np.asarray(recorded.beliefs[i]).sum(axis=(1, 2))
         np.testing.assert_allclose(mass[: length + 1], 1.0, rtol=1e-5)
-        assert (mass[length + 1:] == 0).all()
+        assert (mass[length + 1 :] == 0).all()
 
 
 @pytest.fixture(scope="module")
@@ -191,7 +227,8 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
     rows = report["episodes"]
     assert [r["rank"] for r in rows] == [1, 2, 3]
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["belief_episodes.json"] + [r["gif"] for r in rows] + [r["png"] for r in rows])
+        ["belief_episodes.json"] + [r["gif"] for r in rows] + [r["png"] for r in rows]
+    )
 
     # the evaluator's own episodes: the three lowest IoUs, and each drawn one ends at its IoU
     config = read_config(tiny_run)
@@ -203,8 +240,11 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
     assert [r["episode"] for r in rows] == chosen.tolist()
     # 2D has no obstacle rule, so no episode ends stuck: each ran to the step limit or spent its bricks
     limit = int(setup.params.max_steps_in_episode)
-    assert report["endings"] == {"bricks spent": int((np.asarray(scored.length) < limit).sum()),
-                                 "step limit": int((np.asarray(scored.length) == limit).sum()), "stuck": 0}
+    assert report["endings"] == {
+        "bricks spent": int((np.asarray(scored.length) < limit).sum()),
+        "step limit": int((np.asarray(scored.length) == limit).sum()),
+        "stuck": 0,
+    }
     # every counted drop of every played episode is tallied once (the filled-out last batch's
     # repeats are not), each in one of the three kinds
     drops = report["drops"]
@@ -218,14 +258,26 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
 
     # the beliefs behind the numbers: each sums to 1, and P(true) is its entry at the true position
     agent = build_algorithm(config)
-    recorded = jax.device_get(_record(env, policy.init, policy.act, agent.held_belief, policy.params, setup.params,
-                                      setup.keys[chosen], jnp.asarray(setup.design_indices[chosen]), 20))
+    recorded = jax.device_get(
+        _record(
+            env,
+            policy.init,
+            policy.act,
+            agent.held_belief,
+            policy.params,
+            setup.params,
+            setup.keys[chosen],
+            jnp.asarray(setup.design_indices[chosen]),
+            20,
+        )
+    )
     for i, r in enumerate(rows):
         beliefs = np.asarray(recorded.beliefs[i, : r["length"] + 1])
         np.testing.assert_allclose(beliefs.sum(axis=(1, 2)), 1.0, atol=1e-5)
         positions = np.asarray(recorded.states.position[i, : r["length"] + 1])
-        np.testing.assert_allclose(r["p_true"], beliefs[np.arange(len(beliefs)), positions[:, 0], positions[:, 1]],
-                                   rtol=1e-6)
+        np.testing.assert_allclose(
+            r["p_true"], beliefs[np.arange(len(beliefs)), positions[:, 0], positions[:, 1]], rtol=1e-6
+        )
 
     from PIL import Image
 
@@ -239,8 +291,9 @@ def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_
 def test_endings_are_told_apart_by_bricks_then_steps_then_stuck():
     # budgets 10, 10, 10, 5; step limit 100: spent (a drop at the limit counts as spent), at the
     # limit, stuck early, spent early
-    endings = episode_endings(length=[100, 100, 37, 40], bricks_used=[10, 3, 7, 5], max_bricks=[10, 10, 10, 5],
-                              max_steps=100)
+    endings = episode_endings(
+        length=[100, 100, 37, 40], bricks_used=[10, 3, 7, 5], max_bricks=[10, 10, 10, 5], max_steps=100
+    )
     assert endings == {"bricks spent": 2, "step limit": 1, "stuck": 1}
 
 
@@ -252,11 +305,13 @@ def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
     run.mkdir()
     save_config(make_config("pqn", TASK, **TINY), run / "config.json")
     out = tmp_path / "out"
-    done = subprocess.run([sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out)], capture_output=True,
-                          text=True, cwd=ROOT)
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out)], capture_output=True, text=True, cwd=ROOT
+    )
     assert done.returncode == 2
-    assert done.stderr == (f"belief_episodes.py: error: {run} is a pqn run; only pqn-belief runs carry a belief "
-                           "to draw\n")
+    assert done.stderr == (
+        f"belief_episodes.py: error: {run} is a pqn run; only pqn-belief runs carry a belief to draw\n"
+    )
     assert not out.exists()
 
 
@@ -268,8 +323,9 @@ def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_
     out = tmp_path / "out"
     missing = tmp_path / "nowhere"
     assert main(["--run", str(missing), "--out", str(out)]) == 2
-    assert capsys.readouterr().err == (f"belief_episodes.py: error: {missing} is not a training run directory: "
-                                       "config.json is missing\n")
+    assert capsys.readouterr().err == (
+        f"belief_episodes.py: error: {missing} is not a training run directory: config.json is missing\n"
+    )
     run = tmp_path / "run"
     run.mkdir()
     save_config(make_config("pqn-belief", TASK, **TINY), run / "config.json")
@@ -279,10 +335,12 @@ def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_
     assert main(["--run", str(run), "--out", str(out), "--seed-index", "1"]) == 2
     assert capsys.readouterr().err == f"belief_episodes.py: error: --seed-index must be in 0..0 for {run}, got 1\n"
     assert main(["--run", str(run), "--out", str(out), "--episodes", "1", "--worst", "11"]) == 2
-    assert capsys.readouterr().err == ("belief_episodes.py: error: --worst must be in 1..10 (the episodes played), "
-                                       "got 11\n")
+    assert capsys.readouterr().err == (
+        "belief_episodes.py: error: --worst must be in 1..10 (the episodes played), got 11\n"
+    )
     sweep.save(sweep.Sweep(("lr",), ((1e-3,), (1e-4,))), run)
     assert main(["--run", str(run), "--out", str(out)]) == 2
-    assert capsys.readouterr().err == (f"belief_episodes.py: error: {run} is a sweep of 2 arms: --arm must be in "
-                                       "0..1 (none given)\n")
+    assert capsys.readouterr().err == (
+        f"belief_episodes.py: error: {run} is a sweep of 2 arms: --arm must be in 0..1 (none given)\n"
+    )
     assert not out.exists()

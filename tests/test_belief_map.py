@@ -10,11 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.research.drqn_aux import move_directions
 from agents.research.belief_filter import filter_step, move_belief
+from agents.research.belief_map import (
+    WINDOW_NOISE,
+    add_drop,
+    brick_log_likelihood,
+    drop_table,
+    drop_target,
+    mapping_filter_step,
+    move_joint,
+    remaining_compass,
+    shifted,
+)
+from agents.research.drqn_aux import move_directions
 from agents.research.pqn_belief import MappingBeliefQNetwork
-from agents.research.belief_map import (WINDOW_NOISE, add_drop, brick_log_likelihood, drop_table,
-                               drop_target, mapping_filter_step, move_joint, remaining_compass, shifted)
 from agents.training.registry import build_algorithm, make_config
 from snac_jax.tasks import make
 from tests.test_belief import TINY, random_episode_steps
@@ -35,7 +44,10 @@ def test_a_drop_lands_under_the_belief_on_its_target_and_a_move_drops_nothing():
     np.testing.assert_allclose(drop_target(belief, onehot(2), drops), belief)
     right = drop_target(belief, onehot(3), drops)[0]
     np.testing.assert_allclose(right, [[0, 0.25, 0], [0, 0, 0]])  # the 0.75 at the right edge drops off the plan
-    assert float(drop_target(belief, onehot(0), drops).sum()) == 0 and float(drop_target(belief, onehot(none), drops).sum()) == 0
+    assert (
+        float(drop_target(belief, onehot(0), drops).sum()) == 0
+        and float(drop_target(belief, onehot(none), drops).sum()) == 0
+    )
 
 
 def test_the_map_after_a_drop_by_hand():
@@ -71,7 +83,9 @@ def test_the_bricks_likelihood_by_hand():
     log_l = brick_log_likelihood(window, mean, jnp.zeros_like(mean))[0]
     assert float(log_l[1, 1]) == pytest.approx(-2 / (2 * WINDOW_NOISE))
     landmark = window.at[0, 0, 2].set(-2.0)  # a landmark where the map's brick would show: no evidence there
-    assert float(brick_log_likelihood(landmark, mean, jnp.zeros_like(mean))[0, 1, 1]) == pytest.approx(-1 / (2 * WINDOW_NOISE))
+    assert float(brick_log_likelihood(landmark, mean, jnp.zeros_like(mean))[0, 1, 1]) == pytest.approx(
+        -1 / (2 * WINDOW_NOISE)
+    )
 
 
 @pytest.mark.parametrize("sign", [(0, 1), (0, -1), (1, 0), (-1, 0), (0, 0)])
@@ -81,7 +95,9 @@ def test_a_joint_move_moves_every_line_as_the_axis_filter_moves_one(sign):
     signs = jnp.tile(jnp.array([sign], jnp.float32), (4, 1))
     axis = 1 if sign[1] else 0
     lines = jnp.moveaxis(belief, 1 + (1 - axis), 1)  # (4, k, n): the lines along the moving axis
-    expected = jax.vmap(lambda b, p, s: jax.vmap(lambda line: move_belief(line, p, s))(b))(lines, p_cells, signs[:, axis])
+    expected = jax.vmap(lambda b, p, s: jax.vmap(lambda line: move_belief(line, p, s))(b))(
+        lines, p_cells, signs[:, axis]
+    )
     np.testing.assert_allclose(move_joint(belief, p_cells, signs), jnp.moveaxis(expected, 1, 1 + (1 - axis)), atol=1e-6)
 
 
@@ -89,12 +105,16 @@ def test_a_joint_move_by_hand():
     belief = jnp.zeros((1, 3, 4)).at[0, 1, 1].set(1.0)
     moved = move_joint(belief, jnp.array([[0.0, 0.5, 0.5, 0.0]]), jnp.array([[0.0, 1.0]]))[0]  # right by 1 or 2
     np.testing.assert_allclose(moved[1], [0, 0, 0.5, 0.5])
-    moved = move_joint(belief, jnp.array([[0.0, 0.0, 0.0, 1.0]]), jnp.array([[-1.0, 0.0]]))[0]  # up by 3: stops at row 0
+    moved = move_joint(belief, jnp.array([[0.0, 0.0, 0.0, 1.0]]), jnp.array([[-1.0, 0.0]]))[
+        0
+    ]  # up by 3: stops at row 0
     assert float(moved[0, 1]) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("task, capped", [("2d-dynamic-sparse", True), ("3d-static-dense", False),
-                                          ("3d-static-dense", True), ("1d-dynamic", False)])
+@pytest.mark.parametrize(
+    "task, capped",
+    [("2d-dynamic-sparse", True), ("3d-static-dense", False), ("3d-static-dense", True), ("1d-dynamic", False)],
+)
 def test_the_mapping_filter_tracks_real_episodes_when_told_the_cells_moved(task, capped):
     """Told the true cells moved, the joint belief is the robot's position at every step: the drops
     and moves of random episodes, auto-resets included, with the map of heights or, `capped`, of
@@ -106,8 +126,14 @@ def test_the_mapping_filter_tracks_real_episodes_when_told_the_cells_moved(task,
     step = jax.jit(lambda s, *a: mapping_filter_step(s, *a, drops=drops, capped=capped))
     for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 90)):
         window = env.observation_layout.window_cells(obs)
-        state = step(state, reset, jax.nn.one_hot(cells, 4), moves[last_action],
-                     jax.nn.one_hot(last_action, env.num_actions + 1), window)
+        state = step(
+            state,
+            reset,
+            jax.nn.one_hot(cells, 4),
+            moves[last_action],
+            jax.nn.one_hot(last_action, env.num_actions + 1),
+            window,
+        )
         peak = state[0].reshape(worlds, -1).argmax(-1)
         np.testing.assert_array_equal(peak, position[:, 0] * cols + position[:, 1], err_msg=f"step {t}")
         assert float(state[0].reshape(worlds, -1).max(-1).min()) > 0.99
@@ -129,7 +155,9 @@ def test_the_bricks_make_a_vague_move_reading_sharper():
     for obs, _, reset, last_action, cells, position in random_episode_steps(env, params, worlds, 180):
         vague = 0.5 * jax.nn.one_hot(cells, 4) + 0.5 / 4
         window = env.observation_layout.window_cells(obs)
-        joint = step_map(joint, reset, vague, moves[last_action], jax.nn.one_hot(last_action, env.num_actions + 1), window)
+        joint = step_map(
+            joint, reset, vague, moves[last_action], jax.nn.one_hot(last_action, env.num_actions + 1), window
+        )
         rows_cols = step_axes(rows_cols, reset, vague, moves[last_action], window == -1)
         index = jnp.arange(worlds)
         log_p_map.append(jnp.log(joint[0][index, position[:, 0], position[:, 1]] + 1e-12))
@@ -166,8 +194,16 @@ def test_a_capped_map_reads_a_stack_as_one_brick():
 
     def corrected(count, capped):
         state = (belief, mean, jnp.zeros_like(mean))
-        return mapping_filter_step(state, jnp.array([False]), jax.nn.one_hot(jnp.array([0]), 4), jnp.zeros((1, 2)),
-                                   none, window.at[0, 1, 2].set(count), drops, capped)[0][0]
+        return mapping_filter_step(
+            state,
+            jnp.array([False]),
+            jax.nn.one_hot(jnp.array([0]), 4),
+            jnp.zeros((1, 2)),
+            none,
+            window.at[0, 1, 2].set(count),
+            drops,
+            capped,
+        )[0][0]
 
     np.testing.assert_array_equal(corrected(3.0, True), corrected(1.0, True))
     assert int(corrected(3.0, True).argmax()) == 2 * 5 + 2  # the brick right of the robot: the centre
@@ -177,7 +213,9 @@ def test_a_capped_map_reads_a_stack_as_one_brick():
 def test_brick_occupancy_caps_the_3d_map_and_is_refused_elsewhere():
     agent = build_algorithm(make_config("pqn-belief", "3d-static-dense", **TINY, brick_map=True, brick_occupancy=True))
     assert isinstance(agent.network, MappingBeliefQNetwork) and agent.network.capped
-    with pytest.raises(ValueError, match="brick_occupancy needs brick_map=True on a 3D task, got brick_map=False on 3d"):
+    with pytest.raises(
+        ValueError, match="brick_occupancy needs brick_map=True on a 3D task, got brick_map=False on 3d"
+    ):
         make_config("pqn-belief", "3d-static-dense", brick_occupancy=True)
     with pytest.raises(ValueError, match="brick_occupancy needs brick_map=True on a 3D task, got brick_map=True on 2d"):
         make_config("pqn-belief", "2d-dynamic-sparse", brick_map=True, brick_occupancy=True)
@@ -240,8 +278,12 @@ def test_the_filter_maps_a_drop_under_its_belief():
     drop = [a for a, (is_drop, d_row, d_col) in enumerate(drop_table(env.config)) if is_drop and not d_row | d_col][0]
     obs, env_state = env.reset(jax.random.key(0), agent.env_params)
     start = policy.init(None, None)
-    params = network.init(jax.random.key(1), start["carry"][None], agent.layout.acting_inputs(obs, start)[None, None],
-                          start["reset"][None, None])
+    params = network.init(
+        jax.random.key(1),
+        start["carry"][None],
+        agent.layout.acting_inputs(obs, start)[None, None],
+        start["reset"][None, None],
+    )
     _, state = policy.act(params, start, obs, jax.random.key(2))  # the episode's first step: the belief at the corner
     state = {**state, **agent.layout.remember(obs, jnp.asarray(drop))}  # as if it had chosen the drop
     obs, env_state, *_ = env.step(jax.random.key(3), env_state, drop, agent.env_params)
@@ -251,5 +293,7 @@ def test_the_filter_maps_a_drop_under_its_belief():
 
 
 def test_the_compass_needs_the_filter():
-    with pytest.raises(ValueError, match="^todo_compass needs belief_filter=True: it maps the drops under the filter's belief$"):
+    with pytest.raises(
+        ValueError, match="^todo_compass needs belief_filter=True: it maps the drops under the filter's belief$"
+    ):
         make_config("pqn-belief", "2d-static-dense", todo_compass=True, belief_filter=False, position_coef=5e-3)

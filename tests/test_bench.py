@@ -13,7 +13,9 @@ KEYS = {"task", "num_envs", "steps_per_s", "compile_s", "numpy_steps_per_s", "ra
 
 
 def _run(args, tmp_path):
-    done = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT
+    )
     assert done.returncode == 0, done.stderr
     return json.loads((tmp_path / "throughput.json").read_text())
 
@@ -24,10 +26,31 @@ def _committed_results() -> dict[str, int]:
 
 def test_tiny_run_writes_rows_table_and_plots(tmp_path):
     committed = _committed_results()
-    rows = _run(["--tasks", "3d-dynamic-sparse", "1d-static-sin", "--num-envs", "1", "4", "--steps", "60",
-                 "--numpy-steps", "200", "--no-e2e", "--reset", "loop", "select"], tmp_path)
+    rows = _run(
+        [
+            "--tasks",
+            "3d-dynamic-sparse",
+            "1d-static-sin",
+            "--num-envs",
+            "1",
+            "4",
+            "--steps",
+            "60",
+            "--numpy-steps",
+            "200",
+            "--no-e2e",
+            "--reset",
+            "loop",
+            "select",
+        ],
+        tmp_path,
+    )
     assert [(r["task"], r["reset"], r["num_envs"]) for r in rows] == [
-        (task, reset, n) for task in ("1d-static-sin", "3d-dynamic-sparse") for reset in ("loop", "select") for n in (1, 4)]
+        (task, reset, n)
+        for task in ("1d-static-sin", "3d-dynamic-sparse")
+        for reset in ("loop", "select")
+        for n in (1, 4)
+    ]
     loop, select = rows[5], rows[7]  # 3d-dynamic-sparse, N = 4
     assert loop["episodes"] == select["episodes"] > 0  # the same worlds, whichever strategy resets them
     rows = [r for r in rows if r["reset"] == "loop"]
@@ -42,7 +65,11 @@ def test_tiny_run_writes_rows_table_and_plots(tmp_path):
         assert (tmp_path / f"throughput_{family}.png").read_bytes()[:4] == b"\x89PNG"
     assert _committed_results() == committed  # everything went under --out
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "throughput.json", "throughput.md", "throughput_1d.png", "throughput_3d.png"]
+        "throughput.json",
+        "throughput.md",
+        "throughput_1d.png",
+        "throughput_3d.png",
+    ]
 
 
 def test_the_output_directory_is_required_and_the_only_one():
@@ -54,7 +81,9 @@ def test_the_output_directory_is_required_and_the_only_one():
 
 def test_bad_arguments_are_rejected(tmp_path):
     for args in (["--repeats", "2"], ["--num-envs", "0"], ["--devices", "x"], ["--reset", "vmap"]):
-        done = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+        done = subprocess.run(
+            [sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT
+        )
         assert done.returncode == 2, (args, done.stderr)
 
 
@@ -71,10 +100,34 @@ def test_quick_run_covers_every_task(tmp_path):
 @pytest.mark.parametrize("algorithm", ["ppo", "pqn"])
 def test_training_throughput_bench_prints_median_and_baseline(algorithm):
     script = ROOT / "bench" / "train_throughput.py"
-    done = subprocess.run([sys.executable, str(script), "--algorithm", algorithm, "--tasks", "1d-static-step", "--updates", "1", "--repeats", "2",
-                           "--num-envs", "8", "--rollout-steps", "4", "--hidden-size", "8", "--rnn-size", "8",
-                           "--update-epochs", "2"],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--algorithm",
+            algorithm,
+            "--tasks",
+            "1d-static-step",
+            "--updates",
+            "1",
+            "--repeats",
+            "2",
+            "--num-envs",
+            "8",
+            "--rollout-steps",
+            "4",
+            "--hidden-size",
+            "8",
+            "--rnn-size",
+            "8",
+            "--update-epochs",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert f"{algorithm}; jax" in done.stdout and "median of 2 repeats of 1 updates" in done.stdout
     row = next(line for line in done.stdout.splitlines() if line.startswith("| 1d-static-step"))
@@ -97,24 +150,59 @@ def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
     """A setting's cost is read off two rows of one run: the tuned row and the variant's, whose
     network cell names the settings it changed (and whose parameter count they change)."""
     script = ROOT / "bench" / "train_throughput.py"
-    done = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--tasks", "2d-dynamic-sparse",
-                           "--updates", "1", "--repeats", "1", "--num-envs", "4", "--rollout-steps", "4", "--hidden-size", "8",
-                           "--rnn-size", "8", "--variant", "view_radius=3,design_encoder=false"],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--algorithm",
+            "pqn-belief",
+            "--tasks",
+            "2d-dynamic-sparse",
+            "--updates",
+            "1",
+            "--repeats",
+            "1",
+            "--num-envs",
+            "4",
+            "--rollout-steps",
+            "4",
+            "--hidden-size",
+            "8",
+            "--rnn-size",
+            "8",
+            "--variant",
+            "view_radius=3,design_encoder=false",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in done.stdout.splitlines()
-            if line.startswith("| 2d-dynamic-sparse")]
+    rows = [
+        [c.strip() for c in line.strip("|").split("|")]
+        for line in done.stdout.splitlines()
+        if line.startswith("| 2d-dynamic-sparse")
+    ]
     assert [row[1] for row in rows] == ["GRU 8, hidden 8", "GRU 8, hidden 8; view_radius=3; design_encoder=False"]
     assert rows[0][4] != rows[1][4]  # the tuned row (view 7, no encoder) and the variant are different networks
-    for variant, message in (("view_radius", "--variant takes NAME=VALUE"), ("no_such=1", "got 'no_such=1'"),
-                             ("design_encoder=maybe", "--variant design_encoder: true or false, got 'maybe'"),
-                             ("view_radius=x", "--variant view_radius: must be an int"),
-                             ("num_envs=8", "--variant: num_envs has its own flag (--num-envs)"),
-                             ("view_radius=3,view_radius=4", "--variant: view_radius is named twice"),
-                             ("view_radius=1", "1d-static-sin: view_radius must be 0 or in 2..29 on 1d-static-sin, got 1")):
+    for variant, message in (
+        ("view_radius", "--variant takes NAME=VALUE"),
+        ("no_such=1", "got 'no_such=1'"),
+        ("design_encoder=maybe", "--variant design_encoder: true or false, got 'maybe'"),
+        ("view_radius=x", "--variant view_radius: must be an int"),
+        ("num_envs=8", "--variant: num_envs has its own flag (--num-envs)"),
+        ("view_radius=3,view_radius=4", "--variant: view_radius is named twice"),
+        ("view_radius=1", "1d-static-sin: view_radius must be 0 or in 2..29 on 1d-static-sin, got 1"),
+    ):
         # two CPU devices: the variants are read after the device count is set, not before
-        bad = subprocess.run([sys.executable, str(script), "--algorithm", "pqn-belief", "--devices", "2",
-                              "--variant", variant], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        bad = subprocess.run(
+            [sys.executable, str(script), "--algorithm", "pqn-belief", "--devices", "2", "--variant", variant],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+        )
         assert bad.returncode == 2 and message in bad.stderr, (variant, bad.stderr[-500:])
         assert "| 1d-static-sin" not in bad.stdout  # refused before any row was timed
 
@@ -123,15 +211,33 @@ def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
 def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
     committed = _committed_results()
     # a budget no busy machine spends, so that every part runs (the default stops starting parts after 150 s)
-    done = subprocess.run([sys.executable, str(ROOT / "bench" / "device_check.py"), "--quick", "--budget-s", "1200",
-                           "--out", str(tmp_path)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "device_check.py"),
+            "--quick",
+            "--budget-s",
+            "1200",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["device.json", "device.md"]  # the README run's scratch is gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "device.json",
+        "device.md",
+    ]  # the README run's scratch is gone
     report = json.loads((tmp_path / "device.json").read_text())
     assert report["context"]["jax"] and report["context"]["commit"] and report["context"]["auto_reset"] == "loop"
     measured = [row for row in report["step"] if "steps_per_s" in row]
-    assert {(row["task"], row["reset"]) for row in measured} >= {("3d-static-sparse", "loop"), ("3d-static-sparse", "select")}
+    assert {(row["task"], row["reset"]) for row in measured} >= {
+        ("3d-static-sparse", "loop"),
+        ("3d-static-sparse", "select"),
+    }
     for row in measured:
         assert row["episodes"] >= row["num_envs"]  # T = the step limit: every world ended an episode
     assert {row["algorithm"] for row in report["learn"] if row.get("env_steps_per_s", 0) > 0} == {"ppo-rnn", "pqn-rnn"}
@@ -145,7 +251,9 @@ def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
 def test_device_check_refuses_bad_arguments_before_measuring(tmp_path):
     script = ROOT / "bench" / "device_check.py"
     for args in (["--repeats", "2"], ["--point-s", "0"], ["--skip", "everything"], ["--tasks", "4d-static"]):
-        done = subprocess.run([sys.executable, str(script), *args, "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT)
+        done = subprocess.run(
+            [sys.executable, str(script), *args, "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT
+        )
         assert done.returncode == 2, (args, done.stderr)
         assert done.stderr.strip().splitlines()[-1].startswith(("usage", "device_check.py: error")), done.stderr
     assert not (tmp_path / "x" / "device.json").exists()

@@ -35,7 +35,9 @@ def test_installed_entry_point_runs():
     snac = Path(sys.executable).parent / "snac"  # the console script pip installed
     result = subprocess.run(
         [str(snac), "rollout", "--task", "3d-dynamic-sparse", "--num-envs", "4", "--steps", "50"],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert result.returncode == 0, result.stderr
     assert "env-steps/s" in result.stdout
@@ -79,8 +81,15 @@ def test_rollout_refuses_a_batch_that_cannot_fit(capsys):
     assert "use fewer worlds" in err and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("command", [["rollout"], ["eval", "--policy", "random"],
-                                     ["render", "--task", "1d-static-sin", "--out", "x.gif"], ["play", "--task", "1d-static-sin"]])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["rollout"],
+        ["eval", "--policy", "random"],
+        ["render", "--task", "1d-static-sin", "--out", "x.gif"],
+        ["play", "--task", "1d-static-sin"],
+    ],
+)
 @pytest.mark.parametrize("seed", ["4294967296", "-1", "1e3"])
 def test_seeds_must_fit_in_32_bits(command, seed, capsys):
     """`jax.random.key` keeps 32 bits: seed 2**32 would silently repeat seed 0."""

@@ -57,16 +57,19 @@ def test_every_field_declares_help_and_a_known_type(algorithm):
         assert spec.help, spec.name
 
 
-@pytest.mark.parametrize("name,value,message", [
-    ("total_steps", 0, "total_steps must be an int >= 1, got 0"),
-    ("learning_rate", 0.0, "learning_rate must be a number > 0, got 0.0"),
-    ("gamma", 1.5, r"gamma must be a number in \[0, 1\], got 1.5"),
-    ("recurrent", 1, "recurrent must be True or False, got 1"),
-    ("ent_coef_end", -2.0, "ent_coef_end must be a number >= -1 or None, got -2.0"),
-    ("seed", 2**64, "seed must be an int in"),
-    ("max_steps", float("nan"), "max_steps must be an int in"),
-    ("total_steps", 10**20, r"makes 1,525,878,906,250,000 updates of 65,536 env steps; at most 2,147,483,647"),
-])
+@pytest.mark.parametrize(
+    "name,value,message",
+    [
+        ("total_steps", 0, "total_steps must be an int >= 1, got 0"),
+        ("learning_rate", 0.0, "learning_rate must be a number > 0, got 0.0"),
+        ("gamma", 1.5, r"gamma must be a number in \[0, 1\], got 1.5"),
+        ("recurrent", 1, "recurrent must be True or False, got 1"),
+        ("ent_coef_end", -2.0, "ent_coef_end must be a number >= -1 or None, got -2.0"),
+        ("seed", 2**64, "seed must be an int in"),
+        ("max_steps", float("nan"), "max_steps must be an int in"),
+        ("total_steps", 10**20, r"makes 1,525,878,906,250,000 updates of 65,536 env steps; at most 2,147,483,647"),
+    ],
+)
 def test_bad_values_are_refused_with_the_allowed_range(name, value, message):
     with pytest.raises(ValueError, match=message):
         make_config("ppo", "1d-static-sin", **{name: value})
@@ -116,16 +119,22 @@ def test_a_tuned_file_with_an_unknown_option_is_refused(tmp_path, monkeypatch):
 def test_a_variant_reads_its_base_learners_tuned_file_then_its_own(tmp_path, monkeypatch):
     from agents.training import registry
 
-    (tmp_path / "pqn.toml").write_text('["1d-dynamic"]\nresult = "r"\nnum_envs = 64\nlearning_rate = 0.003\n'
-                                      '["2d-static-dense"]\nresult = "r"\nnum_envs = 128\n')
+    (tmp_path / "pqn.toml").write_text(
+        '["1d-dynamic"]\nresult = "r"\nnum_envs = 64\nlearning_rate = 0.003\n'
+        '["2d-static-dense"]\nresult = "r"\nnum_envs = 128\n'
+    )
     (tmp_path / "pqn-belief.toml").write_text('["1d-dynamic"]\nresult = "r"\nlearning_rate = 0.001\nview_radius = 4\n')
     monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
     registry.tuned_table.cache_clear()
     try:
-        assert registry.tuned_table("pqn-belief") == {"1d-dynamic": {"num_envs": 64, "learning_rate": 0.001, "view_radius": 4},
-                                                      "2d-static-dense": {"num_envs": 128}}
-        assert registry.tuned_table("pqn") == {"1d-dynamic": {"num_envs": 64, "learning_rate": 0.003},
-                                               "2d-static-dense": {"num_envs": 128}}
+        assert registry.tuned_table("pqn-belief") == {
+            "1d-dynamic": {"num_envs": 64, "learning_rate": 0.001, "view_radius": 4},
+            "2d-static-dense": {"num_envs": 128},
+        }
+        assert registry.tuned_table("pqn") == {
+            "1d-dynamic": {"num_envs": 64, "learning_rate": 0.003},
+            "2d-static-dense": {"num_envs": 128},
+        }
         assert registry.tuned_source("pqn-belief", "1d-dynamic", "num_envs") == tmp_path / "pqn.toml"
         assert registry.tuned_source("pqn-belief", "1d-dynamic", "learning_rate") == tmp_path / "pqn-belief.toml"
         assert registry.tuned_source("pqn-belief", "1d-dynamic", "total_steps") is None
@@ -174,7 +183,9 @@ def test_train_reward_changes_the_training_env_alone(algorithm):
 
     config = make_config(algorithm, "2d-dynamic-dense", train_reward="height", num_envs=8)
     plain = make_config(algorithm, "2d-dynamic-dense", num_envs=8, train_reward="")  # the task's own reward
-    training_env = lambda learner: getattr(learner, "team_env", None) or learner.env  # a team's (agents.learners.ippo) or one robot's
+    training_env = lambda learner: (
+        getattr(learner, "team_env", None) or learner.env
+    )  # a team's (agents.learners.ippo) or one robot's
     assert training_env(build_algorithm(config)).config.reward_scheme == "height"  # what its rollouts are rewarded by
     assert training_env(build_algorithm(plain)).config.reward_scheme == "binary"  # 2D's own (SPEC §5)
     # Scored as the task is defined: the evaluator's overrides and the world a checkpoint must match.

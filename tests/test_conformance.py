@@ -59,12 +59,15 @@ def _cut_copy(tmp_path):
     return path
 
 
-@pytest.mark.parametrize("content, message", [
-    ("[]", "non-empty JSON list"),
-    ("", "not a readable golden-trace file"),
-    ('{"variant": "1d-static-sin"}', "non-empty JSON list"),
-    ('[{"variant": "1d-static-sin"}]', "trace 0 is incomplete: lacks"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("[]", "non-empty JSON list"),
+        ("", "not a readable golden-trace file"),
+        ('{"variant": "1d-static-sin"}', "non-empty JSON list"),
+        ('[{"variant": "1d-static-sin"}]', "trace 0 is incomplete: lacks"),
+    ],
+)
 def test_an_empty_or_incomplete_trace_file_is_refused(tmp_path, content, message):
     path = tmp_path / "traces.json"
     path.write_text(content)
@@ -87,11 +90,19 @@ def test_a_bad_SNAC_GOLDEN_TRACES_fails_the_conformance_tests(tmp_path):
     (tmp_path / "empty.json").write_text("[]")
     for bad in (tmp_path / "empty.json",):
         env = {**os.environ, GOLDEN_TRACES_ENV_VAR: str(bad), "JAX_PLATFORMS": "cpu"}
-        tests = ["tests/test_conformance.py::test_replay_matches_golden_trace",
-                 "tests/test_conformance.py::test_dynamic_observation_appends_the_design",
-                 "tests/test_numpy_engine.py::test_numpy_engine_replays_every_golden_trace"]
-        done = subprocess.run([sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", "-q", *tests],
-                              capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+        tests = [
+            "tests/test_conformance.py::test_replay_matches_golden_trace",
+            "tests/test_conformance.py::test_dynamic_observation_appends_the_design",
+            "tests/test_numpy_engine.py::test_numpy_engine_replays_every_golden_trace",
+        ]
+        done = subprocess.run(
+            [sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", "-q", *tests],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=ROOT,
+            timeout=300,
+        )
         summary = done.stdout.strip().splitlines()[-1]
         # the two fixture-driven tests error in their fixture, the NumPy-engine one fails
         assert done.returncode == 1 and "1 failed, 2 errors" in summary, done.stdout[-2000:]

@@ -160,8 +160,14 @@ def test_evaluation_scores_each_test_design_against_the_one_it_changes_to():
     unchanged = [_hand_iou([cell], stack[i]) for i in range(10)]
     assert expected != unchanged  # the cell is in some test designs and not in others
     # Every scheduled change step (1 + floor(i * 29 / 9) <= 30) comes before the step limit.
-    result = evaluate_task(task, _build_one_cell(*cell), episodes_per_test_design=2, stride_probs=(1, 0, 0),
-                           max_steps=40, design_change=(1, 30))
+    result = evaluate_task(
+        task,
+        _build_one_cell(*cell),
+        episodes_per_test_design=2,
+        stride_probs=(1, 0, 0),
+        max_steps=40,
+        design_change=(1, 30),
+    )
     means = [stats["mean"] for stats in result.per_design.values()]
     np.testing.assert_allclose(means, expected, rtol=1e-6)
 

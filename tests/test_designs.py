@@ -41,8 +41,18 @@ def test_1d_static_shapes_follow_their_formulas():
     np.testing.assert_array_equal(step, DATA["1d-static-step"]["design"])
 
 
-SINE_TEST_PARAMS = [(3, 1, -np.pi), (4, 2, -np.pi / 2), (5, 3, -np.pi / 2), (6, 1, np.pi), (7, 2, -np.pi),
-                    (7, 3, -np.pi / 2), (8, 1, np.pi / 2), (9, 2, np.pi), (10, 3, -np.pi), (11, 1, -np.pi / 2)]
+SINE_TEST_PARAMS = [
+    (3, 1, -np.pi),
+    (4, 2, -np.pi / 2),
+    (5, 3, -np.pi / 2),
+    (6, 1, np.pi),
+    (7, 2, -np.pi),
+    (7, 3, -np.pi / 2),
+    (8, 1, np.pi / 2),
+    (9, 2, np.pi),
+    (10, 3, -np.pi),
+    (11, 1, -np.pi / 2),
+]
 
 
 @pytest.mark.parametrize("index", range(10))
@@ -65,7 +75,9 @@ def test_sampled_triangles_obey_size_rules(task):
     if high is not None:
         assert np.all(counts < high)
     assert set(np.unique(bank)) <= {0, 6 if dim == 3 else 1}
-    np.testing.assert_array_equal(params.design_max_bricks, bank.sum(axis=(1, 2)) if dim == 3 else np.maximum(counts, 30))
+    np.testing.assert_array_equal(
+        params.design_max_bricks, bank.sum(axis=(1, 2)) if dim == 3 else np.maximum(counts, 30)
+    )
     assert len({b.tobytes() for b in bank}) > 400  # a bank of distinct designs, not one repeated
 
 
@@ -103,13 +115,19 @@ def test_reset_draws_designs_from_the_bank():
 @pytest.mark.parametrize("task", DYNAMIC)
 def test_training_banks_exclude_every_test_design(task):
     """The default bank (the one training uses) and another seed's: no design equals a test design."""
-    tests = np.stack([np.asarray(DATA[name]["design"]).reshape(np.shape(make(task, test_design=0)[1].designs[0]))
-                      for name in test_design_names(task)])
+    tests = np.stack(
+        [
+            np.asarray(DATA[name]["design"]).reshape(np.shape(make(task, test_design=0)[1].designs[0]))
+            for name in test_design_names(task)
+        ]
+    )
     for options in ({}, {"design_bank_size": 512, "design_seed": 7}):
         _, params = make(task, **options)
         bank = np.asarray(params.designs)
         equal = np.all(bank[:, None] == tests[None], axis=(2, 3))
-        assert not equal.any(), f"{task} {options}: bank designs {np.flatnonzero(equal.any(axis=1))[:5]} are test designs"
+        assert not equal.any(), (
+            f"{task} {options}: bank designs {np.flatnonzero(equal.any(axis=1))[:5]} are test designs"
+        )
 
 
 def test_an_excluded_draw_is_redrawn_and_the_others_kept():

@@ -15,15 +15,24 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agents.learners.drqn_her import hindsight_rewards
 from agents.common.networks import stack_frames
 from agents.common.offpolicy import Step
-from agents.training.registry import build_algorithm, make_config
 from agents.common.targets import n_step_targets
+from agents.learners.drqn_her import hindsight_rewards
+from agents.training.registry import build_algorithm, make_config
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
-TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
-            frame_stack=1, learning_rate=1e-3)
+TINY = dict(
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=16,
+    hidden_size=16,
+    learning_starts=0,
+    chunks=2,
+    gradient_steps=1,
+    frame_stack=1,
+    learning_rate=1e-3,
+)
 RECURRENT = dict(lstm_size=16, burn_in=4, sequence_length=6)
 
 
@@ -41,8 +50,15 @@ def _run(agent, updates, seed=0):
 @pytest.fixture(scope="module")
 def her_1d():
     """A DRQN+HER run on 12-step episodes with random actions; its buffer has wrapped around."""
-    agent = _agent("drqn-her", total_steps=10 * 64, buffer_size=8 * 40, max_steps=12, eps_start=1.0, eps_end=1.0,
-                   hindsight_fraction=1.0)
+    agent = _agent(
+        "drqn-her",
+        total_steps=10 * 64,
+        buffer_size=8 * 40,
+        max_steps=12,
+        eps_start=1.0,
+        eps_end=1.0,
+        hindsight_fraction=1.0,
+    )
     state, _ = _run(agent, 10)
     assert bool(state.buffer.is_full)
     return agent, state
@@ -72,17 +88,20 @@ def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask()
     c = agent.config.context
     # Q-values (rows: the learning step, the step after it; 2 windows; 3 actions), as the
     # online network (`params`) and the target network (`target_params`) give them.
-    online = jnp.array([[[0.5, 0.0, 9.0], [9.0, 9.0, 0.0]],
-                        [[1.0, 3.0, 0.0], [7.0, 7.0, 7.0]]])
-    target = jnp.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
-                        [[5.0, 2.0, 0.0], [7.0, 7.0, 7.0]]])
+    online = jnp.array([[[0.5, 0.0, 9.0], [9.0, 9.0, 0.0]], [[1.0, 3.0, 0.0], [7.0, 7.0, 7.0]]])
+    target = jnp.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[5.0, 2.0, 0.0], [7.0, 7.0, 7.0]]])
     agent.replayed_frames = lambda batch, obs: (None, None)
     agent.sequence_q = lambda params, frames, resets: params
 
     rows = c + 2
     column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
-    batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
-                 action=column(0, 2).astype(jnp.int8), reward=column(9.0, 9.0), done=column(0, 1).astype(bool))
+    batch = Step(
+        obs=jnp.zeros((rows, 2, 1), jnp.int16),
+        reset=jnp.zeros((rows, 2), bool),
+        action=column(0, 2).astype(jnp.int8),
+        reward=column(9.0, 9.0),
+        done=column(0, 1).astype(bool),
+    )
     # The rewards the loss learns from (hindsight relabels them, not batch.reward), as 1 and 0.4
     # after reward_scale 2.
     rewards = column(0.5, 0.2)
@@ -153,7 +172,7 @@ def test_burn_in_steps_carry_no_gradient(her_1d):
     assert np.abs(np.asarray(grad[first_trained:])).max() > 0.0
     # The burn-in does warm the state: changing its observations changes the loss (in windows
     # without a reset right after the burn-in).
-    bumped = obs.at[1:first_trained - 1].add(3.0)
+    bumped = obs.at[1 : first_trained - 1].add(3.0)
     assert float(loss(bumped)) != float(loss(obs))
 
 
@@ -197,8 +216,10 @@ def _check_relabelled_rewards_equal_replay(agent, state, key):
             if agent.layout.dynamic:
                 offset = agent.layout.window_size + 2
                 design = batch.obs[s, start, offset : offset + agent.layout.design_size].reshape(cfg.plan_shape)
-                np.testing.assert_array_equal(obs[s, steps, offset : offset + agent.layout.design_size],
-                                              np.broadcast_to(final_grid.reshape(-1), (end + 1 - start, final_grid.size)))
+                np.testing.assert_array_equal(
+                    obs[s, steps, offset : offset + agent.layout.design_size],
+                    np.broadcast_to(final_grid.reshape(-1), (end + 1 - start, final_grid.size)),
+                )
             else:
                 design = np.asarray(agent.env_params.designs[0])
             max_bricks = int(np.asarray(agent.env_params.design_max_bricks)[0]) if not agent.layout.dynamic else None
@@ -228,8 +249,19 @@ def test_hindsight_rewards_equal_replaying_against_the_final_grid(her_1d):
 
 @pytest.mark.parametrize("task", ["2d-static-dense", "1d-dynamic"])
 def test_hindsight_relabelling_in_2d_and_on_dynamic_designs(task):
-    agent = _agent("drqn-her", task, total_steps=6 * 64, buffer_size=8 * 40, max_steps=14, eps_start=1.0,
-                   eps_end=1.0, hindsight_fraction=1.0, burn_in=2, sequence_length=14, batch_size=8)
+    agent = _agent(
+        "drqn-her",
+        task,
+        total_steps=6 * 64,
+        buffer_size=8 * 40,
+        max_steps=14,
+        eps_start=1.0,
+        eps_end=1.0,
+        hindsight_fraction=1.0,
+        burn_in=2,
+        sequence_length=14,
+        batch_size=8,
+    )
     state, _ = _run(agent, 6)
     _check_relabelled_rewards_equal_replay(agent, state, jax.random.key(2))
 
@@ -309,12 +341,13 @@ def test_tiny_run_of_each_agent_completes(algorithm, task, options):
 
 @pytest.mark.slow  # three compilations of a whole run: ~100 s on a 2-core CPU (PPO's resume test stays in the default suite)
 def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_path):
-    from agents.training.trained import checkpoint_policy
     from agents.training.driver import train
+    from agents.training.trained import checkpoint_policy
     from snac_jax.evaluation import evaluate_task
 
-    config = make_config("drqn-her", "1d-dynamic", **TINY, **RECURRENT, total_steps=4 * 64, buffer_size=8 * 30,
-                         max_steps=10)
+    config = make_config(
+        "drqn-her", "1d-dynamic", **TINY, **RECURRENT, total_steps=4 * 64, buffer_size=8 * 30, max_steps=10
+    )
     _, full = train(config, tmp_path / "full", progress=False)
     train(config, tmp_path / "cut", progress=False, stop_after_chunks=1)
     _, resumed = train(config, tmp_path / "cut", resume=True, progress=False)
@@ -322,8 +355,9 @@ def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_
         if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    result = evaluate_task("1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"),
-                           episodes_per_test_design=2, max_steps=20)
+    result = evaluate_task(
+        "1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"), episodes_per_test_design=2, max_steps=20
+    )
     assert result.episodes == 20 and 0.0 <= result.mean <= 1.0
 
 
@@ -380,21 +414,56 @@ def test_cli_trains_each_value_based_agent_and_evaluates_it(algorithm, tmp_path)
     import sys
 
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", algorithm, "--task", "1d-static-step", "--total-steps", "512",
-           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
-           "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out), "--eval-episodes", "2",
-           "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        algorithm,
+        "--task",
+        "1d-static-step",
+        "--total-steps",
+        "512",
+        "--num-envs",
+        "8",
+        "--rollout-steps",
+        "8",
+        "--batch-size",
+        "8",
+        "--hidden-size",
+        "8",
+        "--buffer-size",
+        "256",
+        "--learning-starts",
+        "0",
+        "--max-steps",
+        "40",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "2",
+        "--no-progress",
+    ]
     if algorithm != "dqn":
         cmd += ["--lstm-size", "8", "--burn-in", "2", "--sequence-length", "4"]
-    result = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+    result = subprocess.run(
+        cmd, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
         assert (out / name).is_file(), name
     assert json.loads((out / "config.json").read_text())["algorithm"] == algorithm
     assert "| 1d-static-step |" in result.stdout
-    again = subprocess.run([sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
-                           capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+    again = subprocess.run(
+        [sys.executable, "-m", "snac_jax.cli", "eval", "--checkpoint", str(out), "--episodes", "2"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        timeout=600,
+    )
     assert again.returncode == 0 and "| 1d-static-step |" in again.stdout, again.stderr[-3000:]
 
 

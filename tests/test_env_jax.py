@@ -60,7 +60,9 @@ def test_step_and_reset_compile_once_per_configuration(monkeypatch):
 
 def test_auto_reset_returns_reset_state_and_final_observation():
     env, params = make("3d-static-sparse")  # random 3D episodes end fast (stuck)
-    _, (obs, action, reward, terminated, truncated, info, prev_state) = random_episode(jax.random.key(3), env, params, 300)
+    _, (obs, action, reward, terminated, truncated, info, prev_state) = random_episode(
+        jax.random.key(3), env, params, 300
+    )
     done = np.asarray(terminated | truncated)
     assert done.sum() >= 2
     t = int(np.flatnonzero(done)[0])
@@ -72,7 +74,7 @@ def test_auto_reset_returns_reset_state_and_final_observation():
     ended = jax.tree.map(lambda x: x[t], prev_state)
     final_obs, final_state, *_ = env.step_with_stride(ended, action[t], info["stride"][t], params)
     np.testing.assert_array_equal(info["final_observation"][t], final_obs)
-    assert float(info["final_iou"][t]) == pytest.approx(float((final_state.overlap / final_state.union)))
+    assert float(info["final_iou"][t]) == pytest.approx(float(final_state.overlap / final_state.union))
 
 
 def test_step_keeping_final_state_is_step_plus_the_state_before_the_auto_reset():
@@ -115,8 +117,15 @@ def test_1d_reset_observation():
     np.testing.assert_array_equal(obs, [-1, -1, 0, 0, 0, 0, 0])
 
 
-@pytest.mark.parametrize("task,overrides", [("1d-static-sin", {"gps": True}), ("1d-dynamic", {}),
-                                            ("2d-dynamic-sparse", {"gps": True}), ("3d-static-dense", {})])
+@pytest.mark.parametrize(
+    "task,overrides",
+    [
+        ("1d-static-sin", {"gps": True}),
+        ("1d-dynamic", {}),
+        ("2d-dynamic-sparse", {"gps": True}),
+        ("3d-static-dense", {}),
+    ],
+)
 def test_observation_layout_reads_back_each_part(task, overrides):
     """The layout is the one definition of the flat observation: each slice holds its part."""
     env, params = snac_jax.make(task, **overrides)

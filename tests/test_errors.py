@@ -35,7 +35,11 @@ from snac_jax import TASKS, make, test_design_names
         ("2d-static-dense", {"max_steps": 2**31}, r"int in 1\.\.2147483647"),
         ("2d-dynamic-dense", {"design_seed": 2**64}, r"int in 0\.\.4294967295"),
         ("2d-dynamic-dense", {"design_seed": 2**32}, r"int in 0\.\.4294967295"),  # key(2**32) == key(0)
-        ("2d-dynamic-dense", {"design_bank_size": 10**10}, "a bank of 10,000,000,000 designs needs about .* GiB, more than"),
+        (
+            "2d-dynamic-dense",
+            {"design_bank_size": 10**10},
+            "a bank of 10,000,000,000 designs needs about .* GiB, more than",
+        ),
     ],
 )
 def test_make_rejects_bad_input(task, overrides, message):
@@ -67,8 +71,12 @@ def test_an_environment_refuses_another_tasks_params_and_state():
     with pytest.raises(ValueError, match="params of another task"):
         env.step(jax.random.key(0), state, 0, params_1d)
     with pytest.raises(ValueError, match="params of another task"):
-        jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(jax.random.key(0), 2),
-                                                    jax.tree.map(lambda x: jnp.stack([x, x]), state), jnp.zeros(2, int), params_1d)
+        jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(jax.random.key(0), 2),
+            jax.tree.map(lambda x: jnp.stack([x, x]), state),
+            jnp.zeros(2, int),
+            params_1d,
+        )
     with pytest.raises(ValueError, match=r"state.grid has shape \(1, 34\)"):
         env.step(jax.random.key(0), _reset(env_1d, params_1d), 0, params)
     with pytest.raises(ValueError, match=r"stride_probs has shape \(2,\)"):
@@ -120,8 +128,13 @@ def test_non_integer_indices_strides_and_actions_are_refused_naming_the_argument
     a bool as a mask, and fail on a float deep inside the step."""
     env, params = make("2d-dynamic-dense", design_bank_size=4)
     state = _reset(env, params)
-    for bad, shown in ((0.5, "0.5"), (1.0, "1.0"), (True, "True"), (np.float32(2), "2.0"),
-                       (np.array([0, 1]), r"an int64 array of shape \(2,\)")):
+    for bad, shown in (
+        (0.5, "0.5"),
+        (1.0, "1.0"),
+        (True, "True"),
+        (np.float32(2), "2.0"),
+        (np.array([0, 1]), r"an int64 array of shape \(2,\)"),
+    ):
         with pytest.raises(ValueError, match=rf"^design_index must be one int in 0\.\.3, got {shown}$"):
             env.reset_to_design(jax.random.key(0), params, bad)
     with pytest.raises(ValueError, match=r"^stride must be one int in 1\.\.3, got 2\.0$"):
@@ -140,8 +153,11 @@ def test_non_integer_indices_strides_and_actions_are_refused_naming_the_argument
 def test_privileged_refuses_a_batch_of_states():
     env, params = make("2d-static-dense")
     states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 3), params)[1]
-    with pytest.raises(ValueError, match=r"^env.privileged takes one world's state, got a batch of shape \(3,\): "
-                                         r"jax.vmap\(env.privileged, in_axes=\(0, None\)\)\(states, params\)$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^env.privileged takes one world's state, got a batch of shape \(3,\): "
+        r"jax.vmap\(env.privileged, in_axes=\(0, None\)\)\(states, params\)$",
+    ):
         env.privileged(states, params)
     batched = jax.vmap(env.privileged, in_axes=(0, None))(states, params)
     assert batched.built.shape == (3, 20, 20) and batched.position.shape == (3, 2)
@@ -161,15 +177,27 @@ def _memory_turns_float(params, state, obs, key):
     return jnp.int32(0), (jnp.zeros(2), jnp.float32(0.5))
 
 
-@pytest.mark.parametrize(("init", "act", "message"), [
-    (lambda key, design: jnp.zeros(2), _bare_action,
-     r"policy.act must return \(action, policy_state\), got a bare int32\[\] value"),
-    (lambda key, design: jnp.zeros(2), _memory_grows,
-     r"policy.act must return a policy_state like the one it was given, float32\[2\], got float32\[3\]"),
-    (lambda key, design: (jnp.zeros(2), jnp.int32(0)), _memory_turns_float,
-     r"policy.act must return a policy_state like the one it was given, \(float32\[2\], int32\[\]\), "
-     r"got \(float32\[2\], float32\[\]\)"),
-])
+@pytest.mark.parametrize(
+    ("init", "act", "message"),
+    [
+        (
+            lambda key, design: jnp.zeros(2),
+            _bare_action,
+            r"policy.act must return \(action, policy_state\), got a bare int32\[\] value",
+        ),
+        (
+            lambda key, design: jnp.zeros(2),
+            _memory_grows,
+            r"policy.act must return a policy_state like the one it was given, float32\[2\], got float32\[3\]",
+        ),
+        (
+            lambda key, design: (jnp.zeros(2), jnp.int32(0)),
+            _memory_turns_float,
+            r"policy.act must return a policy_state like the one it was given, \(float32\[2\], int32\[\]\), "
+            r"got \(float32\[2\], float32\[\]\)",
+        ),
+    ],
+)
 def test_a_policy_breaking_the_act_contract_is_named_not_jax_internals(init, act, message):
     from snac_jax.evaluation import evaluate_task
     from snac_jax.policy import Policy

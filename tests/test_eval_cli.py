@@ -6,14 +6,26 @@ import json
 
 import pytest
 
-from snac_jax.cli import main
 from snac_jax.atomic import atomic_write_json as write_json_atomic
+from snac_jax.cli import main
 
 
 def test_eval_prints_table_beside_the_paper_and_writes_json(tmp_path, capsys):
     out = tmp_path / "results" / "handcrafted.json"
     code = main(
-        ["eval", "--policy", "handcrafted", "--task", "2d-static-sparse", "--episodes", "2", "--seed", "4", "--json", str(out)]
+        [
+            "eval",
+            "--policy",
+            "handcrafted",
+            "--task",
+            "2d-static-sparse",
+            "--episodes",
+            "2",
+            "--seed",
+            "4",
+            "--json",
+            str(out),
+        ]
     )
     assert code == 0
     printed = capsys.readouterr().out
@@ -32,7 +44,19 @@ def test_eval_prints_table_beside_the_paper_and_writes_json(tmp_path, capsys):
 def test_eval_reads_another_paper_results_file(tmp_path, capsys):
     paper = tmp_path / "paper.json"
     paper.write_text(json.dumps({"methods": {"handcrafted": {"2d-static-sparse": {"avg": 0.123, "min": 0.045}}}}))
-    main(["eval", "--policy", "handcrafted", "--task", "2d-static-sparse", "--episodes", "2", "--paper-results", str(paper)])
+    main(
+        [
+            "eval",
+            "--policy",
+            "handcrafted",
+            "--task",
+            "2d-static-sparse",
+            "--episodes",
+            "2",
+            "--paper-results",
+            str(paper),
+        ]
+    )
     assert "| 0.123 | 0.045 |" in capsys.readouterr().out
 
 
@@ -133,20 +157,41 @@ def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--policy", "handcrafted", "--switches", "foo=1"],
-         "unknown switch 'foo'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme"),
-        (["--policy", "handcrafted", "--task", "all", "--switches", "reward_scheme=nope"],
-         "reward_scheme must be one of ('height', 'binary'), got 'nope'"),
+        (
+            ["--policy", "handcrafted", "--switches", "foo=1"],
+            "unknown switch 'foo'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme",
+        ),
+        (
+            ["--policy", "handcrafted", "--task", "all", "--switches", "reward_scheme=nope"],
+            "reward_scheme must be one of ('height', 'binary'), got 'nope'",
+        ),
         (["--policy", "handcrafted", "--task", "1d-static-sin", "--switches", "obstacles=true"], "obstacles"),
-        (["--checkpoint", "runs/none", "--switches", "gps=true"],
-         "--switches: a checkpoint is scored with its run's own switches and robots"),
+        (
+            ["--checkpoint", "runs/none", "--switches", "gps=true"],
+            "--switches: a checkpoint is scored with its run's own switches and robots",
+        ),
         (["--checkpoint", "runs/none", "--robots", "2"], "--robots: a checkpoint is scored with its run's own"),
-        (["--policy", "handcrafted", "--robots", "4", "--task", "all"],
-         "num_robots must be an int in 1..2 for 1d-static-sin (one per end of the row), got 4"),
-        (["--policy", "handcrafted", "--robots", "2", "--task", "2d-dynamic-dense", "--switches", "design_change=100/300"],
-         "design_change is a single-robot switch"),
-        (["--policy", "handcrafted", "--robots", "2", "--task", "2d-static-dense", "--devices", "2"],
-         "--devices 2: a team's episodes run on one device"),
+        (
+            ["--policy", "handcrafted", "--robots", "4", "--task", "all"],
+            "num_robots must be an int in 1..2 for 1d-static-sin (one per end of the row), got 4",
+        ),
+        (
+            [
+                "--policy",
+                "handcrafted",
+                "--robots",
+                "2",
+                "--task",
+                "2d-dynamic-dense",
+                "--switches",
+                "design_change=100/300",
+            ],
+            "design_change is a single-robot switch",
+        ),
+        (
+            ["--policy", "handcrafted", "--robots", "2", "--task", "2d-static-dense", "--devices", "2"],
+            "--devices 2: a team's episodes run on one device",
+        ),
     ],
 )
 def test_bad_switches_and_robots_are_one_line_errors_before_anything_runs(argv, message, capsys, monkeypatch):
@@ -171,8 +216,9 @@ def test_a_team_of_one_is_the_single_robot(tmp_path, capsys):
     assert main([*argv, "--robots", "2", "--json", str(outs["two"])]) == 0
     assert "a team of 2 robot(s)" in capsys.readouterr().out
     single, one, two = (json.loads(outs[name].read_text())["1d-static-sin"] for name in ("single", "one", "two"))
-    assert {k: v for k, v in _protocol_fields(one).items() if k not in ("robots", "max_steps", "finished_fraction")} \
-        == _protocol_fields(single)
+    assert {
+        k: v for k, v in _protocol_fields(one).items() if k not in ("robots", "max_steps", "finished_fraction")
+    } == _protocol_fields(single)
     assert one["robots"] == 1 and two["robots"] == 2 and one["max_steps"] == two["max_steps"] == 750
     assert one["finished_fraction"] == 1.0 and one["mean_length"] < 750  # the single robot spends its budget
     assert two["mean_bricks_used"] <= 600 and two["episodes"] == 3
@@ -183,10 +229,41 @@ def test_a_team_checkpoint_is_scored_as_its_training_scored_it(tmp_path, capsys)
     """`snac eval --checkpoint` of an ippo run: the team, its robots and step limit from the run,
     the same numbers as the run's own evaluation (`evaluate_team`) on the same key."""
     run = tmp_path / "run"
-    code = main(["train", "ippo", "--robots", "2", "--task", "1d-static-sin", "--total-steps", "32", "--chunks", "1",
-                 "--max-steps", "20", "--eval-episodes", "3", "--out", str(run), "--num-envs", "4",
-                 "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1", "--hidden-size", "8",
-                 "--rnn-size", "8", "--no-progress", "--devices", "1"])
+    code = main(
+        [
+            "train",
+            "ippo",
+            "--robots",
+            "2",
+            "--task",
+            "1d-static-sin",
+            "--total-steps",
+            "32",
+            "--chunks",
+            "1",
+            "--max-steps",
+            "20",
+            "--eval-episodes",
+            "3",
+            "--out",
+            str(run),
+            "--num-envs",
+            "4",
+            "--rollout-steps",
+            "8",
+            "--num-minibatches",
+            "2",
+            "--update-epochs",
+            "1",
+            "--hidden-size",
+            "8",
+            "--rnn-size",
+            "8",
+            "--no-progress",
+            "--devices",
+            "1",
+        ]
+    )
     assert code == 0, capsys.readouterr().err[-2000:]
     out = tmp_path / "eval.json"
     assert main(["eval", "--checkpoint", str(run), "--episodes", "3", "--json", str(out)]) == 0

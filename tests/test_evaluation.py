@@ -170,7 +170,11 @@ def test_a_builder_is_called_once_per_environment_task():
         ("2d-dynamic-dense", {"test_design": 3}, "test_design pins one design"),
         ("1d-static-sin", {"seed": 2**32}, r"seed must be an int in 0\.\.4294967295"),
         ("1d-static-sin", {"seed": -1}, r"seed must be an int in 0\.\.4294967295"),
-        ("1d-static-sin", {"static_episodes": 10**11}, "100,000,000,000 episodes at once needs about .* GiB, more than"),
+        (
+            "1d-static-sin",
+            {"static_episodes": 10**11},
+            "100,000,000,000 episodes at once needs about .* GiB, more than",
+        ),
     ],
 )
 def test_bad_input_is_a_value_error(task, kwargs, match):
@@ -212,4 +216,7 @@ def test_paper_results_are_packaged():
     assert set(paper_module.PAPER_TASKS) <= set(row)
     assert paper_module.paper_row(paper, None) == {}
     assert [paper_module.paper_column(t) for t in ("1d-static-gauss", "1d-dynamic", "3d-static-dense")] == [
-        "1d-static", "1d-dynamic", "3d-static-dense"]
+        "1d-static",
+        "1d-dynamic",
+        "3d-static-dense",
+    ]

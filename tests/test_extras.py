@@ -35,9 +35,19 @@ def _snac_without(modules: list[str], argv: list[str]) -> subprocess.CompletedPr
 
 def test_every_extra_module_maps_to_the_extra_pyproject_gives_it():
     optional = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
-    for module, extra in (("optax", "train"), ("orbax", "train"), ("flashbax", "train"), ("distrax", "train"),
-                          ("scipy", "train"), ("tqdm", "train"), ("tensorboardX", "train"), ("pygame", "play"),
-                          ("imageio", "render"), ("wandb", "wandb"), ("gymnasium", "gymnasium")):
+    for module, extra in (
+        ("optax", "train"),
+        ("orbax", "train"),
+        ("flashbax", "train"),
+        ("distrax", "train"),
+        ("scipy", "train"),
+        ("tqdm", "train"),
+        ("tensorboardX", "train"),
+        ("pygame", "play"),
+        ("imageio", "render"),
+        ("wandb", "wandb"),
+        ("gymnasium", "gymnasium"),
+    ):
         assert plugins.extra_for(module) == extra, module
         assert any(r.lower().startswith(plugins._DISTRIBUTION_OF.get(module, module).lower()) for r in optional[extra])
     assert plugins.extra_for("jax") is None and plugins.extra_for("no_such_module") is None
@@ -52,7 +62,9 @@ def test_the_environment_depends_on_jax_chex_flax_gymnax_and_numpy_only():
 def test_train_without_its_extra_names_the_extra_in_one_line():
     result = _snac_without(["distrax", "optax"], ["train", "ppo", "--task", "1d-static-sin"])
     assert result.returncode == 2, result.stderr[-2000:]
-    assert result.stderr.strip().splitlines() == ['snac train: error: this needs the [train] extra: pip install "snac-jax[train]"']
+    assert result.stderr.strip().splitlines() == [
+        'snac train: error: this needs the [train] extra: pip install "snac-jax[train]"'
+    ]
     help_text = _snac_without(["distrax"], ["train", "--help"])
     assert help_text.returncode == 2 and "[train] extra" in help_text.stderr
     listing = _snac_without(["distrax"], ["--help"])  # the other commands stay, the missing one is listed
@@ -62,7 +74,10 @@ def test_train_without_its_extra_names_the_extra_in_one_line():
 def test_play_without_pygame_names_the_play_extra():
     result = _snac_without(["pygame"], ["play", "--task", "1d-static-sin"])
     assert result.returncode == 2, result.stderr[-2000:]
-    assert result.stderr.strip().splitlines()[-1] == 'snac play: error: this needs the [play] extra: pip install "snac-jax[play]"'
+    assert (
+        result.stderr.strip().splitlines()[-1]
+        == 'snac play: error: this needs the [play] extra: pip install "snac-jax[play]"'
+    )
 
 
 def test_a_missing_module_that_no_extra_provides_is_a_bug_with_its_traceback():
@@ -81,8 +96,9 @@ def test_a_fresh_install_without_extras_makes_and_steps_every_task(tmp_path):
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
     python = venv / "bin" / "python"
-    install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", str(source)], capture_output=True,
-                             text=True, timeout=1800)
+    install = subprocess.run(
+        [str(python), "-m", "pip", "install", "--quiet", str(source)], capture_output=True, text=True, timeout=1800
+    )
     assert install.returncode == 0, install.stderr[-3000:]
     check = textwrap.dedent("""
         import importlib.util, sys
@@ -101,7 +117,10 @@ def test_a_fresh_install_without_extras_makes_and_steps_every_task(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     # optax and orbax-checkpoint come with flax, which gymnax needs: installed, but never imported.
     assert "installed: [] imported: []" in run.stdout, run.stdout
-    train = subprocess.run([str(venv / "bin" / "snac"), "train", "ppo"], capture_output=True, text=True, env=ENV,
-                           cwd=tmp_path, timeout=300)
+    train = subprocess.run(
+        [str(venv / "bin" / "snac"), "train", "ppo"], capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300
+    )
     assert train.returncode == 2
-    assert train.stderr.strip().splitlines() == ['snac train: error: this needs the [train] extra: pip install "snac-jax[train]"']
+    assert train.stderr.strip().splitlines() == [
+        'snac train: error: this needs the [train] extra: pip install "snac-jax[train]"'
+    ]

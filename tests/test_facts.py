@@ -27,11 +27,21 @@ def _integers_outside(path: Path, homes: set[str], values: set[int]) -> list[int
     """Line numbers of integer literals in `values` anywhere in `path` but the module-level
     assignments to the names `homes`."""
     tree = ast.parse(path.read_text())
-    inside = {id(node) for statement in tree.body if isinstance(statement, (ast.Assign, ast.AnnAssign))
-              and ast.unparse(statement.targets[0] if isinstance(statement, ast.Assign) else statement.target) in homes
-              for node in ast.walk(statement)}
-    return [node.lineno for node in ast.walk(tree) if isinstance(node, ast.Constant) and type(node.value) is int
-            and node.value in values and id(node) not in inside]
+    inside = {
+        id(node)
+        for statement in tree.body
+        if isinstance(statement, (ast.Assign, ast.AnnAssign))
+        and ast.unparse(statement.targets[0] if isinstance(statement, ast.Assign) else statement.target) in homes
+        for node in ast.walk(statement)
+    }
+    return [
+        node.lineno
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant)
+        and type(node.value) is int
+        and node.value in values
+        and id(node) not in inside
+    ]
 
 
 # --- the step limits ---------------------------------------------------------------------------
@@ -51,9 +61,9 @@ def test_tasks_py_states_the_step_limits_once():
 
 
 def test_budgets_toml_converts_episodes_with_the_tasks_step_limit_and_does_not_restate_it():
-    from agents.training.registry import make_config
     from agents.table.plan import requested_budget
     from agents.table.presets import load_presets
+    from agents.training.registry import make_config
 
     text = BUDGETS.read_text()
     restated = [v for v in tasks.STEP_LIMITS.values() if re.search(rf"(?<![\d_]){v}(?![\d_])", text)]
@@ -99,9 +109,11 @@ def test_a_preset_without_counts_scores_with_the_protocols(tmp_path):
     from agents.table.presets import load_presets
 
     path = tmp_path / "budgets.toml"
-    path.write_text('[p]\nseeds = 1\n')
+    path.write_text("[p]\nseeds = 1\n")
     assert load_presets(path)["p"].protocol == {
-        "static_episodes": evaluation.STATIC_EPISODES, "episodes_per_test_design": evaluation.EPISODES_PER_TEST_DESIGN}
+        "static_episodes": evaluation.STATIC_EPISODES,
+        "episodes_per_test_design": evaluation.EPISODES_PER_TEST_DESIGN,
+    }
 
 
 # --- the paper's budgets -----------------------------------------------------------------------
@@ -109,8 +121,12 @@ def test_a_preset_without_counts_scores_with_the_protocols(tmp_path):
 
 def test_the_papers_budgets_are_stated_in_the_paper_preset_only():
     raw = tomllib.loads(BUDGETS.read_text())
-    quoting = {(name, algorithm) for name, table in raw.items() for algorithm, budget in table.get("budgets", {}).items()
-               if "appendix" in budget.get("source", "")}
+    quoting = {
+        (name, algorithm)
+        for name, table in raw.items()
+        for algorithm, budget in table.get("budgets", {}).items()
+        if "appendix" in budget.get("source", "")
+    }
     assert quoting and {name for name, _ in quoting} == {"paper"}
 
 
@@ -118,28 +134,42 @@ def test_a_budget_given_as_same_as_is_that_entrys():
     from agents.table.presets import load_presets
 
     raw, presets = tomllib.loads(BUDGETS.read_text()), load_presets()
-    references = [(name, algorithm, budget["same_as"]) for name, table in raw.items()
-                  for algorithm, budget in table.get("budgets", {}).items() if "same_as" in budget]
+    references = [
+        (name, algorithm, budget["same_as"])
+        for name, table in raw.items()
+        for algorithm, budget in table.get("budgets", {}).items()
+        if "same_as" in budget
+    ]
     assert {(name, algorithm) for name, algorithm, _ in references} >= {
-        ("ablation", "drqn"), ("privileged-ablation", "ppo-privileged"), ("paper", "ppo-privileged")}
+        ("ablation", "drqn"),
+        ("privileged-ablation", "ppo-privileged"),
+        ("paper", "ppo-privileged"),
+    }
     for name, algorithm, reference in references:
         other, _, learner = reference.partition(".")
         mine, theirs = presets[name].budgets[algorithm], presets[other].budgets[learner]
-        assert {k: mine.get(k) for k in ("env_steps", "episodes")} == {k: theirs.get(k) for k in ("env_steps", "episodes")}
+        assert {k: mine.get(k) for k in ("env_steps", "episodes")} == {
+            k: theirs.get(k) for k in ("env_steps", "episodes")
+        }
         assert theirs["source"] in mine["source"]
 
 
-@pytest.mark.parametrize("entry, message", [
-    ('same_as = "paper.nobody"', "same_as must name"),
-    ('same_as = "paper.ppo", env_steps = 5', "same_as must name"),
-    ('same_as = "q.ppo"', "same_as must name"),  # itself a same_as: one step only
-])
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ('same_as = "paper.nobody"', "same_as must name"),
+        ('same_as = "paper.ppo", env_steps = 5', "same_as must name"),
+        ('same_as = "q.ppo"', "same_as must name"),  # itself a same_as: one step only
+    ],
+)
 def test_a_same_as_that_names_no_budget_is_refused(tmp_path, entry, message):
     from agents.table.presets import load_presets
 
     path = tmp_path / "budgets.toml"
-    path.write_text(f'[paper.budgets]\nppo = {{ env_steps = 10, source = "s" }}\n[q.budgets]\nppo = {{ same_as = "paper.ppo" }}\n'
-                    f'[r.budgets]\nppo = {{ {entry} }}\n')
+    path.write_text(
+        f'[paper.budgets]\nppo = {{ env_steps = 10, source = "s" }}\n[q.budgets]\nppo = {{ same_as = "paper.ppo" }}\n'
+        f"[r.budgets]\nppo = {{ {entry} }}\n"
+    )
     with pytest.raises(ValueError, match=message):
         load_presets(path)
 
@@ -152,9 +182,12 @@ def test_the_learners_inputs_read_padding_and_landmark_values_from_the_library()
     from snac_jax.observation import LANDMARK_VALUE
     from snac_jax.transition import PADDING
 
-    imported = {alias.name for node in ast.walk(ast.parse(Path(inputs.__file__).read_text()))
-                if isinstance(node, ast.ImportFrom) and node.module in ("snac_jax.observation", "snac_jax.transition")
-                for alias in node.names}
+    imported = {
+        alias.name
+        for node in ast.walk(ast.parse(Path(inputs.__file__).read_text()))
+        if isinstance(node, ast.ImportFrom) and node.module in ("snac_jax.observation", "snac_jax.transition")
+        for alias in node.names
+    }
     assert {"LANDMARK_VALUE", "PADDING"} <= imported
     layout = inputs.ObsLayout(env=None, height_scale=3.0, brick_scale=1.0, step_scale=1.0)
     cells = jnp.array([LANDMARK_VALUE, PADDING, 0, 1, 2, 3, 4, 9], jnp.float32)

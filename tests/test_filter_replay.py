@@ -24,8 +24,7 @@ RIGHT, DOWN, DROP = 1, 2, 4  # 2D action table: left, right, down, up, drop
 
 def test_the_scores_by_hand():
     # two episodes of a 5-step limit (6 observations), lengths 2 and 5; steps past a length are not scored
-    p_true = np.array([[1.0, 0.5, 0.0, 0.9, 0.9, 0.9],
-                       [0.25, 0.25, 0.5, 1.0, 1.0, 0.5]])
+    p_true = np.array([[1.0, 0.5, 0.0, 0.9, 0.9, 0.9], [0.25, 0.25, 0.5, 1.0, 1.0, 0.5]])
     hit = np.array([[1, 0, 0, 1, 1, 1], [0, 0, 1, 1, 1, 0]], bool)
     result = score(p_true, hit, np.array([2, 5]), num_steps=5)
     nll = [0.0, math.log(2), -math.log(FLOOR), math.log(4), math.log(4), math.log(2), 0.0, 0.0, math.log(2)]
@@ -50,8 +49,12 @@ def _untrained(**options):
     greedy = agent.policy(None)
     obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
     start = greedy.init(None, None)
-    params = agent.network.init(jax.random.key(1), start["carry"][None], agent.layout.acting_inputs(obs, start)[None, None],
-                                start["reset"][None, None])
+    params = agent.network.init(
+        jax.random.key(1),
+        start["carry"][None],
+        agent.layout.acting_inputs(obs, start)[None, None],
+        start["reset"][None, None],
+    )
 
     def act(params, policy_state, obs, key):
         _, policy_state = greedy.act(params, policy_state, obs, key)
@@ -70,7 +73,8 @@ def _replayed(agent, init, act, params, weight):
     setup = protocol_episodes(TASK, env_params, 3, episodes_per_test_design=1)
     keys, designs = setup.keys[:6], jnp.asarray(setup.design_indices[:6])
     (inputs, position, held_p, held_hit), length, _ = jax.device_get(
-        _record(env, init, act, agent.held_belief, agent.filter_inputs, params, setup.params, keys, designs, 60))
+        _record(env, init, act, agent.held_belief, agent.filter_inputs, params, setup.params, keys, designs, 60)
+    )
     rows, cols = env.config.plan_shape
     p, hit = jax.device_get(_observe(inputs, position, jnp.float32(weight), rows, cols, drop_table(env.config), True))
     assert (np.asarray(length) == 60).all() and (np.asarray(inputs[3])[..., 4] > 0).any()  # drops were made
@@ -109,8 +113,26 @@ def tiny_run(tmp_path_factory):
 
 def test_a_tiny_run_is_replayed_for_each_weight_into_one_json(tiny_run, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["--run", str(tiny_run), "--out", str(out), "--episodes", "1", "--seed-index", "1",
-                 "--weights", "0", "0.5", "--eval-seed", "5"]) == 0
+    assert (
+        main(
+            [
+                "--run",
+                str(tiny_run),
+                "--out",
+                str(out),
+                "--episodes",
+                "1",
+                "--seed-index",
+                "1",
+                "--weights",
+                "0",
+                "0.5",
+                "--eval-seed",
+                "5",
+            ]
+        )
+        == 0
+    )
     assert [p.name for p in out.iterdir()] == ["filter_replay.json"]
     report = json.loads((out / "filter_replay.json").read_text())
     assert not report["brick_map"] and report["seed_indices"] == [1] and report["eval_seed"] == 5
@@ -137,8 +159,11 @@ def test_runs_without_a_filter_and_bad_weights_are_refused_in_one_line(tmp_path,
     out = tmp_path / "out"
     for algorithm, options, message in [
         ("pqn", {}, "is a pqn run; only pqn-belief runs have a filter to replay"),
-        ("pqn-belief", {"belief_filter": False}, "trained the learned belief (belief_filter=false): it has no filter "
-                                                 "to replay"),
+        (
+            "pqn-belief",
+            {"belief_filter": False},
+            "trained the learned belief (belief_filter=false): it has no filter to replay",
+        ),
     ]:
         run = tmp_path / algorithm / str(len(options))
         run.mkdir(parents=True)

@@ -181,7 +181,9 @@ def test_vector_env_seeding_is_reproducible():
 
 def test_vector_env_steps_the_same_worlds_whichever_reset_strategy():
     def run(reset):
-        envs = gymnasium.make_vec("SNAC/3d-dynamic-dense-v0", num_envs=12, design_bank_size=16, max_steps=15, reset=reset)
+        envs = gymnasium.make_vec(
+            "SNAC/3d-dynamic-dense-v0", num_envs=12, design_bank_size=16, max_steps=15, reset=reset
+        )
         rng = np.random.default_rng(3)
         out = [envs.reset(seed=1)[0]]
         for _ in range(40):
@@ -193,7 +195,9 @@ def test_vector_env_steps_the_same_worlds_whichever_reset_strategy():
     for a, b in zip(loop, select):
         np.testing.assert_array_equal(a, b)
     assert sum(int(done.sum()) for done in loop[3::4]) >= 12  # the worlds reset along the way
-    assert snac_gym.SNACVectorEnv("1d-static-sin", 2).reset_strategy == ("loop" if jax.default_backend() == "cpu" else "select")
+    assert snac_gym.SNACVectorEnv("1d-static-sin", 2).reset_strategy == (
+        "loop" if jax.default_backend() == "cpu" else "select"
+    )
     with pytest.raises(ValueError, match="reset must be one of auto, loop, select"):
         snac_gym.SNACVectorEnv("1d-static-sin", 2, reset="vmap")
 
@@ -275,9 +279,25 @@ def test_render_rgb_array():
 
 def test_throughput_bench_writes_only_its_results(tmp_path):
     script = Path(__file__).resolve().parent.parent / "bench" / "gymnasium_throughput.py"
-    args = ["--out", str(tmp_path / "out"), "--task", "1d-static-sin", "--num-envs", "1", "2", "--steps", "3", "--repeats", "1"]
+    args = [
+        "--out",
+        str(tmp_path / "out"),
+        "--task",
+        "1d-static-sin",
+        "--num-envs",
+        "1",
+        "2",
+        "--steps",
+        "3",
+        "--repeats",
+        "1",
+    ]
     subprocess.run([sys.executable, str(script), *args], check=True, timeout=300, cwd=tmp_path, capture_output=True)
-    assert sorted(p.name for p in tmp_path.rglob("*")) == ["gymnasium_throughput.json", "gymnasium_throughput.md", "out"]
+    assert sorted(p.name for p in tmp_path.rglob("*")) == [
+        "gymnasium_throughput.json",
+        "gymnasium_throughput.md",
+        "out",
+    ]
     result = json.loads((tmp_path / "out" / "gymnasium_throughput.json").read_text())
     assert [row["num_envs"] for row in result["rows"]] == [1, 2]
     for row in result["rows"]:
@@ -305,10 +325,16 @@ def test_sb3_ppo_trains_on_1d_static_sin():
 def test_an_id_refuses_a_task_id_of_another_task():
     """`SNAC/<task>-v0` always builds <task>: a `task_id` naming another task would put a 2D world
     under a 1D id (and into every record that names the id)."""
-    for make in (gymnasium.make, lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, **k),
-                 lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, vectorization_mode="sync", **k)):
-        with pytest.raises(ValueError, match=r"SNAC/1d-static-sin-v0 is the task 1d-static-sin, not task_id="
-                                             r"'2d-static-dense': make 'SNAC/2d-static-dense-v0'"):
+    for make in (
+        gymnasium.make,
+        lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, **k),
+        lambda *a, **k: gymnasium.make_vec(*a, num_envs=2, vectorization_mode="sync", **k),
+    ):
+        with pytest.raises(
+            ValueError,
+            match=r"SNAC/1d-static-sin-v0 is the task 1d-static-sin, not task_id="
+            r"'2d-static-dense': make 'SNAC/2d-static-dense-v0'",
+        ):
             make(ID_1D, task_id="2d-static-dense")
     env = gymnasium.make(ID_1D, task_id="1d-static-sin")  # naming the id's own task is harmless
     assert env.unwrapped.jax_env.config.task_id == "1d-static-sin"
@@ -331,7 +357,9 @@ def test_the_single_env_refuses_to_step_an_ended_episode(max_steps):
     assert (truncated, steps) == ((True, 5) if max_steps == 5 else (False, int(obs[layout.bricks_used])))
     state = env.unwrapped.state
     for action in (4, 0):
-        with pytest.raises(gymnasium.error.ResetNeeded, match=r"the episode ended \((terminated|truncated)\): call reset\(\)"):
+        with pytest.raises(
+            gymnasium.error.ResetNeeded, match=r"the episode ended \((terminated|truncated)\): call reset\(\)"
+        ):
             env.step(action)
     assert env.unwrapped.state is state  # nothing moved: the ended episode's time, bricks and IoU
     obs, _ = env.reset()

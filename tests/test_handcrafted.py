@@ -33,7 +33,9 @@ def _trace(key, env, params, policy, num_steps):
         done = done | terminated | env.is_truncated(state, params)
         return (obs, state, policy_state, done), record
 
-    _, records = jax.lax.scan(body, (obs, state, policy_state, jnp.asarray(False)), jax.random.split(key_run, num_steps))
+    _, records = jax.lax.scan(
+        body, (obs, state, policy_state, jnp.asarray(False)), jax.random.split(key_run, num_steps)
+    )
     return records
 
 
@@ -103,7 +105,9 @@ def _after_a_move(env, params, previous_position, action, believed_position):
         ((17, 9), 1, (13, 5), (17, 6)),  # bottom wall only: the row snaps, the column moves by 1
     ],
 )
-def test_estimate_snaps_to_the_true_position_next_to_a_wall(task, previous_position, action, believed_position, expected):
+def test_estimate_snaps_to_the_true_position_next_to_a_wall(
+    task, previous_position, action, believed_position, expected
+):
     env, params = make(task)
     policy, policy_state, obs = _after_a_move(env, params, previous_position, action, believed_position)
     _, policy_state = _jitted_act(policy)(None, policy_state, obs, jax.random.key(1))

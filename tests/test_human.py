@@ -128,8 +128,23 @@ def test_play_command_runs_a_scripted_episode(tmp_path, monkeypatch, capsys):
     scripted = functools.partial(window.run_window, script=["space", "space", "return"])
     monkeypatch.setattr(window, "run_window", scripted)
     path = tmp_path / "h.jsonl"
-    rc = main(["play", "--task", "1d-dynamic", "--mode", "eval", "--max-steps", "2", "--episodes", "1",
-               "--record", str(path), "--seed", "7"])
+    rc = main(
+        [
+            "play",
+            "--task",
+            "1d-dynamic",
+            "--mode",
+            "eval",
+            "--max-steps",
+            "2",
+            "--episodes",
+            "1",
+            "--record",
+            str(path),
+            "--seed",
+            "7",
+        ]
+    )
     assert rc == 0
     [record] = records.load_records(path)
     assert record.test_design == 0 and record.seed == 7 and record.actions == [2, 2]
@@ -215,7 +230,10 @@ def test_a_one_brick_design_cannot_score_on_a_20x20_task(tmp_path, capsys):
 
     assert main(["eval", "--human", str(path)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("snac eval: error: record of 2d-static-sparse seed 3: its design is not") and err.count("\n") == 1
+    assert (
+        err.startswith("snac eval: error: record of 2d-static-sparse seed 3: its design is not")
+        and err.count("\n") == 1
+    )
 
 
 def test_dynamic_records_must_hold_the_design_the_game_gives():
@@ -254,7 +272,19 @@ def test_a_finished_episode_is_never_dropped(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(game, "append_record", full_disk)
     monkeypatch.setattr(game.tempfile, "gettempdir", lambda: str(tmp_path))
     monkeypatch.setattr(window, "run_window", functools.partial(window.run_window, script=["space", "space", "return"]))
-    rc = main(["play", "--task", "1d-static-sin", "--max-steps", "2", "--episodes", "1", "--record", str(tmp_path / "h.jsonl")])
+    rc = main(
+        [
+            "play",
+            "--task",
+            "1d-static-sin",
+            "--max-steps",
+            "2",
+            "--episodes",
+            "1",
+            "--record",
+            str(tmp_path / "h.jsonl"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 1 and "1 episode(s) could not be appended" in err and "No space left on device" in err
     [saved] = tmp_path.glob("snac-play-unsaved-*.jsonl")

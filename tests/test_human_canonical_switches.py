@@ -20,19 +20,22 @@ def headless(monkeypatch):
     monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
 
 
-@pytest.mark.parametrize("typed, canonical", [
-    ("landmarks=4,design_change=100/300", "landmarks=4,design_change=100/300"),
-    ("design_change=100/300,landmarks=4", "landmarks=4,design_change=100/300"),
-    ("landmarks=04, design_change = 0100/300", "landmarks=4,design_change=100/300"),
-    ("design_change=100/300,landmark_action=2,landmarks=4", "landmarks=4,landmark_action=2,design_change=100/300"),
-    ("stride_probs=1/0/0,gps=True", "gps=true,stride_probs=1/0/0"),
-    ("stride_probs=1.0/0.0/0.0", "stride_probs=1/0/0"),
-    ("stride_probs=0.50/0.25/0.250", "stride_probs=0.5/0.25/0.25"),
-    ("stride_probs=5e-1/25E-2/0.25", "stride_probs=0.5/0.25/0.25"),
-    ("reward_scheme=height,obstacles=FALSE", "obstacles=false,reward_scheme=height"),
-    ("landmarks=true", "landmarks=true"),
-    (" , ", ""),
-])
+@pytest.mark.parametrize(
+    "typed, canonical",
+    [
+        ("landmarks=4,design_change=100/300", "landmarks=4,design_change=100/300"),
+        ("design_change=100/300,landmarks=4", "landmarks=4,design_change=100/300"),
+        ("landmarks=04, design_change = 0100/300", "landmarks=4,design_change=100/300"),
+        ("design_change=100/300,landmark_action=2,landmarks=4", "landmarks=4,landmark_action=2,design_change=100/300"),
+        ("stride_probs=1/0/0,gps=True", "gps=true,stride_probs=1/0/0"),
+        ("stride_probs=1.0/0.0/0.0", "stride_probs=1/0/0"),
+        ("stride_probs=0.50/0.25/0.250", "stride_probs=0.5/0.25/0.25"),
+        ("stride_probs=5e-1/25E-2/0.25", "stride_probs=0.5/0.25/0.25"),
+        ("reward_scheme=height,obstacles=FALSE", "obstacles=false,reward_scheme=height"),
+        ("landmarks=true", "landmarks=true"),
+        (" , ", ""),
+    ],
+)
 def test_switches_that_parse_equal_have_one_canonical_text(typed, canonical):
     assert canonical_switches(typed) == canonical
     assert canonical_switches(canonical) == canonical  # the canonical text is its own canonical form
@@ -68,11 +71,14 @@ def test_a_record_in_another_spelling_loads_verifies_and_shares_the_canonical_ro
     assert result.task == "1d-dynamic (landmarks=0,design_change=1/2)" and result.episodes == 2
 
 
-@pytest.mark.parametrize("switches, message", [
-    ("landmarks=-1", r"landmarks must be an int >= 0, got -1"),
-    ("design_change=5/3", r"design_change must be two ints \(a, b\) with 1 <= a <= b < max_steps"),
-    ("wings=true", r"unknown switch 'wings'; allowed: gps, "),
-])
+@pytest.mark.parametrize(
+    "switches, message",
+    [
+        ("landmarks=-1", r"landmarks must be an int >= 0, got -1"),
+        ("design_change=5/3", r"design_change must be two ints \(a, b\) with 1 <= a <= b < max_steps"),
+        ("wings=true", r"unknown switch 'wings'; allowed: gps, "),
+    ],
+)
 def test_a_record_whose_world_cannot_be_built_is_a_one_line_error_naming_it(switches, message):
     honest = _game("", None)
     broken = records.EpisodeRecord(**{**vars(honest), "switches": switches})

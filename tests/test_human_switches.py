@@ -36,8 +36,9 @@ def _test_design(task, index):
 
 def test_a_landmark_game_is_recorded_with_its_switches_and_replays_to_the_same_state(tmp_path):
     path = tmp_path / "human.jsonl"
-    session = GameSession("2d-static-sparse", "train", seed=5, max_steps=6, switches=" landmark_action = 2 ",
-                          record_path=path)
+    session = GameSession(
+        "2d-static-sparse", "train", seed=5, max_steps=6, switches=" landmark_action = 2 ", record_path=path
+    )
     assert session.bindings["l"] == 5 and "L: landmark" in session.status_lines()[2]
     script = ["l", "right", "l", "l", "space", "down", "return"]  # the third L: none left, a step all the same
     assert window.run_window(session, max_episodes=1, script=script) == 1
@@ -126,7 +127,9 @@ def test_switched_games_form_their_own_row_of_the_summary(tmp_path):
             session.press(key)
     report = records.human_report(path)
     plain = next(line for line in report.splitlines() if line.startswith("| 2d-static-sparse | 1 |"))
-    switched = next(line for line in report.splitlines() if line.startswith("| 2d-static-sparse (landmark_action=2) | 1 |"))
+    switched = next(
+        line for line in report.splitlines() if line.startswith("| 2d-static-sparse (landmark_action=2) | 1 |")
+    )
     assert "0.606" in plain and "0.606" not in switched and "—" in switched
 
 
@@ -137,13 +140,19 @@ def test_canonical_switches_drops_spaces_and_checks_keys():
         canonical_switches("max_steps=5")
 
 
-@pytest.mark.parametrize("switches, message", [
-    ("wings=true", r"unknown switch 'wings'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme, "
-                   r"landmark_action, design_change$"),
-    ("landmark_action=999", r"landmark_action must be .*0\.\.400"),
-    ("design_change=5/3", r"design_change must be two ints \(a, b\) with 1 <= a <= b < max_steps"),
-    ("landmark_action", r"must be key=value; allowed keys: gps, "),
-])
+@pytest.mark.parametrize(
+    "switches, message",
+    [
+        (
+            "wings=true",
+            r"unknown switch 'wings'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme, "
+            r"landmark_action, design_change$",
+        ),
+        ("landmark_action=999", r"landmark_action must be .*0\.\.400"),
+        ("design_change=5/3", r"design_change must be two ints \(a, b\) with 1 <= a <= b < max_steps"),
+        ("landmark_action", r"must be key=value; allowed keys: gps, "),
+    ],
+)
 def test_a_bad_switch_is_a_one_line_error_before_the_window(tmp_path, monkeypatch, capsys, switches, message):
     from snac_jax.cli import main
 
@@ -161,8 +170,21 @@ def test_play_command_passes_the_switches_and_its_help_names_the_l_key(tmp_path,
 
     monkeypatch.setattr(window, "run_window", functools.partial(window.run_window, script=["l", "l", "return"]))
     path = tmp_path / "h.jsonl"
-    rc = main(["play", "--task", "3d-static-sparse", "--switches", "landmark_action=1", "--max-steps", "2",
-               "--episodes", "1", "--record", str(path)])
+    rc = main(
+        [
+            "play",
+            "--task",
+            "3d-static-sparse",
+            "--switches",
+            "landmark_action=1",
+            "--max-steps",
+            "2",
+            "--episodes",
+            "1",
+            "--record",
+            str(path),
+        ]
+    )
     assert rc == 0
     [record] = records.load_records(path)
     assert record.switches == "landmark_action=1" and record.actions == [8, 8]  # the second finds none left

@@ -75,7 +75,9 @@ def test_invariants_hold_on_any_sequence(task, data):
     plan = grids[last, pr : pr + h, pc : pc + w]
     design = states.design[last]
     assert ious[last] == pytest.approx(grid_iou(plan, design, env.config.dim), abs=1e-6)
-    assert (ious[last] == 1.0) == bool(np.array_equal(np.maximum(plan, 0) if not env.config.binary_grid else plan, design))
+    assert (ious[last] == 1.0) == bool(
+        np.array_equal(np.maximum(plan, 0) if not env.config.binary_grid else plan, design)
+    )
     # Rewards come from the scheme's values only.
     allowed = {0.0, 5.0} if env.config.reward_scheme == "binary" else {0.0, -1.0, 1.0, 10.0}
     assert set(np.unique(np.asarray(rewards))) <= allowed
@@ -87,7 +89,7 @@ def _build_exactly(env, design, skip_last=False):
     design = np.asarray(design)
     actions = []
     if dim == 1:
-        for col, height in enumerate(design[0]):
+        for height in design[0]:
             actions += [2] * int(height) + [1]
     elif dim == 2:
         for row in range(20):

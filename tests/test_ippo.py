@@ -10,15 +10,30 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from agents.learners.ippo import IPPO, team_objective
 from agents.training import checkpoint
 from agents.training.driver import read_metrics, train
-from agents.learners.ippo import IPPO, team_objective
 from agents.training.registry import make_config
 from agents.training.schemas import EVAL_JSON, load
 
 TINY = dict(num_envs=4, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
-TINY_FLAGS = ["--num-envs", "4", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
-              "--hidden-size", "8", "--rnn-size", "8", "--no-progress", "--devices", "1"]
+TINY_FLAGS = [
+    "--num-envs",
+    "4",
+    "--rollout-steps",
+    "8",
+    "--num-minibatches",
+    "2",
+    "--update-epochs",
+    "1",
+    "--hidden-size",
+    "8",
+    "--rnn-size",
+    "8",
+    "--no-progress",
+    "--devices",
+    "1",
+]
 
 
 def _leaves_equal(a, b) -> bool:
@@ -74,11 +89,14 @@ def test_training_counts_episodes_per_world_and_learns_finite(robots):
     assert {"loss", "value_loss", "actor_loss", "entropy", "iou_sum", "return_sum"} <= set(metrics)
 
 
-@pytest.mark.parametrize("task, robots, message", [
-    ("1d-static-sin", 3, "robots must be an int in 1..2 for 1d-static-sin, got 3"),  # the task's range
-    ("2d-static-dense", 5, r"robots must be an int in \[1, 4\], got 5"),  # the field's own bounds
-    ("3d-static-sparse", 0, r"robots must be an int in \[1, 4\], got 0"),
-])
+@pytest.mark.parametrize(
+    "task, robots, message",
+    [
+        ("1d-static-sin", 3, "robots must be an int in 1..2 for 1d-static-sin, got 3"),  # the task's range
+        ("2d-static-dense", 5, r"robots must be an int in \[1, 4\], got 5"),  # the field's own bounds
+        ("3d-static-sparse", 0, r"robots must be an int in \[1, 4\], got 0"),
+    ],
+)
 def test_robots_outside_the_tasks_range_are_refused_in_one_line(task, robots, message):
     with pytest.raises(ValueError, match=f"^{message}$"):
         make_config("ippo", task, robots=robots)
@@ -104,8 +122,27 @@ def test_snac_train_ippo_trains_and_scores_the_team(tmp_path, capsys):
     from snac_jax.cli import main
 
     out = tmp_path / "run"
-    code = main(["train", "ippo", "--robots", "2", "--task", "2d-static-dense", "--total-steps", str(2 * 4 * 8),
-                 "--chunks", "2", "--max-steps", "20", "--eval-episodes", "3", "--out", str(out), *TINY_FLAGS])
+    code = main(
+        [
+            "train",
+            "ippo",
+            "--robots",
+            "2",
+            "--task",
+            "2d-static-dense",
+            "--total-steps",
+            str(2 * 4 * 8),
+            "--chunks",
+            "2",
+            "--max-steps",
+            "20",
+            "--eval-episodes",
+            "3",
+            "--out",
+            str(out),
+            *TINY_FLAGS,
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err[-3000:]
     assert (captured.out + captured.err).count("compiled a chunk of 1 updates") == 1  # two equal chunks, one compile
@@ -119,7 +156,9 @@ def test_snac_train_ippo_trains_and_scores_the_team(tmp_path, capsys):
 def test_snac_train_refuses_robots_outside_the_range_before_training(tmp_path, capsys):
     from snac_jax.cli import main
 
-    code = main(["train", "ippo", "--robots", "3", "--task", "1d-static-sin", "--out", str(tmp_path / "run"), *TINY_FLAGS])
+    code = main(
+        ["train", "ippo", "--robots", "3", "--task", "1d-static-sin", "--out", str(tmp_path / "run"), *TINY_FLAGS]
+    )
     err = capsys.readouterr().err
     assert code == 2
     assert "robots must be an int in 1..2 for 1d-static-sin, got 3" in err and len(err.strip().splitlines()) == 1

@@ -185,18 +185,30 @@ def _standalone_example():
     return module
 
 
-@pytest.mark.parametrize(("task", "env_kwargs"), [
-    ("1d-static-sin", {"max_steps": 6}),
-    ("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}),
-])
+@pytest.mark.parametrize(
+    ("task", "env_kwargs"),
+    [
+        ("1d-static-sin", {"max_steps": 6}),
+        ("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}),
+    ],
+)
 def test_the_standalone_example_trains_and_scores_its_greedy_policy(task, env_kwargs):
     """The example's own `make_train` on a tiny budget: episodes end, the losses stay finite, and
     the greedy policy it scores gets an IoU in [0, 1]. It imports nothing from `agents`."""
     example = _standalone_example()
     source = Path(example.__file__).read_text()
     assert "from agents" not in source and "import agents" not in source
-    config = {**example.CONFIG, "TASK": task, "ENV_KWARGS": env_kwargs, "NUM_ENVS": 4, "NUM_STEPS": 8,
-              "TOTAL_TIMESTEPS": 64, "NUM_MINIBATCHES": 2, "UPDATE_EPOCHS": 2, "HIDDEN": 8}
+    config = {
+        **example.CONFIG,
+        "TASK": task,
+        "ENV_KWARGS": env_kwargs,
+        "NUM_ENVS": 4,
+        "NUM_STEPS": 8,
+        "TOTAL_TIMESTEPS": 64,
+        "NUM_MINIBATCHES": 2,
+        "UPDATE_EPOCHS": 2,
+        "HIDDEN": 8,
+    }
     train_state, metrics = jax.jit(example.make_train(config))(jax.random.key(0))
     assert metrics["loss"].shape == (2,) and bool(jnp.all(jnp.isfinite(metrics["loss"])))
     assert int(metrics["episodes"].sum()) > 0

@@ -46,8 +46,9 @@ def test_tally_counts_attempts_and_fills_one_slot_per_landed_placement():
     assert tally.on_design.tolist() == [True, False]
 
     # the env then holds that landmark and one placement left: a second try on the cell is refused
-    marked = state.replace(landmarks=state.landmarks.at[on[0] + pr, on[1] + pc].set(True), landmarks_left=jnp.int32(1),
-                           time=jnp.int32(6))
+    marked = state.replace(
+        landmarks=state.landmarks.at[on[0] + pr, on[1] + pc].set(True), landmarks_left=jnp.int32(1), time=jnp.int32(6)
+    )
     again = tally_step(config, tally, marked, jnp.int32(place))
     assert int(again.attempts) == 2 and again.steps.tolist() == [5, -1]
     # elsewhere it lands in the second slot, off the design
@@ -67,6 +68,7 @@ def test_tally_counts_attempts_and_fills_one_slot_per_landed_placement():
 
 def _scripted(place_when):
     """A policy that places when `place_when(step)` and otherwise moves right; it counts its steps."""
+
     def init(key, design):
         return jnp.zeros((), jnp.int32)
 
@@ -99,8 +101,9 @@ def tiny_run(tmp_path_factory):
     from agents.training.registry import make_config
 
     run = tmp_path_factory.mktemp("landmark") / "run"
-    config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1,
-                         **TINY)
+    config = make_config(
+        "ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1, **TINY
+    )
     train(config, run, progress=False)
     return run
 
@@ -116,8 +119,18 @@ def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp
     report = json.loads((out / "landmark_use.json").read_text())
     assert report["landmark_action"] == 4 and report["task"] == "2d-static-sparse" and report["eval_seed"] == 7
     assert set(report["seeds"]) == {"0", "1"} and report["pooled"]["episodes"] == 12
-    keys = {"mean_placed", "mean_attempts", "fraction_with_placement", "fraction_on_design", "mean_first_step",
-            "iou_with_placement", "iou_without_placement", "placed_histogram", "mean_iou", "placements"}
+    keys = {
+        "mean_placed",
+        "mean_attempts",
+        "fraction_with_placement",
+        "fraction_on_design",
+        "mean_first_step",
+        "iou_with_placement",
+        "iou_without_placement",
+        "placed_histogram",
+        "mean_iou",
+        "placements",
+    }
     config = read_config(tiny_run)
     for index, seed in report["seeds"].items():
         assert keys <= set(seed)
@@ -131,8 +144,14 @@ def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp
         with_one = [r["iou"] for r in rows if r["placed"]]
         assert seed["iou_with_placement"]["episodes"] == len(with_one)
         # the same episodes as the protocol's with the same key and count
-        protocol = evaluate_task("2d-static-sparse", lambda env: trained.checkpoint_policy(env, tiny_run, int(index)),
-                                 static_episodes=6, seed=7, num_devices=1, **config.env_overrides)
+        protocol = evaluate_task(
+            "2d-static-sparse",
+            lambda env: trained.checkpoint_policy(env, tiny_run, int(index)),
+            static_episodes=6,
+            seed=7,
+            num_devices=1,
+            **config.env_overrides,
+        )
         assert seed["mean_iou"] == pytest.approx(protocol.mean, abs=1e-12)
     assert (out / "landmark_use.png").stat().st_size > 0
 
@@ -145,11 +164,14 @@ def test_a_run_without_the_switch_is_refused_in_one_line(tmp_path):
     run.mkdir()
     save_config(make_config("ppo", "2d-static-sparse", switches="landmarks=4", **TINY), run / "config.json")
     out = tmp_path / "out"
-    done = subprocess.run([sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out)], capture_output=True,
-                          text=True, cwd=ROOT)
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out)], capture_output=True, text=True, cwd=ROOT
+    )
     assert done.returncode == 2
-    assert done.stderr.strip() == (f"landmark_use.py: error: {run} was trained without landmark_action (switches "
-                                   "'landmarks=4'): its policy has no placement action to analyse")
+    assert done.stderr.strip() == (
+        f"landmark_use.py: error: {run} was trained without landmark_action (switches "
+        "'landmarks=4'): its policy has no placement action to analyse"
+    )
     assert not out.exists()
 
 
@@ -174,24 +196,40 @@ def _config_only_run(tmp_path, arms=None):
 
     run = tmp_path / "run"
     run.mkdir()
-    save_config(make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, **TINY),
-                run / "config.json")
+    save_config(
+        make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, **TINY), run / "config.json"
+    )
     if arms is not None:
         sweep.save(sweep.Sweep(("lr",), tuple((1e-3 / (i + 1),) for i in range(arms))), run)
     return run
 
 
-@pytest.mark.parametrize("arms, arm, message", [
-    (3, None, "{run} is a sweep of 3 arms: --arm must be in 0..2 (none given)"),
-    (3, 3, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got 3)"),
-    (3, -1, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got -1)"),
-    (None, 0, "--arm 0 given, but {run} is not a sweep (it trained one arm): leave --arm out"),
-])
+@pytest.mark.parametrize(
+    "arms, arm, message",
+    [
+        (3, None, "{run} is a sweep of 3 arms: --arm must be in 0..2 (none given)"),
+        (3, 3, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got 3)"),
+        (3, -1, "{run} is a sweep of 3 arms: --arm must be in 0..2 (got -1)"),
+        (None, 0, "--arm 0 given, but {run} is not a sweep (it trained one arm): leave --arm out"),
+    ],
+)
 def test_a_sweep_needs_one_of_its_arms_in_one_line(tmp_path, arms, arm, message):
     run = _config_only_run(tmp_path, arms)
     out = tmp_path / "out"
-    done = subprocess.run([sys.executable, str(SCRIPT), "--run", str(run), "--out", str(out),
-                           *([] if arm is None else ["--arm", str(arm)])], capture_output=True, text=True, cwd=ROOT)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            "--run",
+            str(run),
+            "--out",
+            str(out),
+            *([] if arm is None else ["--arm", str(arm)]),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert done.returncode == 2
     assert done.stderr.strip() == "landmark_use.py: error: " + message.format(run=run)
     assert done.stderr.count("\n") == 1 and not out.exists()
@@ -207,19 +245,28 @@ def test_an_arm_of_a_sweep_is_scored_with_its_own_policies(tmp_path):
     from snac_jax.evaluation import evaluate_task
 
     run = tmp_path / "sweep"
-    config = make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1,
-                         **TINY)
+    config = make_config(
+        "ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, total_steps=256, chunks=1, **TINY
+    )
     train(config, run, progress=False, swept=parse_sweep(["learning_rate=1e-4,3e-2"], config))
     reports = {}
     for arm in (0, 1):
         out = tmp_path / f"arm{arm}"
-        assert main(["--run", str(run), "--out", str(out), "--arm", str(arm), "--episodes", "4", "--eval-seed", "7"]) == 0
+        assert (
+            main(["--run", str(run), "--out", str(out), "--arm", str(arm), "--episodes", "4", "--eval-seed", "7"]) == 0
+        )
         reports[arm] = json.loads((out / "landmark_use.json").read_text())
     assert reports[1]["arm"] == 1 and reports[1]["arm_settings"] == {"learning_rate": 3e-2}
     assert set(reports[1]["seeds"]) == {"0", "1"} and reports[1]["pooled"]["episodes"] == 8
     for seed in (0, 1):
-        protocol = evaluate_task("2d-static-sparse", lambda env: trained.checkpoint_policy(env, run, 2 + seed),
-                                 static_episodes=4, seed=7, num_devices=1, landmark_action=4)
+        protocol = evaluate_task(
+            "2d-static-sparse",
+            lambda env: trained.checkpoint_policy(env, run, 2 + seed),
+            static_episodes=4,
+            seed=7,
+            num_devices=1,
+            landmark_action=4,
+        )
         assert reports[1]["seeds"][str(seed)]["mean_iou"] == pytest.approx(protocol.mean, abs=1e-12)
     rows = lambda arm: [r for s in ("0", "1") for r in reports[arm]["seeds"][s]["episodes_detail"]]
     assert rows(0) != rows(1)

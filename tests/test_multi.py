@@ -51,7 +51,14 @@ def _small(task: str) -> dict:
     return {"design_bank_size": 8} if task == "2d-dynamic-dense" else ({"test_design": 3} if "dynamic" in task else {})
 
 
-FAMILIES = ("1d-static-sin", "1d-dynamic", "2d-static-dense", "2d-dynamic-dense", "3d-static-sparse", "3d-dynamic-dense")
+FAMILIES = (
+    "1d-static-sin",
+    "1d-dynamic",
+    "2d-static-dense",
+    "2d-dynamic-dense",
+    "3d-static-sparse",
+    "3d-dynamic-dense",
+)
 """One task of each dimension, static and dynamic, in the default run; every task with `-m slow`."""
 
 
@@ -216,7 +223,9 @@ def test_another_robot_blocks_but_never_makes_a_robot_stuck():
 def test_each_window_shows_the_other_robots_as_minus_three():
     team = multi.make("2d-static-dense", num_robots=3, landmarks=2)
     state = _placed(team, [[5, 5], [5, 7], [7, 4]])
-    state = state.replace(world=state.world.replace(landmarks=jnp.zeros_like(state.world.landmarks).at[5 + 3, 7 + 3].set(True)))
+    state = state.replace(
+        world=state.world.replace(landmarks=jnp.zeros_like(state.world.landmarks).at[5 + 3, 7 + 3].set(True))
+    )
     obs = team.get_obs(state)
     windows = {a: np.asarray(obs[a][:49]).reshape(7, 7) for a in team.agents}
     assert windows["agent_0"][3, 5] == -3 and windows["agent_0"][5, 2] == -3 and windows["agent_0"][3, 3] == 0
@@ -312,8 +321,17 @@ def _team_episodes(key, team, actions, positions, num_steps):
         step_key, acts = inputs
         obs, state, rewards, dones, infos = team.step(step_key, state, dict(zip(team.agents, acts)))
         marks = state.world.landmarks if state.world.landmarks is not None else jnp.zeros((), bool)
-        return state, (stack(team, obs), infos["robot_rewards"], rewards["agent_0"], infos["terminated"],
-                       infos["truncated"], infos["strides"], stack(team, infos["final_observation"]), state.world.design, marks)
+        return state, (
+            stack(team, obs),
+            infos["robot_rewards"],
+            rewards["agent_0"],
+            infos["terminated"],
+            infos["truncated"],
+            infos["strides"],
+            stack(team, infos["final_observation"]),
+            state.world.design,
+            marks,
+        )
 
     return state, jax.lax.scan(body, state, (jax.random.split(key, num_steps), actions))[1]
 
@@ -327,9 +345,17 @@ TEAM_CASES = [
 ]
 
 
-@pytest.mark.parametrize("task, num_robots, overrides", TEAM_CASES, ids=["2d-static-dense-4", "3d-static-sparse-4",
-                                                                         "1d-static-step-2", "2d-dynamic-dense-3",
-                                                                         "2d-static-sparse-obstacles-2"])
+@pytest.mark.parametrize(
+    "task, num_robots, overrides",
+    TEAM_CASES,
+    ids=[
+        "2d-static-dense-4",
+        "3d-static-sparse-4",
+        "1d-static-step-2",
+        "2d-dynamic-dense-3",
+        "2d-static-sparse-obstacles-2",
+    ],
+)
 def test_every_robot_observes_as_the_numpy_team_engine(task, num_robots, overrides):
     """Random actions, each robot drifting toward the others so that they meet and block each
     other, a step limit that auto-resets several episodes; each JAX reset's design and landmarks
@@ -340,17 +366,27 @@ def test_every_robot_observes_as_the_numpy_team_engine(task, num_robots, overrid
     engine = NumpyTeam(task, num_robots, max_steps=max_steps, **numpy_overrides)
     rng = np.random.default_rng(0)
     actions = rng.integers(0, team.num_actions, (num_steps, num_robots))
-    toward = np.asarray([[1, 2], [0, 3], [0, 2], [1, 3]])[:num_robots] if team.config.dim > 1 else np.asarray([[1], [0]])
+    toward = (
+        np.asarray([[1, 2], [0, 3], [0, 2], [1, 3]])[:num_robots] if team.config.dim > 1 else np.asarray([[1], [0]])
+    )
     pull = rng.random((num_steps, num_robots)) < 0.5  # each robot drifts toward the others
-    actions = np.where(pull, toward[np.arange(num_robots), rng.integers(0, toward.shape[1], (num_steps, num_robots))], actions)
+    actions = np.where(
+        pull, toward[np.arange(num_robots), rng.integers(0, toward.shape[1], (num_steps, num_robots))], actions
+    )
     # The first episode starts with the robots in a 2x2 block, each in the corner of the block
     # that its start is in the plan, so that they soon meet; the later ones start from the corners.
     cluster = [(9, 9), (10, 10), (9, 10), (10, 9)][:num_robots] if team.config.dim > 1 else [(0, 13), (0, 16)]
-    first, (obs, robot_rewards, team_reward, terminated, truncated, strides, final_obs, designs, marks) = _team_episodes(
-        jax.random.key(7), team, jnp.asarray(actions, jnp.int32), jnp.asarray(cluster, jnp.int32), num_steps)
+    first, (obs, robot_rewards, team_reward, terminated, truncated, strides, final_obs, designs, marks) = (
+        _team_episodes(
+            jax.random.key(7), team, jnp.asarray(actions, jnp.int32), jnp.asarray(cluster, jnp.int32), num_steps
+        )
+    )
     _, start = team.reset(jax.random.key(1))
     plan = lambda mask: None if mask.ndim == 0 else np.asarray(mask)[3:-3, 3:-3]
-    engine.reset(np.asarray(start.world.design), plan(start.world.landmarks if start.world.landmarks is not None else jnp.zeros(())))
+    engine.reset(
+        np.asarray(start.world.design),
+        plan(start.world.landmarks if start.world.landmarks is not None else jnp.zeros(())),
+    )
     engine.positions = list(cluster)
     ends = 0
     for t in range(num_steps):
@@ -391,7 +427,9 @@ def test_dict_keys_dones_all_and_spaces():
     np.testing.assert_array_equal(one.observation_space("agent_0").low, single.observation_space(params).low)
     with pytest.raises(ValueError, match=r"unknown agent 'agent_4'; agents: agent_0, agent_1, agent_2, agent_3"):
         team.observation_space("agent_4")
-    with pytest.raises(ValueError, match=r"actions must be a dict keyed by \['agent_0', 'agent_1', 'agent_2', 'agent_3'\]"):
+    with pytest.raises(
+        ValueError, match=r"actions must be a dict keyed by \['agent_0', 'agent_1', 'agent_2', 'agent_3'\]"
+    ):
         team.step(jax.random.key(1), state, {"agent_0": 0})
     with pytest.raises(ValueError, match=r"actions\['agent_1'\] must be one int in 0..7, got a traced float32"):
         team.step(jax.random.key(1), state, {"agent_0": 0, "agent_1": 2.0, "agent_2": 0, "agent_3": 0})
@@ -450,7 +488,9 @@ def test_a_bad_robot_count_is_refused_in_one_line_before_anything_is_built(bad, 
     message = str(caught.value)
     assert "\n" not in message and message.startswith("num_robots must be an int in 1..4 for 2d-dynamic-dense")
     assert repr(bad) in message
-    with pytest.raises(ValueError, match=r"num_robots must be an int in 1..2 for 1d-dynamic \(one per end of the row\), got 3"):
+    with pytest.raises(
+        ValueError, match=r"num_robots must be an int in 1..2 for 1d-dynamic \(one per end of the row\), got 3"
+    ):
         multi.make("1d-dynamic", num_robots=3)
 
 
@@ -515,12 +555,16 @@ def test_a_recorded_episode_is_the_episode_run_episode_scores():
         assert recorded.final_iou == float(scored.iou)
         assert int(recorded.state_at(-1).world.bricks_used) == int(scored.bricks_used)
         np.testing.assert_allclose(recorded.rewards.sum(), float(scored.team_return), rtol=1e-6)
-        assert recorded.actions.shape == (recorded.length, 2) and int(recorded.state_at(-1).world.time) == recorded.length
+        assert (
+            recorded.actions.shape == (recorded.length, 2) and int(recorded.state_at(-1).world.time) == recorded.length
+        )
 
 
-_ALWAYS_DROP = multi.MultiPolicy(init=lambda key, design: jnp.zeros(()),
-                                 act=lambda params, state, obs, key: (jnp.full(obs.shape[0], 2, jnp.int32), state),
-                                 name="always-drop")
+_ALWAYS_DROP = multi.MultiPolicy(
+    init=lambda key, design: jnp.zeros(()),
+    act=lambda params, state, obs, key: (jnp.full(obs.shape[0], 2, jnp.int32), state),
+    name="always-drop",
+)
 """Every robot drops a brick every step (action 2 in 1D), each onto its own column."""
 
 
@@ -569,8 +613,24 @@ def test_multi_throughput_bench_writes_its_table_under_out(tmp_path):
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "bench" / "multi_throughput.py"
-    done = subprocess.run([sys.executable, str(script), "--quick", "--tasks", "1d-static-sin", "--robots", "1", "2", "4",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--quick",
+            "--tasks",
+            "1d-static-sin",
+            "--robots",
+            "1",
+            "2",
+            "4",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     rows = json.loads((tmp_path / "multi_throughput.json").read_text())["rows"]
     assert [r["env"] for r in rows] == ["single", "multi N=1", "multi N=2"]  # 1D holds two robots

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -18,8 +17,10 @@ def _cell(tmp: Path, name: str, robots: int, ious: list[float], lengths: list[fl
     raw = json.loads(sorted(RECORD.glob("*.json"))[0].read_text())
     raw["config"]["robots"] = robots
     rows = list(raw["eval"].values())[: len(ious)]
-    raw["eval"] = {f"x (seed {i})": {**r, "mean": iou, "mean_length": length, "min": min(r["min"], iou)}
-                   for i, (r, iou, length) in enumerate(zip(rows, ious, lengths))}
+    raw["eval"] = {
+        f"x (seed {i})": {**r, "mean": iou, "mean_length": length, "min": min(r["min"], iou)}
+        for i, (r, iou, length) in enumerate(zip(rows, ious, lengths))
+    }
     (tmp / name).write_text(json.dumps(raw))
 
 

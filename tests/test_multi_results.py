@@ -27,8 +27,24 @@ def test_tiny_run_writes_rows_and_one_robot_is_the_single_robot(tmp_path, capsys
     from snac_jax.policies.handcrafted import handcrafted_policy
 
     bench = _bench()
-    assert bench.main(["--out", str(tmp_path), "--tasks", "1d-static-sin", "--robots", "1", "2",
-                       "--episodes", "2", "--seed", "11"]) == 0
+    assert (
+        bench.main(
+            [
+                "--out",
+                str(tmp_path),
+                "--tasks",
+                "1d-static-sin",
+                "--robots",
+                "1",
+                "2",
+                "--episodes",
+                "2",
+                "--seed",
+                "11",
+            ]
+        )
+        == 0
+    )
     data = json.loads((tmp_path / "multi_results.json").read_text())
     assert data["context"]["seed"] == 11 and data["context"]["episodes_per_design"] == 2
     one, two = data["rows"]
@@ -44,11 +60,14 @@ def test_tiny_run_writes_rows_and_one_robot_is_the_single_robot(tmp_path, capsys
     assert "| 1d-static-sin | 2 | 2 |" in table and table in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--tasks", "1d-static-sin", "--robots", "4"], "num_robots must be an int in 1..2 for 1d-static-sin"),
-    (["--tasks", "2d-nope"], "unknown task '2d-nope'"),
-    (["--robots", "0"], "must be an int >= 1"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--tasks", "1d-static-sin", "--robots", "4"], "num_robots must be an int in 1..2 for 1d-static-sin"),
+        (["--tasks", "2d-nope"], "unknown task '2d-nope'"),
+        (["--robots", "0"], "must be an int >= 1"),
+    ],
+)
 def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message, capsys):
     with pytest.raises(SystemExit):
         _bench().main(["--out", str(tmp_path / "out"), *argv])

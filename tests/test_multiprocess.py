@@ -50,8 +50,16 @@ def _free_port() -> int:
 def test_two_processes_train_to_identical_parameters(tmp_path):
     port = str(_free_port())
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    workers = [subprocess.Popen([sys.executable, "-c", WORKER, str(i), port, str(tmp_path)], env=env,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in (0, 1)]
+    workers = [
+        subprocess.Popen(
+            [sys.executable, "-c", WORKER, str(i), port, str(tmp_path)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in (0, 1)
+    ]
     outputs = [w.communicate(timeout=540)[0] for w in workers]
     for worker, output in zip(workers, outputs):
         assert worker.returncode == 0, output[-3000:]
@@ -64,11 +72,17 @@ def test_two_processes_train_to_identical_parameters(tmp_path):
     assert all(np.isfinite(r["loss"]).all() for r in records)
 
 
-@pytest.mark.parametrize("argv,message", [
-    (["train", "ppo", "--num-processes", "2"], "go with --coordinator"),
-    (["train", "ppo", "--coordinator", "127.0.0.1:1", "--process-id", "0"], "needs --num-processes"),
-    (["train", "ppo", "--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "2"], r"must be in 0\.\.1"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["train", "ppo", "--num-processes", "2"], "go with --coordinator"),
+        (["train", "ppo", "--coordinator", "127.0.0.1:1", "--process-id", "0"], "needs --num-processes"),
+        (
+            ["train", "ppo", "--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "2"],
+            r"must be in 0\.\.1",
+        ),
+    ],
+)
 def test_process_flags_are_checked_before_joining(argv, message):
     from snac_jax.cli import join_processes_from
 

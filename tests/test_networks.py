@@ -25,9 +25,11 @@ def test_design_encoder_keeps_the_parameter_tree_of_flax_convs():
     """The same names and shapes as when the encoder used `nn.Conv`: older checkpoints load."""
     params = DesignEncoder(64).init(jax.random.key(0), np.zeros((2, 20, 20), np.float32))["params"]
     shapes = jax.tree.map(lambda p: p.shape, params)
-    assert shapes == {"Conv_0": {"kernel": (3, 3, 1, 16), "bias": (16,)},
-                      "Conv_1": {"kernel": (3, 3, 16, 16), "bias": (16,)},
-                      "Dense_0": {"kernel": (400, 64), "bias": (64,)}}
+    assert shapes == {
+        "Conv_0": {"kernel": (3, 3, 1, 16), "bias": (16,)},
+        "Conv_1": {"kernel": (3, 3, 16, 16), "bias": (16,)},
+        "Dense_0": {"kernel": (400, 64), "bias": (64,)},
+    }
 
 
 def test_strided_conv_inside_a_scan_matches_outside():

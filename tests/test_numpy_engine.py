@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from snac_jax import TASKS, designs, make
 from bench.numpy_engine import NumpyEnv, line_cells, random_sine, random_triangle
+from snac_jax import TASKS, designs, make
 from tests.conftest import golden_traces
 
 

@@ -42,8 +42,12 @@ def test_rows_by_hand(tmp_path, capsys):
     results = _tree(tmp_path, [(0.6, 0.3), (0.7, 0.5), (0.8, 0.2)], (0.5, 0.4))
     before = _files(tmp_path)
     out = tmp_path / "out"
-    assert per_design.main(["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results),
-                            "--out", str(out)]) == 0
+    assert (
+        per_design.main(
+            ["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results), "--out", str(out)]
+        )
+        == 0
+    )
     assert _files(tmp_path) - before == {"out", "out/per_design.json", "out/per_design.md"}
     task = json.loads((out / "per_design.json").read_text())["tasks"][TASK]
     first, second = task["rows"]
@@ -61,15 +65,20 @@ def test_rows_by_hand(tmp_path, capsys):
 
 def test_every_seed_below(tmp_path):
     results = _tree(tmp_path, [(0.1, 0.3), (0.2, 0.3), (0.3, 0.3)], (0.4, 0.3))
-    per_design.main(["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results), "--out", str(tmp_path / "o")])
+    per_design.main(
+        ["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results), "--out", str(tmp_path / "o")]
+    )
     rows = json.loads((tmp_path / "o" / "per_design.json").read_text())["tasks"][TASK]["rows"]
     assert [r["seeds_vs_handcrafted"] for r in rows] == ["below", "mixed"]  # a seed equal to it is not above
 
 
-@pytest.mark.parametrize("args, named", [
-    (["--preset", "nope", "--algorithm", "pqn-belief"], "presets present: beyond"),
-    (["--preset", "beyond", "--algorithm", "nope"], "algorithms present: pqn-belief"),
-])
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["--preset", "nope", "--algorithm", "pqn-belief"], "presets present: beyond"),
+        (["--preset", "beyond", "--algorithm", "nope"], "algorithms present: pqn-belief"),
+    ],
+)
 def test_a_missing_directory_is_one_line(tmp_path, args, named):
     results = _tree(tmp_path, [(0.5, 0.5)] * 3, (0.5, 0.5))
     with pytest.raises(SystemExit) as exit_:
@@ -82,8 +91,18 @@ def test_a_missing_directory_is_one_line(tmp_path, args, named):
 def test_a_different_key_is_one_line(tmp_path):
     results = _tree(tmp_path, [(0.5, 0.5)] * 3, (0.5, 0.5), hand_seed=0)
     with pytest.raises(SystemExit) as exit_:
-        per_design.main(["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results),
-                         "--out", str(tmp_path / "out")])
+        per_design.main(
+            [
+                "--preset",
+                "beyond",
+                "--algorithm",
+                "pqn-belief",
+                "--results",
+                str(results),
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
     message = str(exit_.value.code)
     assert "evaluation key 1000003" in message and "with 0" in message and "\n" not in message
     assert not (tmp_path / "out").exists()
@@ -95,15 +114,40 @@ def test_different_designs_are_refused(tmp_path):
     record[TASK]["per_design"].pop(D1)
     (results / "handcrafted_report_key.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit, match="only the same designs are comparable"):
-        per_design.main(["--preset", "beyond", "--algorithm", "pqn-belief", "--results", str(results),
-                         "--out", str(tmp_path / "out")])
+        per_design.main(
+            [
+                "--preset",
+                "beyond",
+                "--algorithm",
+                "pqn-belief",
+                "--results",
+                str(results),
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
 
 
 def test_the_committed_record(tmp_path):
     """pqn-belief's beyond cell against the handcrafted policy scored with the same key."""
     out = tmp_path / "out"
-    assert per_design.main(["--preset", "beyond", "--algorithm", "pqn-belief", "--task", TASK,
-                            "--handcrafted", str(HAND), "--out", str(out)]) == 0
+    assert (
+        per_design.main(
+            [
+                "--preset",
+                "beyond",
+                "--algorithm",
+                "pqn-belief",
+                "--task",
+                TASK,
+                "--handcrafted",
+                str(HAND),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = json.loads((out / "per_design.json").read_text())["tasks"][TASK]["rows"]
     assert [r["design"] for r in rows] == [f"{TASK}-test{k}" for k in range(10)]
     seeds = list(json.loads(CELL.read_text())["eval"].values())

@@ -34,19 +34,47 @@ from snac_jax.policy import Policy
 STEPS = 20  # the episodes' step limit
 GAIN = 2.0  # the scale of the random weights
 DRAWS = 16  # draws of random parameters compared per learner
-PPO = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=16,
-           rnn_size=16, recurrent=True)
-DRQN = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16, burn_in=2,
-            sequence_length=4, learning_starts=0, buffer_size=8 * 40)
-REPLAY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, gradient_steps=1,
-              total_steps=4 * 64, buffer_size=8 * 40)
+PPO = dict(
+    total_steps=2 * 16 * 8,
+    num_envs=16,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    hidden_size=16,
+    rnn_size=16,
+    recurrent=True,
+)
+DRQN = dict(
+    total_steps=4 * 8 * 8,
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=4,
+    hidden_size=16,
+    lstm_size=16,
+    burn_in=2,
+    sequence_length=4,
+    learning_starts=0,
+    buffer_size=8 * 40,
+)
+REPLAY = dict(
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=16,
+    hidden_size=16,
+    learning_starts=0,
+    gradient_steps=1,
+    total_steps=4 * 64,
+    buffer_size=8 * 40,
+)
 TINY = {
     "ppo": PPO,
     "ppo-privileged": PPO,
     "pqn": PPO,
     "pqn-aux": PPO,
     "pqn-belief": PPO,
-    "pqn-belief --brick-map": dict(PPO, brick_map=True),  # the filter that maps its own bricks (agents/research/belief_map.py)
+    "pqn-belief --brick-map": dict(
+        PPO, brick_map=True
+    ),  # the filter that maps its own bricks (agents/research/belief_map.py)
     "pqn-belief --todo-compass": dict(PPO, todo_compass=True),  # the Q head reads a map of its own drops
     "dqn": dict(REPLAY, frame_stack=2),  # the stacked frames are memory too
     "drqn": DRQN,
@@ -58,8 +86,11 @@ TINY = {
 }
 SINGLE = [name for name in ALGORITHMS if name != "ippo"]
 CASES = [(name, task) for name in SINGLE for task in ("2d-static-sparse", "2d-dynamic-sparse")]
-CASES += [("ppo", "3d-static-sparse"), ("pqn-belief --brick-map", "2d-dynamic-sparse"),
-          ("pqn-belief --todo-compass", "2d-static-sparse")]
+CASES += [
+    ("ppo", "3d-static-sparse"),
+    ("pqn-belief --brick-map", "2d-dynamic-sparse"),
+    ("pqn-belief --todo-compass", "2d-static-sparse"),
+]
 
 
 # --- a world that lies about its state --------------------------------------------------------------
@@ -117,7 +148,8 @@ class Lying(SNACEnv):
     def step_with_stride(self, state, action, stride, params):
         lying = state.union < 0
         obs, state, reward, terminated, info = super().step_with_stride(
-            _truth(state, self.config.plan_shape), action, stride, params)
+            _truth(state, self.config.plan_shape), action, stride, params
+        )
         return obs, _lie(state, self.config.plan_shape, lying), reward, terminated, info
 
 
@@ -137,15 +169,18 @@ class LyingTeam(MultiSNACEnv):
     def step_env(self, key, state, actions, params=None):
         lying = state.world.union < 0
         obs, state, rewards, dones, infos = super().step_env(
-            key, state.replace(world=_truth(state.world, self.config.plan_shape)), actions, params)
+            key, state.replace(world=_truth(state.world, self.config.plan_shape)), actions, params
+        )
         return obs, state.replace(world=_lie(state.world, self.config.plan_shape, lying)), rewards, dones, infos
 
 
 def _twice(params, design):
     """`params` whose designs are `design` twice: index 0 the truth, index 1 the lie."""
-    return params.replace(designs=jnp.stack([design, design]),
-                          design_max_bricks=jnp.repeat(params.design_max_bricks[:1], 2),
-                          design_volume=jnp.repeat(params.design_volume[:1], 2))
+    return params.replace(
+        designs=jnp.stack([design, design]),
+        design_max_bricks=jnp.repeat(params.design_max_bricks[:1], 2),
+        design_volume=jnp.repeat(params.design_volume[:1], 2),
+    )
 
 
 # --- a policy that writes down what it did ------------------------------------------------------------
@@ -160,8 +195,11 @@ def _recorded(policy, true_design, log, kind=Policy):
     (lied to?, step). Whether it is lied to is read off the design its `init` is handed."""
 
     def init(key, design):
-        return {"inner": policy.init(key, design), "t": jnp.zeros((), jnp.int32),
-                "lying": jnp.any(design != true_design)}
+        return {
+            "inner": policy.init(key, design),
+            "t": jnp.zeros((), jnp.int32),
+            "lying": jnp.any(design != true_design),
+        }
 
     def act(params, memory, obs, key):
         action, inner = policy.act(params, memory["inner"], obs, key)
@@ -260,8 +298,12 @@ def test_the_team_policy_ignores_the_state_it_cannot_observe():
     team, design, log = agent.team_env, agent.env_params.designs[0], {}
     env = LyingTeam(team.single, team.num_agents, team.default_params)
     recorded, params = _recorded(policy, design, log, kind=MultiPolicy), _twice(agent.env_params, design)
-    episodes = jax.jit(jax.vmap(lambda p, key, index: run_episode(env, recorded._replace(params=p), key, index, params),
-                                in_axes=(None, 0, 0)))
+    episodes = jax.jit(
+        jax.vmap(
+            lambda p, key, index: run_episode(env, recorded._replace(params=p), key, index, params),
+            in_axes=(None, 0, 0),
+        )
+    )
     keys, indices = jnp.stack([jax.random.key(0)] * 2), jnp.array([0, 1], jnp.int32)
 
     def run(policy_params):

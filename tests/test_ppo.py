@@ -9,15 +9,22 @@ import numpy as np
 import pytest
 
 from agents.common.inputs import ObsLayout
-from agents.training.registry import config_from_json, make_config
 from agents.common.networks import ActorCritic
-from agents.learners.ppo import PPO, PPOConfig, make_train
 from agents.common.targets import gae
+from agents.learners.ppo import PPO, PPOConfig, make_train
+from agents.training.registry import config_from_json, make_config
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
 
-TINY = dict(total_steps=2 * 32 * 16, num_envs=32, rollout_steps=16, num_minibatches=2, update_epochs=2,
-            hidden_size=16, rnn_size=16)
+TINY = dict(
+    total_steps=2 * 32 * 16,
+    num_envs=32,
+    rollout_steps=16,
+    num_minibatches=2,
+    update_epochs=2,
+    hidden_size=16,
+    rnn_size=16,
+)
 
 
 def test_gae_matches_hand_computation_with_truncation_and_termination():
@@ -62,7 +69,10 @@ def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry
     for i in chosen[2:]:
         step, world = divmod(int(i), n)
         _, _, value = ppo.network.apply(
-            state.params, batch.carry_after[step, world][None], batch.final_obs[step, world][None, None], jnp.zeros((1, 1), bool)
+            state.params,
+            batch.carry_after[step, world][None],
+            batch.final_obs[step, world][None, None],
+            jnp.zeros((1, 1), bool),
         )
         expected[i] = float(value[0, 0])
     assert np.count_nonzero(expected) == truncations
@@ -114,10 +124,14 @@ def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     # A reset really forgets: the outputs after a reset do not depend on the carry before it.
     _, logits_other, _ = net.apply(variables, carry0 + 5.0, obs, resets)
     after_first_reset = np.asarray(resets).cumsum(axis=0) >= 1
-    np.testing.assert_allclose(np.asarray(logits_other)[after_first_reset], np.asarray(logits_scan)[after_first_reset], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(logits_other)[after_first_reset], np.asarray(logits_scan)[after_first_reset], rtol=1e-5, atol=1e-6
+    )
 
 
-@pytest.mark.parametrize("task,recurrent", [("1d-static-sin", False), ("1d-static-sin", True), ("2d-dynamic-sparse", True)])
+@pytest.mark.parametrize(
+    "task,recurrent", [("1d-static-sin", False), ("1d-static-sin", True), ("2d-dynamic-sparse", True)]
+)
 def test_tiny_training_run_has_finite_losses(task, recurrent):
     config = make_config("ppo", task, recurrent=recurrent, **TINY)
     state, metrics = jax.jit(make_train(config))(jax.random.key(0))
@@ -145,8 +159,21 @@ SHORT_EPISODE_BAR = 0.85 * 40 / 600
 def test_ppo_learns_on_a_short_episode_task():
     """A learning-threshold check: with 40-step episodes on the 1D step design, a few hundred
     thousand steps must come close to the best IoU 40 steps allow (SHORT_EPISODE_BAR)."""
-    config = make_config("ppo", "1d-static-step", recurrent=False, update_epochs=4, num_minibatches=4, reward_scale=0.1, ent_coef_end=0.01, total_steps=300_000, num_envs=64, rollout_steps=40,
-                         hidden_size=32, learning_rate=3e-3, max_steps=40)
+    config = make_config(
+        "ppo",
+        "1d-static-step",
+        recurrent=False,
+        update_epochs=4,
+        num_minibatches=4,
+        reward_scale=0.1,
+        ent_coef_end=0.01,
+        total_steps=300_000,
+        num_envs=64,
+        rollout_steps=40,
+        hidden_size=32,
+        learning_rate=3e-3,
+        max_steps=40,
+    )
     ppo = PPO(config)
 
     def greedy_iou(params):
@@ -189,12 +216,16 @@ def test_config_errors_are_clear(options, message):
 
 
 def test_entropy_coefficient_anneals_linearly_to_its_end_value():
-    config = make_config("ppo", "1d-static-sin", **{**TINY, "total_steps": 5 * 32 * 16}, ent_coef=0.02, ent_coef_end=0.0)
+    config = make_config(
+        "ppo", "1d-static-sin", **{**TINY, "total_steps": 5 * 32 * 16}, ent_coef=0.02, ent_coef_end=0.0
+    )
     ppo = PPO(config)
     coefs = [float(ppo.ent_coef(u)) for u in range(config.num_updates)]
     np.testing.assert_allclose(coefs, [0.02, 0.015, 0.01, 0.005, 0.0], atol=1e-7)
     constant = PPO(make_config("ppo", "1d-static-sin", **TINY, ent_coef=0.02, ent_coef_end=0.02))
-    assert float(constant.ent_coef(0)) == float(constant.ent_coef(constant.config.num_updates - 1)) == pytest.approx(0.02)
+    assert (
+        float(constant.ent_coef(0)) == float(constant.ent_coef(constant.config.num_updates - 1)) == pytest.approx(0.02)
+    )
 
 
 def test_config_rejects_unknown_task_and_algorithm():

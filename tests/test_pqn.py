@@ -22,17 +22,29 @@ import pytest
 
 from agents.common.inputs import ObsLayout
 from agents.common.networks import ActorCritic, LayerNormQNetwork
+from agents.common.targets import q_lambda, truncation_values
 from agents.learners.pqn import PQN, Transition
 from agents.training.registry import make_config
-from agents.common.targets import q_lambda, truncation_values
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import make
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned per-task entry may set is pinned here, so retuning never changes the tests.
-TINY = dict(recurrent=False, num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=2, hidden_size=16,
-            rnn_size=8, learning_rate=1e-3, reward_scale=0.01, chunks=2, total_steps=2 * 8 * 8, stagger_starts=False,
-            time_limit_ends=False)
+TINY = dict(
+    recurrent=False,
+    num_envs=8,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=2,
+    hidden_size=16,
+    rnn_size=8,
+    learning_rate=1e-3,
+    reward_scale=0.01,
+    chunks=2,
+    total_steps=2 * 8 * 8,
+    stagger_starts=False,
+    time_limit_ends=False,
+)
 
 
 def _pqn(task="1d-static-sin", **options) -> PQN:
@@ -91,7 +103,8 @@ def _hand_rollout() -> tuple[Transition, SimpleNamespace]:
     q = lambda *rows: jnp.array(rows, jnp.float32)[:, None]  # (T, B=1, A=2)
     batch = Transition(
         obs=q([7, 0], [0, 6], [1, 3], [0, 10]),  # the Q-values the loss learns (the parameters moved since)
-        reset=jnp.zeros((4, 1), bool), action=jnp.array([0, 1, 0, 1])[:, None],
+        reset=jnp.zeros((4, 1), bool),
+        action=jnp.array([0, 1, 0, 1])[:, None],
         value=jnp.array([10.0, 20.0, 30.0, 40.0])[:, None],  # max Q as the rollout computed it
         reward=jnp.array([1.0, 2.0, 3.0, 4.0])[:, None],  # learned from as 2, 4, 6, 8 (reward_scale 2)
         terminated=jnp.array([False, False, True, False])[:, None],
@@ -156,7 +169,9 @@ def test_truncation_values_score_exactly_the_truncated_steps(truncations):
 
 def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():
     env, params = make("1d-static-step")
-    net = LayerNormQNetwork(ObsLayout.from_env(env, params, previous_step=True), env.num_actions, hidden_size=16, rnn_size=8)
+    net = LayerNormQNetwork(
+        ObsLayout.from_env(env, params, previous_step=True), env.num_actions, hidden_size=16, rnn_size=8
+    )
     t, b = 7, 3
     key_obs, key_reset, key_init = jax.random.split(jax.random.key(0), 3)
     obs = jax.random.uniform(key_obs, (t, b, net.layout.obs_size), minval=-1, maxval=40)
@@ -213,11 +228,14 @@ def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry():
 # --- training ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("task,recurrent", [
-    ("1d-static-sin", False),
-    ("1d-dynamic", True),
-    pytest.param("2d-dynamic-sparse", True, marks=pytest.mark.slow),  # the conv design encoder: a long compile
-])
+@pytest.mark.parametrize(
+    "task,recurrent",
+    [
+        ("1d-static-sin", False),
+        ("1d-dynamic", True),
+        pytest.param("2d-dynamic-sparse", True, marks=pytest.mark.slow),  # the conv design encoder: a long compile
+    ],
+)
 def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
     pqn = _pqn(task, recurrent=recurrent, max_steps=6)
     traces = []
@@ -270,8 +288,11 @@ def test_resume_equals_uninterrupted(tmp_path, recurrent):
     from agents.training import checkpoint
     from agents.training.driver import train
 
-    config = make_config("pqn", "1d-static-gauss", **{**TINY, "recurrent": recurrent, "seeds": 2, "total_steps": 4 * 8 * 8,
-                                                        "chunks": 4, "max_steps": 6})
+    config = make_config(
+        "pqn",
+        "1d-static-gauss",
+        **{**TINY, "recurrent": recurrent, "seeds": 2, "total_steps": 4 * 8 * 8, "chunks": 4, "max_steps": 6},
+    )
     _, straight = train(config, tmp_path / "straight", progress=False)
     _, first = train(config, tmp_path / "killed", progress=False, stop_after_chunks=2)
     assert list(np.asarray(first.update)) == [2, 2]
@@ -311,8 +332,15 @@ def test_the_paper_has_no_pqn_row_and_the_table_shows_dashes():
     from snac_jax.paper import load_paper_results, markdown_table, paper_row
 
     assert paper_row(load_paper_results(), make_config("pqn").paper_method) == {}
-    result = TaskResult.from_episodes("1d-static-sin", {"sin": np.array([0.5, 0.7])}, lengths=[10, 12],
-                                      bricks_used=[3, 4], returns=[1.0, 2.0], seed=0, wall_s=0.0)
+    result = TaskResult.from_episodes(
+        "1d-static-sin",
+        {"sin": np.array([0.5, 0.7])},
+        lengths=[10, 12],
+        bricks_used=[3, 4],
+        returns=[1.0, 2.0],
+        seed=0,
+        wall_s=0.0,
+    )
     row = markdown_table([result], {"1d-static-sin": {}}).splitlines()[-1]
     assert row.startswith("| 1d-static-sin | 2 | 0.600 |") and row.count("—") == 3, row
 
@@ -322,10 +350,39 @@ def test_the_paper_has_no_pqn_row_and_the_table_shows_dashes():
 def test_cli_trains_pqn_with_two_seeds_and_evaluates_each_without_a_paper_row(tmp_path, recurrent):
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "pqn", "--recurrent" if recurrent else "--no-recurrent",
-           "--task", "1d-static-step", "--total-steps", "256", "--num-envs", "8", "--rollout-steps", "8",
-           "--num-minibatches", "2", "--hidden-size", "8", "--rnn-size", "8", "--max-steps", "40", "--chunks", "2",
-           "--out", str(out), "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "pqn",
+        "--recurrent" if recurrent else "--no-recurrent",
+        "--task",
+        "1d-static-step",
+        "--total-steps",
+        "256",
+        "--num-envs",
+        "8",
+        "--rollout-steps",
+        "8",
+        "--num-minibatches",
+        "2",
+        "--hidden-size",
+        "8",
+        "--rnn-size",
+        "8",
+        "--max-steps",
+        "40",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "2",
+        "--no-progress",
+        "--seeds",
+        "2",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):

@@ -20,10 +20,28 @@ from snac_jax.env import draw_stride
 from snac_jax.evaluation import run_episodes
 from snac_jax.tasks import TASKS, make
 
-PPO_TINY = dict(total_steps=2 * 16 * 8, num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
-                hidden_size=16, rnn_size=16, recurrent=True)
-DRQN_TINY = dict(total_steps=4 * 8 * 8, num_envs=8, rollout_steps=8, batch_size=4, hidden_size=16, lstm_size=16,
-                 burn_in=2, sequence_length=4, learning_starts=0, buffer_size=8 * 40)
+PPO_TINY = dict(
+    total_steps=2 * 16 * 8,
+    num_envs=16,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    hidden_size=16,
+    rnn_size=16,
+    recurrent=True,
+)
+DRQN_TINY = dict(
+    total_steps=4 * 8 * 8,
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=4,
+    hidden_size=16,
+    lstm_size=16,
+    burn_in=2,
+    sequence_length=4,
+    learning_starts=0,
+    buffer_size=8 * 40,
+)
 PQN_TINY = PPO_TINY  # PQN's rollout and minibatch options have PPO's names
 TINY = {"ppo-privileged": PPO_TINY, "drqn-aux": DRQN_TINY, "pqn-aux": PQN_TINY, "pqn-belief": PQN_TINY}
 ALL_SIGNALS = dict(position_coef=0.1, map_coef=0.1, move_coef=0.1, stride_curriculum=0.5)
@@ -85,7 +103,9 @@ def test_position_loss_is_the_row_and_column_cross_entropy():
     # Row 1 has probability 3/4, column 2 has 2/4.
     assert float(got) == pytest.approx(-math.log(3 / 4) - math.log(2 / 4), rel=1e-6)
     # 1D: one row, whose term is 0; uniform over 30 columns.
-    assert float(position_loss(jnp.zeros((1, 31)), jnp.array([[0, 7]]), (1, 30), jnp.ones(1))) == pytest.approx(math.log(30))
+    assert float(position_loss(jnp.zeros((1, 31)), jnp.array([[0, 7]]), (1, 30), jnp.ones(1))) == pytest.approx(
+        math.log(30)
+    )
 
 
 def test_map_loss_is_the_mean_squared_error_of_scaled_heights():
@@ -128,8 +148,12 @@ def test_stride_curriculum_goes_from_no_noise_to_the_tasks():
 
 def _poison(params, names):
     """`params` with every weight of the named top-level modules set to NaN, to show which ones acting reads."""
-    return {"params": {k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in names else v
-                       for k, v in params["params"].items()}}
+    return {
+        "params": {
+            k: jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v) if k in names else v
+            for k, v in params["params"].items()
+        }
+    }
 
 
 def test_the_greedy_policy_reads_observations_only():
@@ -184,25 +208,40 @@ def test_with_every_signal_off_the_learners_are_ppo_drqn_and_pqn():
     and every auxiliary weight 0 reproduce them exactly (truncations included: max_steps 5), and
     the evaluator scores their greedy policies alike."""
     task, off = "1d-static-sin", dict(position_coef=0.0, map_coef=0.0, move_coef=0.0)
-    pairs = [("ppo", "ppo-privileged", dict(PPO_TINY, max_steps=5), dict(privileged_critic=False, **off)),
-             ("drqn", "drqn-aux", dict(DRQN_TINY, max_steps=5), off),
-             ("pqn", "pqn-aux", dict(PQN_TINY, max_steps=5), off)]
+    pairs = [
+        ("ppo", "ppo-privileged", dict(PPO_TINY, max_steps=5), dict(privileged_critic=False, **off)),
+        ("drqn", "drqn-aux", dict(DRQN_TINY, max_steps=5), off),
+        ("pqn", "pqn-aux", dict(PQN_TINY, max_steps=5), off),
+    ]
     for base, new, options, switches in pairs:
-        agents = [build_algorithm(make_config(name, task, **options, **extra)) for name, extra in ((base, {}), (new, switches))]
+        agents = [
+            build_algorithm(make_config(name, task, **options, **extra))
+            for name, extra in ((base, {}), (new, switches))
+        ]
         (state_a, metrics_a), (state_b, metrics_b) = (_run(agent, 2) for agent in agents)
         assert set(metrics_a) == set(metrics_b) and _same(metrics_a, metrics_b), (base, new)
         assert _same(state_a.params, state_b.params), (base, new)
         if base == "ppo":
             env, params = make(task, max_steps=20)
-            scores = [run_episodes(env, params, a.policy(s.params), jax.random.key(4), np.zeros(4, np.int32)).iou
-                      for a, s in zip(agents, (state_a, state_b))]
+            scores = [
+                run_episodes(env, params, a.policy(s.params), jax.random.key(4), np.zeros(4, np.int32)).iou
+                for a, s in zip(agents, (state_a, state_b))
+            ]
             np.testing.assert_array_equal(*scores)
 
 
 @pytest.mark.slow  # a whole driver run (minutes on 2 cores): `pytest -m slow`
-@pytest.mark.parametrize("algorithm,task", [("ppo-privileged", "2d-dynamic-sparse"), ("ppo-privileged", "3d-static-dense"),
-                                            ("drqn-aux", "1d-static-sin"), ("pqn-aux", "2d-static-sparse"),
-                                            ("pqn-belief", "2d-dynamic-dense"), ("pqn-belief", "3d-static-dense")])
+@pytest.mark.parametrize(
+    "algorithm,task",
+    [
+        ("ppo-privileged", "2d-dynamic-sparse"),
+        ("ppo-privileged", "3d-static-dense"),
+        ("drqn-aux", "1d-static-sin"),
+        ("pqn-aux", "2d-static-sparse"),
+        ("pqn-belief", "2d-dynamic-dense"),
+        ("pqn-belief", "3d-static-dense"),
+    ],
+)
 def test_tiny_runs_with_every_signal_are_finite_and_compile_once(algorithm, task):
     options = TINY[algorithm]
     agent = build_algorithm(make_config(algorithm, task, **options, **ALL_SIGNALS, max_steps=6))
@@ -227,8 +266,15 @@ def test_two_seeds_through_the_driver_and_the_checkpoint_evaluates(tmp_path):
     from agents.training.driver import read_metrics, train
     from agents.training.trained import checkpoint_policy
 
-    config = make_config("ppo-privileged", "1d-static-sin", **{**PPO_TINY, "total_steps": 2 * 16 * 8}, chunks=2,
-                         seeds=2, move_coef=0.1, max_steps=6)
+    config = make_config(
+        "ppo-privileged",
+        "1d-static-sin",
+        **{**PPO_TINY, "total_steps": 2 * 16 * 8},
+        chunks=2,
+        seeds=2,
+        move_coef=0.1,
+        max_steps=6,
+    )
     _, state = train(config, tmp_path / "run", progress=False)
     assert int(state.update[0]) == int(state.update[1]) == config.num_updates
     lines = read_metrics(tmp_path / "run")
@@ -259,8 +305,12 @@ def test_resume_equals_the_uninterrupted_run(algorithm, tmp_path):
 
 
 # pqn-aux and pqn-belief are PQN-RNN (`pqn --recurrent`), which plain pqn is not on every task (agents/tuned/pqn.toml)
-VARIANTS = [("ppo-privileged", "ppo", {}), ("drqn-aux", "drqn", {}), ("pqn-aux", "pqn", {"recurrent": True}),
-            ("pqn-belief", "pqn", {"recurrent": True})]
+VARIANTS = [
+    ("ppo-privileged", "ppo", {}),
+    ("drqn-aux", "drqn", {}),
+    ("pqn-aux", "pqn", {"recurrent": True}),
+    ("pqn-belief", "pqn", {"recurrent": True}),
+]
 
 
 @pytest.mark.parametrize("algorithm,base,base_options", VARIANTS)
@@ -273,7 +323,8 @@ def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base
     from agents.training.registry import TUNED_DIR
 
     extra = {"algorithm"} | {f.name for f in dataclasses.fields(config_class(algorithm))} - {
-        f.name for f in dataclasses.fields(config_class(base))}
+        f.name for f in dataclasses.fields(config_class(base))
+    }
     own_file = TUNED_DIR / f"{algorithm}.toml"  # read here, not through the registry's layering under test
     own = tomllib.loads(own_file.read_text()).get(task, {}) if own_file.is_file() else {}
     base_options = {**base_options, **{k: v for k, v in own.items() if k != "result" and k not in extra}}
@@ -282,11 +333,14 @@ def test_a_variant_resolves_to_its_base_learner_plus_its_signals(algorithm, base
     assert {k: v for k, v in variant.items() if k not in extra} == {k: v for k, v in plain.items() if k not in extra}
 
 
-@pytest.mark.parametrize("options,message", [
-    (dict(position_coef=-0.1), r"position_coef must be a number >= 0"),
-    (dict(stride_curriculum=1.5), r"stride_curriculum must be a number in \[0, 1\]"),
-    (dict(privileged_critic=1), "privileged_critic must be True or False"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        (dict(position_coef=-0.1), r"position_coef must be a number >= 0"),
+        (dict(stride_curriculum=1.5), r"stride_curriculum must be a number in \[0, 1\]"),
+        (dict(privileged_critic=1), "privileged_critic must be True or False"),
+    ],
+)
 def test_config_errors_are_clear(options, message):
     with pytest.raises(ValueError, match=message):
         make_config("ppo-privileged", "1d-static-sin", **options)

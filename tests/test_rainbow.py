@@ -15,14 +15,27 @@ import pytest
 
 from agents.common.noisy import NoisyDense
 from agents.common.offpolicy import Step
+from agents.common.targets import categorical_projection, n_step_returns
 from agents.learners.rainbow import Rainbow, RainbowConfig, cross_entropy_and_kl, importance_weights
 from agents.training.registry import build_algorithm, make_config
-from agents.common.targets import categorical_projection, n_step_returns
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option the tuned per-task defaults set is pinned here, so retuning never changes the tests.
-TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_size=16, learning_starts=0, chunks=2, gradient_steps=1,
-            frame_stack=1, learning_rate=1e-3, atoms=11, total_steps=4 * 64, buffer_size=8 * 40, max_steps=14)
+TINY = dict(
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=16,
+    hidden_size=16,
+    learning_starts=0,
+    chunks=2,
+    gradient_steps=1,
+    frame_stack=1,
+    learning_rate=1e-3,
+    atoms=11,
+    total_steps=4 * 64,
+    buffer_size=8 * 40,
+    max_steps=14,
+)
 
 
 def _agent(task="1d-static-sin", **options) -> Rainbow:
@@ -84,8 +97,13 @@ def test_n_step_returns_stop_at_an_episode_end_inside_the_window():
 
 def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
     buffer = fbx.make_prioritised_trajectory_buffer(
-        add_batch_size=1, sample_batch_size=64, sample_sequence_length=1, period=1, min_length_time_axis=1,
-        max_length_time_axis=4, priority_exponent=0.5,
+        add_batch_size=1,
+        sample_batch_size=64,
+        sample_sequence_length=1,
+        period=1,
+        min_length_time_axis=1,
+        max_length_time_axis=4,
+        priority_exponent=0.5,
     )
     state = buffer.init(jnp.zeros(()))
     state = buffer.add(state, jnp.arange(4.0)[None])
@@ -126,7 +144,9 @@ def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
     assert not np.allclose(a, b) and not np.allclose(a, mean)
     np.testing.assert_array_equal(a[0], a[1])  # one draw per forward pass, shared by its rows
     # The noise has mean zero: averaged over many draws the output approaches the mean network's.
-    draws = jax.vmap(lambda k: noisy.apply({"params": params}, x[:1], rngs={"noise": k}))(jax.random.split(jax.random.key(3), 4000))
+    draws = jax.vmap(lambda k: noisy.apply({"params": params}, x[:1], rngs={"noise": k}))(
+        jax.random.split(jax.random.key(3), 4000)
+    )
     np.testing.assert_allclose(draws.mean(0)[0], mean[0], atol=0.05)
 
 
@@ -139,7 +159,9 @@ def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
     # one kernel and as x mu + ((x e_in) sigma + sigma_b) e_out must agree.
     x = jax.random.normal(jax.random.key(1), (1, 1, 4))
     rngs = {"noise": jax.random.key(2)}
-    np.testing.assert_allclose(per_row.apply(params, x, rngs=rngs), shared.apply(params, x, rngs=rngs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        per_row.apply(params, x, rngs=rngs), shared.apply(params, x, rngs=rngs), rtol=1e-5, atol=1e-6
+    )
     # Identical rows (3 steps x 4 worlds, with an axis in between as the frame stack has): each
     # (step, world) draws its own noise, broadcast over the axis in between.
     x = jnp.ones((3, 4, 2, 4))
@@ -184,15 +206,21 @@ def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an
     # Window 1: its episode ends at the learning step (discount 0); its bootstrap is ignored.
     online_next = jnp.stack([logits([1, eps, eps], [eps, eps, 1], [1, eps, eps])] * 2)[None]
     target_next = jnp.stack([logits([eps, eps, 1], [0.5, 0.5, eps], [1, eps, eps])] * 2)[None]
-    learning = jnp.stack([logits([0.25, 0.5, 0.25], [1 / 3] * 3, [1 / 3] * 3),
-                          logits([1 / 3] * 3, [1 / 3] * 3, [0.25, 0.25, 0.5])])[None]  # (1, S=2, A, atoms)
+    learning = jnp.stack(
+        [logits([0.25, 0.5, 0.25], [1 / 3] * 3, [1 / 3] * 3), logits([1 / 3] * 3, [1 / 3] * 3, [0.25, 0.25, 0.5])]
+    )[None]  # (1, S=2, A, atoms)
     agent.replayed_frames = lambda batch, obs: (None, None)
     agent.window_logits = lambda *args: (learning, online_next, target_next)
 
     rows = c + 2
     column = lambda *values: jnp.zeros((rows, 2)).at[c].set(jnp.array(values))
-    batch = Step(obs=jnp.zeros((rows, 2, 1), jnp.int16), reset=jnp.zeros((rows, 2), bool),
-                 action=column(0, 2).astype(jnp.int8), reward=column(0.5, 1.0), done=column(0, 1).astype(bool))
+    batch = Step(
+        obs=jnp.zeros((rows, 2, 1), jnp.int16),
+        reset=jnp.zeros((rows, 2), bool),
+        action=column(0, 2).astype(jnp.int8),
+        reward=column(0.5, 1.0),
+        done=column(0, 1).astype(bool),
+    )
     weights = jnp.array([1.0, 0.5])  # the rewards are learned from as 1 and 2 (reward_scale 2)
     loss, (info, priority) = agent.loss(None, None, batch, weights, None, None)
     # Window 0: 1 + 0.5 z over (1/2, 1/2, 0) = 1 (1/2), 1.5 (1/2, split 1/4 / 1/4 onto atoms 1 and
@@ -244,13 +272,16 @@ def test_window_logits_are_the_full_windows_rows_the_loss_reads(options):
     cfg = agent.config
     state = jax.jit(agent.init)(jax.random.key(0))
     state, _ = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 1))(state)
-    batch = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), agent.buffer.sample(state.buffer, jax.random.key(1)).experience)
+    batch = jax.tree.map(
+        lambda x: jnp.swapaxes(x, 0, 1), agent.buffer.sample(state.buffer, jax.random.key(1)).experience
+    )
     frames, resets = agent.replayed_frames(batch, batch.obs.astype(jnp.float32))
     assert frames.shape[0] == cfg.sequence_length + cfg.n_step
     target_params = jax.tree.map(lambda x: 1.1 * x, state.params)  # a target that differs from the online network
     key_online, key_target = jax.random.split(jax.random.key(2))
     learning, bootstrap_online, bootstrap_target = agent.window_logits(
-        state.params, target_params, frames, resets, key_online, key_target)
+        state.params, target_params, frames, resets, key_online, key_target
+    )
     carry = agent.initial_carry(frames.shape[1])
     _, online = agent.logits(state.params, carry, frames, resets, key_online)
     _, target = agent.logits(target_params, carry, frames, resets, key_target)
@@ -277,7 +308,7 @@ def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
     # The sampled windows got their KL as priority: no longer all the initial maximum of 1.
     tree = state.buffer.sum_tree_state
-    leaves = np.asarray(tree.nodes[-(2**tree.tree_depth):][: tree.capacity])
+    leaves = np.asarray(tree.nodes[-(2**tree.tree_depth) :][: tree.capacity])
     assert len(np.unique(leaves[leaves > 0])) > 1 and float(tree.max_recorded_priority) != 1.0
 
 
@@ -341,11 +372,27 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
     assert all(np.all(np.isfinite(r["loss"])) for r in records)
 
 
-@pytest.mark.parametrize("options", [
-    pytest.param(dict(noisy=False, eps_start=1.0, eps_end=0.1, double_q=False, dueling=False, n_step=1,
-                      priority_exponent=0.0, cross_entropy_priority=True, anneal_lr=True, layer_norm=True), id="ablations"),
-    pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
-])
+@pytest.mark.parametrize(
+    "options",
+    [
+        pytest.param(
+            dict(
+                noisy=False,
+                eps_start=1.0,
+                eps_end=0.1,
+                double_q=False,
+                dueling=False,
+                n_step=1,
+                priority_exponent=0.0,
+                cross_entropy_priority=True,
+                anneal_lr=True,
+                layer_norm=True,
+            ),
+            id="ablations",
+        ),
+        pytest.param(dict(max_steps=20), id="2d-dynamic", marks=pytest.mark.slow),
+    ],
+)
 def test_ablated_and_other_configurations_train(options):
     task = "2d-dynamic-dense" if options.get("max_steps") == 20 else "1d-static-gauss"
     agent = _agent(task, **options)
@@ -375,8 +422,12 @@ def test_layer_norm_normalises_every_hidden_layer_and_is_off_by_default():
     first = params["params"]["ObservationEncoder_0"]["NoisyDense_0"]
     scaled = jax.tree.map(lambda x: x, params)
     scaled["params"]["ObservationEncoder_0"]["NoisyDense_0"] = jax.tree.map(lambda x: 7.0 * x, first)
-    np.testing.assert_allclose(agent.q_values(scaled, carry, frames, resets)[1],
-                               agent.q_values(params, carry, frames, resets)[1], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(
+        agent.q_values(scaled, carry, frames, resets)[1],
+        agent.q_values(params, carry, frames, resets)[1],
+        rtol=1e-4,
+        atol=1e-4,
+    )
 
 
 # --- config -----------------------------------------------------------------------------------------------
@@ -396,16 +447,22 @@ def test_defaults_are_the_papers_settings():
     # Three noisy hidden layers of 128 (two in the encoder, one in each dueling stream), 101 atoms per action.
     params = jax.eval_shape(agent.init, jax.random.key(0)).params["params"]
     assert params["ObservationEncoder_0"]["NoisyDense_1"]["kernel"].shape == (128, 128)
-    assert params["NoisyDense_0"]["kernel"].shape == (128, 128) and params["NoisyDense_3"]["kernel"].shape == (128, 3 * 101)
+    assert params["NoisyDense_0"]["kernel"].shape == (128, 128) and params["NoisyDense_3"]["kernel"].shape == (
+        128,
+        3 * 101,
+    )
     assert agent.beta(0) == pytest.approx(0.4) and agent.beta(agent.config.total_steps) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("options,message", [
-    (dict(v_min=5.0, v_max=5.0), r"v_min \(5.0\) must be below v_max \(5.0\)"),
-    (dict(atoms=1), "atoms must be an int >= 2"),
-    (dict(priority_exponent=1.5), r"priority_exponent must be a number in \[0, 1\]"),
-    (dict(sigma0=-0.1), "sigma0 must be a number >= 0"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        (dict(v_min=5.0, v_max=5.0), r"v_min \(5.0\) must be below v_max \(5.0\)"),
+        (dict(atoms=1), "atoms must be an int >= 2"),
+        (dict(priority_exponent=1.5), r"priority_exponent must be a number in \[0, 1\]"),
+        (dict(sigma0=-0.1), "sigma0 must be a number >= 0"),
+    ],
+)
 def test_config_errors_are_clear(options, message):
     with pytest.raises(ValueError, match=message):
         make_config("rainbow", "1d-static-sin", **options)
@@ -441,10 +498,44 @@ def test_cli_trains_rainbow_and_evaluates_it(tmp_path):
 
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--task", "1d-static-step", "--total-steps", "512",
-           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-size", "8", "--buffer-size", "256",
-           "--atoms", "11", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress", "--seeds", "2", "--seed", "2"]  # two different greedy policies
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "rainbow",
+        "--task",
+        "1d-static-step",
+        "--total-steps",
+        "512",
+        "--num-envs",
+        "8",
+        "--rollout-steps",
+        "8",
+        "--batch-size",
+        "8",
+        "--hidden-size",
+        "8",
+        "--buffer-size",
+        "256",
+        "--atoms",
+        "11",
+        "--learning-starts",
+        "0",
+        "--max-steps",
+        "40",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "2",
+        "--no-progress",
+        "--seeds",
+        "2",
+        "--seed",
+        "2",
+    ]  # two different greedy policies
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr
@@ -453,6 +544,11 @@ def test_cli_trains_rainbow_and_evaluates_it(tmp_path):
     saved = json.loads((out / "config.json").read_text())
     assert saved["algorithm"] == "rainbow" and saved["seeds"] == 2
     check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)
-    bad = subprocess.run([sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--huber-delta", "2"],
-                         capture_output=True, text=True, env=env, timeout=600)
+    bad = subprocess.run(
+        [sys.executable, "-m", "snac_jax.cli", "train", "rainbow", "--huber-delta", "2"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert bad.returncode != 0 and "unrecognized arguments: --huber-delta" in bad.stderr

@@ -21,7 +21,8 @@ def test_the_results_folder_holds_at_most_200_files():
     files = [p for p in RESULTS.rglob("*") if p.is_file()]
     assert len(files) <= MAX_RESULT_FILES, (
         f"bench/results holds {len(files)} files, more than {MAX_RESULT_FILES}: delete pilots and superseded runs "
-        "(git keeps them; a page may name the commit)")
+        "(git keeps them; a page may name the commit)"
+    )
 
 
 def test_the_readme_is_at_most_300_lines():
@@ -73,16 +74,17 @@ def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
     that only score another arm's run again (`evaluation`) train nothing of their own."""
     import json
 
-    from agents.training.registry import ALGORITHMS, config_from_json
     from agents.table.plan import _settings_differ, make_plan
     from agents.table.presets import load_presets
+    from agents.training.registry import ALGORITHMS, config_from_json
     from snac_jax.paper import PAPER_TASKS
 
     checked, drifted = 0, []
     for name, preset in load_presets().items():
         arms = [v.name for v in preset.variants if not v.evaluation] or None
-        cells = make_plan(preset, list(preset.algorithms or ALGORITHMS), list(preset.tasks or PAPER_TASKS), None,
-                          tmp_path, arms=arms)
+        cells = make_plan(
+            preset, list(preset.algorithms or ALGORITHMS), list(preset.tasks or PAPER_TASKS), None, tmp_path, arms=arms
+        )
         for cell in cells:
             record = RESULTS / "table" / name / cell.algorithm / f"{cell.directory.name}.json"
             if not record.is_file():

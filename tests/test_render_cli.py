@@ -25,8 +25,23 @@ def test_frame_indices_always_end_on_the_last_state():
 )
 def test_render_writes_a_gif_with_one_frame_per_drawn_state(tmp_path, capsys, task, policy, every):
     out = tmp_path / "run.gif"
-    rc = main(["render", "--task", task, "--policy", policy, "--out", str(out), "--max-steps", "14",
-               "--every", str(every), "--seed", "3"])
+    rc = main(
+        [
+            "render",
+            "--task",
+            task,
+            "--policy",
+            policy,
+            "--out",
+            str(out),
+            "--max-steps",
+            "14",
+            "--every",
+            str(every),
+            "--seed",
+            "3",
+        ]
+    )
     assert rc == 0
     printed = capsys.readouterr().out
     steps = int(re.search(r"(\d+) steps", printed).group(1))
@@ -42,8 +57,19 @@ def test_render_rejects_bad_requests(tmp_path, capsys):
     assert main(["render", "--task", "2d-static-dense", "--out", str(tmp_path / "x.png")]) == 2
     assert "gif" in capsys.readouterr().err
     # a policy or a checkpoint, not both
-    rc = main(["render", "--task", "2d-static-dense", "--policy", "handcrafted", "--checkpoint", str(tmp_path),
-               "--out", str(tmp_path / "x.gif")])
+    rc = main(
+        [
+            "render",
+            "--task",
+            "2d-static-dense",
+            "--policy",
+            "handcrafted",
+            "--checkpoint",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "x.gif"),
+        ]
+    )
     assert rc == 2
     assert "not both" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -74,15 +100,61 @@ def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     from snac_jax.rendering.robots import ROBOT_COLOURS
 
     run = tmp_path / "run"
-    code = main(["train", "ippo", "--robots", "2", "--task", "1d-static-sin", "--total-steps", "32", "--chunks", "1",
-                 "--max-steps", "20", "--eval-episodes", "1", "--out", str(run), "--num-envs", "4",
-                 "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1", "--hidden-size", "8",
-                 "--rnn-size", "8", "--no-progress", "--devices", "1"])
+    code = main(
+        [
+            "train",
+            "ippo",
+            "--robots",
+            "2",
+            "--task",
+            "1d-static-sin",
+            "--total-steps",
+            "32",
+            "--chunks",
+            "1",
+            "--max-steps",
+            "20",
+            "--eval-episodes",
+            "1",
+            "--out",
+            str(run),
+            "--num-envs",
+            "4",
+            "--rollout-steps",
+            "8",
+            "--num-minibatches",
+            "2",
+            "--update-epochs",
+            "1",
+            "--hidden-size",
+            "8",
+            "--rnn-size",
+            "8",
+            "--no-progress",
+            "--devices",
+            "1",
+        ]
+    )
     assert code == 0, capsys.readouterr().err[-2000:]
     capsys.readouterr()
     out = tmp_path / "team.gif"
-    rc = main(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(out), "--max-steps", "9",
-               "--every", "4", "--seed", "2"])
+    rc = main(
+        [
+            "render",
+            "--task",
+            "1d-static-sin",
+            "--checkpoint",
+            str(run),
+            "--out",
+            str(out),
+            "--max-steps",
+            "9",
+            "--every",
+            "4",
+            "--seed",
+            "2",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err[-2000:]
     printed = capsys.readouterr().out
     assert ", 2 robots, seed 2: " in printed
@@ -93,7 +165,9 @@ def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     second = np.all(frames == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1)
     assert second.any(axis=(1, 2)).all()
     single = tmp_path / "single.gif"
-    assert main(["render", "--task", "1d-static-sin", "--policy", "random", "--out", str(single), "--max-steps", "2"]) == 0
+    assert (
+        main(["render", "--task", "1d-static-sin", "--policy", "random", "--out", str(single), "--max-steps", "2"]) == 0
+    )
     assert not np.all(iio.imread(single, index=None) == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1).any()
 
 

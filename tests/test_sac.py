@@ -14,14 +14,25 @@ import numpy as np
 import pytest
 
 from agents.common.offpolicy import Step
-from agents.training.registry import build_algorithm, make_config
-from agents.learners.sac import actor_loss, critic_loss, soft_values, temperature_loss
 from agents.common.targets import n_step_targets
+from agents.learners.sac import actor_loss, critic_loss, soft_values, temperature_loss
+from agents.training.registry import build_algorithm, make_config
 from tests.helpers import check_each_seed_evaluates_from_the_checkpoint
 
 # Every option a tuned entry could set is pinned here, so retuning never changes the tests.
-TINY = dict(num_envs=8, rollout_steps=8, batch_size=16, hidden_sizes="16,16", learning_starts=0, chunks=2,
-            gradient_steps=1, learning_rate=1e-3, total_steps=4 * 64, buffer_size=8 * 40, max_steps=20)
+TINY = dict(
+    num_envs=8,
+    rollout_steps=8,
+    batch_size=16,
+    hidden_sizes="16,16",
+    learning_starts=0,
+    chunks=2,
+    gradient_steps=1,
+    learning_rate=1e-3,
+    total_steps=4 * 64,
+    buffer_size=8 * 40,
+    max_steps=20,
+)
 
 # With pi = (1/2, 1/2) and alpha = 1 / ln 2, alpha log pi(a) = log2(1/2) = -1 for both actions.
 HALF = jnp.log(jnp.array([0.5, 0.5]))
@@ -41,10 +52,12 @@ def _same(a, b) -> bool:
 
 def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
     # Three rows of one world, two actions; rows 0 and 1 get a loss, the episode ends at row 1.
-    q_target = jnp.array([
-        [[500.0, 500.0], [4.0, 2.0], [1000.0, 1000.0]],  # target critic 1, rows 0..2
-        [[500.0, 500.0], [3.0, 6.0], [1000.0, 1000.0]],  # target critic 2
-    ])[:, :, None, :]  # (2, T=3, S=1, A=2)
+    q_target = jnp.array(
+        [
+            [[500.0, 500.0], [4.0, 2.0], [1000.0, 1000.0]],  # target critic 1, rows 0..2
+            [[500.0, 500.0], [3.0, 6.0], [1000.0, 1000.0]],  # target critic 2
+        ]
+    )[:, :, None, :]  # (2, T=3, S=1, A=2)
     log_probs = jnp.broadcast_to(HALF, (3, 1, 2))
     values = soft_values(q_target, log_probs, ALPHA)
     # V(row 1) = 0.5 * (min(4, 3) + 1) + 0.5 * (min(2, 6) + 1) = 0.5 * 4 + 0.5 * 3 = 3.5
@@ -58,10 +71,12 @@ def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
     # Two steps of reward from row 0: 1 + 0.5 * 2, then the episode's end cuts the bootstrap.
     np.testing.assert_allclose(n_step_targets(rewards, dones, values, 0.5, n=2, length=1)[0, 0], 2.0)
 
-    q = jnp.array([
-        [[0.0, 3.75], [4.0, 0.0]],  # critic 1, rows 0 and 1
-        [[9.0, 2.25], [0.0, 9.0]],  # critic 2
-    ])[:, :, None, :]
+    q = jnp.array(
+        [
+            [[0.0, 3.75], [4.0, 0.0]],  # critic 1, rows 0 and 1
+            [[9.0, 2.25], [0.0, 9.0]],  # critic 2
+        ]
+    )[:, :, None, :]
     actions = jnp.array([1, 0])[:, None]
     # row 0, action 1: (3.75 - 2.75)^2 + (2.25 - 2.75)^2 = 1 + 0.25 = 1.25
     # row 1, action 0: (4 - 2)^2 + (0 - 2)^2 = 4 + 4 = 8
@@ -74,10 +89,12 @@ def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
 
 def test_actor_loss_matches_hand_computation_and_moves_only_the_policy():
     log_probs = jnp.stack([HALF, jnp.log(jnp.array([0.75, 0.25]))])  # two states
-    q = jnp.array([
-        [[3.0, 5.0], [4.0, 9.0]],  # critic 1, states 0 and 1
-        [[4.0, 1.0], [6.0, 8.0]],  # critic 2
-    ])
+    q = jnp.array(
+        [
+            [[3.0, 5.0], [4.0, 9.0]],  # critic 1, states 0 and 1
+            [[4.0, 1.0], [6.0, 8.0]],  # critic 2
+        ]
+    )
     # state 0, alpha = 1/ln 2: min Q = (3, 1); 0.5 * (-1 - 3) + 0.5 * (-1 - 1) = -2 - 1 = -3
     np.testing.assert_allclose(actor_loss(log_probs[:1], q[:, :1], ALPHA, jnp.ones(1)), -3.0, rtol=1e-6)
     # state 1, alpha = 0: min Q = (4, 8); -(0.75 * 4 + 0.25 * 8) = -(3 + 2) = -5
@@ -124,8 +141,13 @@ def test_the_learners_loss_combines_the_three_by_hand():
     target = jnp.array([[never, [500.0] * 3, [3.0, 6.0, 9.0]], [never, [500.0] * 3, [6.0, 3.0, 12.0]]])
     rows = c + 2
     obs = jnp.zeros((rows, 1, agent.layout.env_obs_size)).at[:, 0, 0].set(jnp.arange(rows))
-    batch = Step(obs=obs.astype(jnp.int16), reset=jnp.zeros((rows, 1), bool), action=jnp.zeros((rows, 1), jnp.int8),
-                 reward=jnp.zeros((rows, 1)), done=jnp.zeros((rows, 1), bool))  # action 0 at the learning row
+    batch = Step(
+        obs=obs.astype(jnp.int16),
+        reset=jnp.zeros((rows, 1), bool),
+        action=jnp.zeros((rows, 1), jnp.int8),
+        reward=jnp.zeros((rows, 1)),
+        done=jnp.zeros((rows, 1), bool),
+    )  # action 0 at the learning row
     rewards = jnp.full((rows, 1), 9.0).at[c].set(0.5)  # learned from as 1 (reward_scale 2)
 
     total, info = agent.loss(params, target, batch, obs, rewards, jnp.ones((rows, 1)))
@@ -140,8 +162,9 @@ def test_the_learners_loss_combines_the_three_by_hand():
     np.testing.assert_allclose([info["alpha"], info["entropy"], info["q_mean"]], [2.0, 1.039721, 3.0], rtol=1e-5)
     # The episode ends at the learning row: y = 1, critics (5 - 1)^2 + (3 - 1)^2 = 20.
     ended = batch.replace(done=batch.done.at[c].set(True))
-    np.testing.assert_allclose(agent.loss(params, target, ended, obs, rewards, jnp.ones((rows, 1)))[1]["critic_loss"],
-                               20.0, rtol=1e-6)
+    np.testing.assert_allclose(
+        agent.loss(params, target, ended, obs, rewards, jnp.ones((rows, 1)))[1]["critic_loss"], 20.0, rtol=1e-6
+    )
 
 
 # --- the learner --------------------------------------------------------------------------------------
@@ -222,14 +245,17 @@ def test_two_seeds_through_the_driver(tmp_path):
     assert _same(policy.params["actor"], jax.tree.map(lambda x: x[1], state.params["actor"]))
 
 
-@pytest.mark.parametrize("options,message", [
-    (dict(hidden_sizes="64,x"), "hidden_sizes must be comma-separated ints >= 1"),
-    (dict(hidden_sizes="64,0"), "hidden_sizes must be comma-separated ints >= 1"),
-    (dict(tau=0.0), r"tau must be a number in \(0, 1\]"),
-    (dict(target_entropy_fraction=1.5), r"target_entropy_fraction must be a number in \[0, 1\]"),
-    (dict(initial_alpha=0.0), "initial_alpha must be a number > 0"),
-    (dict(eps_end=0.1), "unknown sac option"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        (dict(hidden_sizes="64,x"), "hidden_sizes must be comma-separated ints >= 1"),
+        (dict(hidden_sizes="64,0"), "hidden_sizes must be comma-separated ints >= 1"),
+        (dict(tau=0.0), r"tau must be a number in \(0, 1\]"),
+        (dict(target_entropy_fraction=1.5), r"target_entropy_fraction must be a number in \[0, 1\]"),
+        (dict(initial_alpha=0.0), "initial_alpha must be a number > 0"),
+        (dict(eps_end=0.1), "unknown sac option"),
+    ],
+)
 def test_config_errors_are_clear(options, message):
     with pytest.raises(ValueError, match=message):
         make_config("sac", "1d-static-sin", **options)
@@ -246,7 +272,7 @@ def test_network_widths_follow_the_papers_appendix_per_dimension():
         net = shapes[part]["params"]
         net = net["VmapActionHead_0"] if part == "critic" else net
         widths = [net["ObservationEncoder_0"][f"Dense_{i}"]["kernel"].shape for i in range(3)]
-        assert [w[:len(lead)] for w in widths] == [lead] * 3 and [w[-1] for w in widths] == [64, 128, 64], part
+        assert [w[: len(lead)] for w in widths] == [lead] * 3 and [w[-1] for w in widths] == [64, 128, 64], part
         assert net["Dense_0"]["kernel"].shape[-1] == 5  # one output per 2D action
 
 
@@ -267,8 +293,9 @@ def test_resume_gives_the_uninterrupted_result_and_the_checkpoint_evaluates(tmp_
         if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    result = evaluate_task("1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"),
-                           episodes_per_test_design=2, max_steps=20)
+    result = evaluate_task(
+        "1d-dynamic", lambda env: checkpoint_policy(env, tmp_path / "cut"), episodes_per_test_design=2, max_steps=20
+    )
     assert result.episodes == 20 and 0.0 <= result.mean <= 1.0
 
 
@@ -281,10 +308,40 @@ def test_cli_trains_sac_and_evaluates_it(tmp_path):
 
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "sac", "--task", "1d-static-step", "--total-steps", "512",
-           "--num-envs", "8", "--rollout-steps", "8", "--batch-size", "8", "--hidden-sizes", "8,8", "--buffer-size",
-           "256", "--learning-starts", "0", "--max-steps", "40", "--chunks", "2", "--out", str(out),
-           "--eval-episodes", "2", "--no-progress", "--seeds", "2"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "sac",
+        "--task",
+        "1d-static-step",
+        "--total-steps",
+        "512",
+        "--num-envs",
+        "8",
+        "--rollout-steps",
+        "8",
+        "--batch-size",
+        "8",
+        "--hidden-sizes",
+        "8,8",
+        "--buffer-size",
+        "256",
+        "--learning-starts",
+        "0",
+        "--max-steps",
+        "40",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "2",
+        "--no-progress",
+        "--seeds",
+        "2",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "replay on device" in result.stderr

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from agents.common.safe_drops import allowed_actions, neighbour_drop_targets
 from agents.learners.pqn import PQN, PQNConfig
 from agents.research.pqn_aux import PQNAux, PQNAuxConfig
-from agents.common.safe_drops import allowed_actions, neighbour_drop_targets
 from snac_jax import make
 from snac_jax.observation import LANDMARK_VALUE
 
@@ -27,13 +27,16 @@ def test_each_neighbour_drop_targets_its_neighbour_in_the_window():
     assert neighbour_drop_targets(CONFIG_3D).tolist() == [-1, -1, -1, -1, LEFT, RIGHT, DOWN, UP]
 
 
-@pytest.mark.parametrize("neighbours, refused", [
-    ((2, -1, 1, 0), [7]),  # up is the only free neighbour: the drop on it is refused
-    ((0, -1, 1, 0), []),  # two free: a drop on either leaves the other
-    ((2, -1, 1, LANDMARK_VALUE), []),  # a landmark is free, but a drop on it lands nowhere (SPEC §9)
-    ((2, -1, 1, 3), []),  # already stuck: stacking closes nothing new
-    ((LANDMARK_VALUE, -1, 1, 0), []),  # up and the landmark on the left are free
-])
+@pytest.mark.parametrize(
+    "neighbours, refused",
+    [
+        ((2, -1, 1, 0), [7]),  # up is the only free neighbour: the drop on it is refused
+        ((0, -1, 1, 0), []),  # two free: a drop on either leaves the other
+        ((2, -1, 1, LANDMARK_VALUE), []),  # a landmark is free, but a drop on it lands nowhere (SPEC §9)
+        ((2, -1, 1, 3), []),  # already stuck: stacking closes nothing new
+        ((LANDMARK_VALUE, -1, 1, 0), []),  # up and the landmark on the left are free
+    ],
+)
 def test_only_a_drop_on_the_last_free_neighbour_is_refused(neighbours, refused):
     allowed = np.asarray(allowed_actions(CONFIG_3D, window(*neighbours)))
     assert [a for a in range(8) if not allowed[a]] == refused
@@ -53,8 +56,20 @@ def test_safe_drops_without_the_obstacle_rule_is_refused_naming_the_switch():
 
 
 def tiny(safe_drops: bool) -> PQN:
-    return PQN(PQNConfig(task="3d-static-dense", num_envs=8, num_minibatches=2, rollout_steps=32, hidden_size=8,
-                         rnn_size=8, eps_start=1.0, eps_end=1.0, stagger_starts=False, safe_drops=safe_drops))
+    return PQN(
+        PQNConfig(
+            task="3d-static-dense",
+            num_envs=8,
+            num_minibatches=2,
+            rollout_steps=32,
+            hidden_size=8,
+            rnn_size=8,
+            eps_start=1.0,
+            eps_end=1.0,
+            stagger_starts=False,
+            safe_drops=safe_drops,
+        )
+    )
 
 
 @pytest.mark.parametrize("safe_drops", [True, False])
@@ -86,7 +101,6 @@ def test_the_greedy_policy_never_takes_a_refused_drop(safe_drops):
     assert (int(action) != 6) if safe_drops else (int(action) == 6)
 
 
-
 def with_drop_down_first(params):
     """The Q head's bias for action 6 (drop down) raised far above every other action."""
     head = params["params"]["Dense_0"]
@@ -99,8 +113,20 @@ def test_the_greedy_rollout_and_its_bootstrap_skip_the_refused_drop(learner, con
     # Greedy (epsilon 0) from staggered starts, the head preferring the drop down everywhere: where
     # down is the last free neighbour, the rollout must act otherwise and bootstrap from the best
     # allowed action, not from the refused drop's 1e3 (pqn-aux's rollout is its own: both checked).
-    pqn = learner(config(task="3d-static-dense", num_envs=32, num_minibatches=2, rollout_steps=64, hidden_size=8,
-                         rnn_size=8, eps_start=0.0, eps_end=0.0, stagger_starts=True, safe_drops=safe_drops))
+    pqn = learner(
+        config(
+            task="3d-static-dense",
+            num_envs=32,
+            num_minibatches=2,
+            rollout_steps=64,
+            hidden_size=8,
+            rnn_size=8,
+            eps_start=0.0,
+            eps_end=0.0,
+            stagger_starts=True,
+            safe_drops=safe_drops,
+        )
+    )
     state = pqn.init(jax.random.key(0))
     state = state.replace(params=with_drop_down_first(state.params))
     after, batch, _ = jax.jit(pqn.rollout)(state, pqn.env_params)

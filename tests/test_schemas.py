@@ -33,9 +33,17 @@ def _edit(path: Path, edit) -> Path:
 
 
 def test_the_checker_names_the_field_and_what_it_allows(tmp_path):
-    spec = Object({"n": Int(1), "x": Number(0.0, 1.0), "flag": Bool(), "kind": Str(("a", "b")),
-                   "rows": MapOf(Object({"v": Nullable(Int(0, 9))})), "list": ListOf(OneOf(1, 2, 3))},
-                  {"note": Str()})
+    spec = Object(
+        {
+            "n": Int(1),
+            "x": Number(0.0, 1.0),
+            "flag": Bool(),
+            "kind": Str(("a", "b")),
+            "rows": MapOf(Object({"v": Nullable(Int(0, 9))})),
+            "list": ListOf(OneOf(1, 2, 3)),
+        },
+        {"note": Str()},
+    )
     good = {"n": 1, "x": 0.5, "flag": False, "kind": "a", "rows": {"r 1": {"v": None}}, "list": [1, 3]}
     assert schema.check(good, spec, "f.json") is good
     cases = {
@@ -101,13 +109,22 @@ def test_cell_json_and_eval_json_schemas_read_every_committed_cell(tmp_path):
     schemas.load(ROOT / "bench" / "results" / "handcrafted.json", schemas.EVAL_JSON)
     cell = tmp_path / "cell"
     write_cell(cell)
-    _refused(_edit(cell / "cell.json", lambda d: d["budget"].update(capped="no")), schemas.CELL_JSON,
-             "cell.json: budget.capped must be true or false, got 'no'")
-    _refused(_edit(cell / "eval.json", lambda d: d["1d-static-sin (seed 1)"].update(min=-3.0)), schemas.EVAL_JSON,
-             "eval.json: ['1d-static-sin (seed 1)'].min must be a finite number in [0, 1], got -3.0")
+    _refused(
+        _edit(cell / "cell.json", lambda d: d["budget"].update(capped="no")),
+        schemas.CELL_JSON,
+        "cell.json: budget.capped must be true or false, got 'no'",
+    )
+    _refused(
+        _edit(cell / "eval.json", lambda d: d["1d-static-sin (seed 1)"].update(min=-3.0)),
+        schemas.EVAL_JSON,
+        "eval.json: ['1d-static-sin (seed 1)'].min must be a finite number in [0, 1], got -3.0",
+    )
     write_cell(cell)
-    _refused(_edit(cell / "eval.json", lambda d: d["1d-static-sin (seed 1)"].update(per_design={"t0": {"mean": 2}})),
-             schemas.EVAL_JSON, "eval.json: ['1d-static-sin (seed 1)'].per_design.t0.mean must be a finite number in [0, 1]")
+    _refused(
+        _edit(cell / "eval.json", lambda d: d["1d-static-sin (seed 1)"].update(per_design={"t0": {"mean": 2}})),
+        schemas.EVAL_JSON,
+        "eval.json: ['1d-static-sin (seed 1)'].per_design.t0.mean must be a finite number in [0, 1]",
+    )
     (cell / "eval.json").write_text("{}")
     _refused(cell / "eval.json", schemas.EVAL_JSON, "eval.json: it must have at least 1 entries, got 0")
 
@@ -122,22 +139,34 @@ def test_a_cells_raw_copy_is_checked_part_by_part_naming_the_part_and_the_field(
     copy.parent.mkdir(parents=True)
     copy.write_text(raw_text(read_cell(cell)))
     assert read_raw(copy)["eval"] == json.loads((cell / "eval.json").read_text())
-    _refused(_edit(copy, lambda d: d["cell"]["budget"].update(capped="no")), schemas.RAW_CELL_JSON,
-             "1d-static-sin.json: cell.budget.capped must be true or false, got 'no'")
+    _refused(
+        _edit(copy, lambda d: d["cell"]["budget"].update(capped="no")),
+        schemas.RAW_CELL_JSON,
+        "1d-static-sin.json: cell.budget.capped must be true or false, got 'no'",
+    )
     copy.write_text(raw_text(read_cell(cell)))
-    _refused(_edit(copy, lambda d: d["curve"].append({"chunk": 1, "wall_s": -1.0})), schemas.RAW_CELL_JSON,
-             "1d-static-sin.json: curve[1].wall_s must be a finite number >= 0")
+    _refused(
+        _edit(copy, lambda d: d["curve"].append({"chunk": 1, "wall_s": -1.0})),
+        schemas.RAW_CELL_JSON,
+        "1d-static-sin.json: curve[1].wall_s must be a finite number >= 0",
+    )
     copy.write_text(raw_text(read_cell(cell)))
-    _refused(_edit(copy, lambda d: d["curve"].append({"iou": 0.5})), schemas.RAW_CELL_JSON,
-             "1d-static-sin.json: curve[1].chunk must be an int >= 0, got None")
+    _refused(
+        _edit(copy, lambda d: d["curve"].append({"iou": 0.5})),
+        schemas.RAW_CELL_JSON,
+        "1d-static-sin.json: curve[1].chunk must be an int >= 0, got None",
+    )
     copy.write_text(raw_text(read_cell(cell)))
     _refused(_edit(copy, lambda d: d.pop("eval")), schemas.RAW_CELL_JSON, "1d-static-sin.json: eval is missing")
     # A copy under another cell's name is refused, naming both.
     copy.write_text(raw_text(read_cell(cell)))
     elsewhere = copy.with_name("1d-static-gauss.json")
     copy.rename(elsewhere)
-    with pytest.raises(ValueError, match=r"gauss.json: cell: its algorithm and task \(ppo/1d-static-sin\) are not where it "
-                                         r"stands \(ppo/1d-static-gauss\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"gauss.json: cell: its algorithm and task \(ppo/1d-static-sin\) are not where it "
+        r"stands \(ppo/1d-static-gauss\)",
+    ):
         read_raw(elsewhere)
 
 
@@ -153,7 +182,9 @@ def test_human_record_schema_names_the_line_and_the_field(tmp_path):
     assert schema.check(line, schema.HUMAN_RECORD, "h.jsonl:1") is line
     path = tmp_path / "h.jsonl"
     path.write_text(honest.to_json() + "\n" + json.dumps({**line, "iou": 7.5}) + "\n")
-    with pytest.raises(ValueError, match=r"h.jsonl:2: not a valid human record \(iou must be a finite number in \[0, 1\], got 7.5\)$"):
+    with pytest.raises(
+        ValueError, match=r"h.jsonl:2: not a valid human record \(iou must be a finite number in \[0, 1\], got 7.5\)$"
+    ):
         records.load_records(path)
     path.write_text(json.dumps({**line, "terminated": "no"}) + "\n")
     with pytest.raises(ValueError, match=r"h.jsonl:1: .*terminated must be true or false, got 'no'"):

@@ -25,7 +25,9 @@ def _trajectory(key, env, params, reset: str | None, num_envs: int, num_steps: i
     def body(states, step_key):
         key_act, key_step = jax.random.split(step_key)
         actions = uniform_actions(key_act, num_envs, env.num_actions)
-        obs, states, reward, terminated, truncated, info = step(jax.random.split(key_step, num_envs), states, actions, params)
+        obs, states, reward, terminated, truncated, info = step(
+            jax.random.split(key_step, num_envs), states, actions, params
+        )
         return states, (obs, reward, terminated, truncated, info, states)
 
     return jax.lax.scan(body, states, jax.random.split(key, num_steps))
@@ -34,9 +36,14 @@ def _trajectory(key, env, params, reset: str | None, num_envs: int, num_steps: i
 @pytest.mark.parametrize("reset", ["loop", "select"])
 @pytest.mark.parametrize(
     "task,overrides",
-    [("3d-static-sparse", {}), ("2d-dynamic-sparse", {"design_bank_size": 64, "max_steps": 40}),
-     ("1d-dynamic", {"design_bank_size": 8, "max_steps": 30}), ("1d-static-sin", {"max_steps": 25}),
-     ("2d-static-dense", {"max_steps": 35}), ("3d-dynamic-dense", {"landmarks": 4, "design_bank_size": 16})],
+    [
+        ("3d-static-sparse", {}),
+        ("2d-dynamic-sparse", {"design_bank_size": 64, "max_steps": 40}),
+        ("1d-dynamic", {"design_bank_size": 8, "max_steps": 30}),
+        ("1d-static-sin", {"max_steps": 25}),
+        ("2d-static-dense", {"max_steps": 35}),
+        ("3d-dynamic-dense", {"landmarks": 4, "design_bank_size": 16}),
+    ],
 )
 def test_step_batch_equals_vmapped_step(task, overrides, reset):
     env, params = make(task, **overrides)

@@ -15,8 +15,18 @@ from agents.training import driver
 from agents.training.registry import make_config
 from agents.training.sweep import Sweep, check_traceable, parse_sweep
 
-TINY = dict(num_envs=8, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8,
-            total_steps=256, chunks=2, max_steps=30, seeds=2)
+TINY = dict(
+    num_envs=8,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    hidden_size=8,
+    rnn_size=8,
+    total_steps=256,
+    chunks=2,
+    max_steps=30,
+    seeds=2,
+)
 VALUES = (1e-3, 3e-2)
 
 
@@ -36,8 +46,13 @@ def _assert_same_learning(a: list[dict], b: list[dict]) -> None:
         measured = {name for name, value in ra.items() if isinstance(value, list)}
         assert measured == {name for name, value in rb.items() if isinstance(value, list)} and "loss" in measured
         for name in measured:
-            np.testing.assert_allclose(np.asarray(ra[name], float), np.asarray(rb[name], float), rtol=2e-4, atol=1e-6,
-                                       err_msg=f"chunk {ra['chunk']} {name}")
+            np.testing.assert_allclose(
+                np.asarray(ra[name], float),
+                np.asarray(rb[name], float),
+                rtol=2e-4,
+                atol=1e-6,
+                err_msg=f"chunk {ra['chunk']} {name}",
+            )
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +68,10 @@ def test_a_sweep_of_two_values_and_two_seeds_equals_the_separate_runs(sweep_run)
     base, config, swept = sweep_run
     assert swept.num_arms == 2 and swept.arms == ((VALUES[0],), (VALUES[1],))
     run = base / "sweep"
-    assert json.loads((run / "sweep.json").read_text()) == {"names": ["learning_rate"], "arms": [[VALUES[0]], [VALUES[1]]]}
+    assert json.loads((run / "sweep.json").read_text()) == {
+        "names": ["learning_rate"],
+        "arms": [[VALUES[0]], [VALUES[1]]],
+    }
     for arm, value in enumerate(VALUES):
         arm_config = json.loads((run / "arms" / str(arm) / "config.json").read_text())
         assert arm_config["learning_rate"] == value and arm_config["seeds"] == 2
@@ -76,16 +94,19 @@ def test_a_stopped_sweep_resumes_to_the_uninterrupted_result(sweep_run, tmp_path
         assert len(_records(tmp_path / "cut" / "arms" / str(arm))) == 2
 
 
-@pytest.mark.parametrize("spec,phrase", [
-    ("num_envs=8,16", "num_envs cannot be swept in one program: it sets shapes or loop counts"),
-    ("hidden_size=8,16", "hidden_size cannot be swept in one program: it sets shapes or loop counts"),
-    ("recurrent=0,1", "recurrent cannot be swept in one program: it changes the program's structure"),
-    ("lr=1,2", "ppo has no setting 'lr'; sweepable: "),
-    ("gamma=0.9,1.5", "gamma must be a number in [0, 1], got 1.5"),
-    ("gamma=0.9,0.9", "a value is given twice"),
-    ("gamma=0.9,x", "values must be numbers separated by commas"),
-    ("gamma", "--sweep takes NAME=V1,V2"),
-])
+@pytest.mark.parametrize(
+    "spec,phrase",
+    [
+        ("num_envs=8,16", "num_envs cannot be swept in one program: it sets shapes or loop counts"),
+        ("hidden_size=8,16", "hidden_size cannot be swept in one program: it sets shapes or loop counts"),
+        ("recurrent=0,1", "recurrent cannot be swept in one program: it changes the program's structure"),
+        ("lr=1,2", "ppo has no setting 'lr'; sweepable: "),
+        ("gamma=0.9,1.5", "gamma must be a number in [0, 1], got 1.5"),
+        ("gamma=0.9,0.9", "a value is given twice"),
+        ("gamma=0.9,x", "values must be numbers separated by commas"),
+        ("gamma", "--sweep takes NAME=V1,V2"),
+    ],
+)
 def test_a_sweep_that_would_need_a_program_per_arm_or_is_malformed_is_refused(spec, phrase):
     with pytest.raises(ValueError, match=r"^.*$") as caught:
         parse_sweep([spec], _config())
@@ -101,21 +122,38 @@ def test_the_grid_is_the_product_of_the_values_first_name_slowest():
 
 
 def test_a_float_the_learner_reads_outside_the_trace_is_refused_before_training():
-    config = make_config("dqn", "1d-static-sin", num_envs=8, rollout_steps=8, total_steps=512, learning_starts=0,
-                         batch_size=8, buffer_size=256)
+    config = make_config(
+        "dqn",
+        "1d-static-sin",
+        num_envs=8,
+        rollout_steps=8,
+        total_steps=512,
+        learning_starts=0,
+        batch_size=8,
+        buffer_size=256,
+    )
     swept = parse_sweep(["exploration_fraction=0.1,0.5"], config)
     with pytest.raises(ValueError, match="reads exploration_fraction outside the traced computation"):
         check_traceable(config, swept)
     check_traceable(_config(), parse_sweep(["learning_rate=1e-3,2e-3", "gamma=0.9,0.99"], _config()))
 
 
-@pytest.mark.parametrize("argv,phrase", [
-    (["--sweep", "num-envs=8,16"], "num_envs cannot be swept in one program"),
-    (["--learning-rate", "0.001", "--sweep", "learning-rate=1e-3,2e-3"], "--learning-rate and --sweep learning_rate=... both set"),
-])
+@pytest.mark.parametrize(
+    "argv,phrase",
+    [
+        (["--sweep", "num-envs=8,16"], "num_envs cannot be swept in one program"),
+        (
+            ["--learning-rate", "0.001", "--sweep", "learning-rate=1e-3,2e-3"],
+            "--learning-rate and --sweep learning_rate=... both set",
+        ),
+    ],
+)
 def test_snac_train_refuses_a_bad_sweep_in_one_line(argv, phrase, tmp_path):
-    done = subprocess.run([sys.executable, "-m", "snac_jax.cli", "train", "ppo", "--no-progress", "--out", str(tmp_path / "run"),
-                           *argv], capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, "-m", "snac_jax.cli", "train", "ppo", "--no-progress", "--out", str(tmp_path / "run"), *argv],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines() == [done.stderr.strip()] and phrase in done.stderr
     assert not (tmp_path / "run").exists()

@@ -33,7 +33,9 @@ def test_gps_appends_the_true_position_and_changes_nothing_else(task):
     np.testing.assert_array_equal(obs_g[:-1, -n:][~done], position[~done])
 
 
-@pytest.mark.parametrize("probs,expected", [((1, 0, 0), {1}), ((0, 0, 1), {3}), ((0.5, 0.5, 0), {1, 2}), ((1 / 3,) * 3, {1, 2, 3})])
+@pytest.mark.parametrize(
+    "probs,expected", [((1, 0, 0), {1}), ((0, 0, 1), {3}), ((0.5, 0.5, 0), {1, 2}), ((1 / 3,) * 3, {1, 2, 3})]
+)
 def test_stride_distribution(probs, expected):
     _, _, (_, (*_, info, _)) = _run("2d-static-dense", stride_probs=probs)
     assert set(np.unique(info["stride"])) == expected
@@ -54,7 +56,9 @@ def test_obstacles_in_2d_use_the_3d_action_set_and_rule():
 
 
 def test_is_stuck_is_the_rule_the_transition_ends_episodes_on():
-    env, params, (_, (obs, act, rew, term, trunc, info, state)) = _run("2d-static-dense", seed=1, steps=2000, obstacles=True)
+    env, params, (_, (obs, act, rew, term, trunc, info, state)) = _run(
+        "2d-static-dense", seed=1, steps=2000, obstacles=True
+    )
     stuck = np.asarray(jax.vmap(lambda s: is_stuck(env.config, s))(state))  # of the state before each step
     terminated = np.asarray(jax.vmap(env.is_terminated, in_axes=(0, None))(state, params))
     assert stuck.any()
@@ -64,7 +68,9 @@ def test_is_stuck_is_the_rule_the_transition_ends_episodes_on():
 
 
 def test_no_obstacles_in_3d_lets_the_robot_stand_on_bricks_and_never_sticks():
-    env, _, (_, (obs, act, rew, term, trunc, info, state)) = _run("3d-static-dense", seed=2, steps=3000, obstacles=False)
+    env, _, (_, (obs, act, rew, term, trunc, info, state)) = _run(
+        "3d-static-dense", seed=2, steps=3000, obstacles=False
+    )
     assert env.num_actions == 8
     pr, pc = env.config.pad
     on_cell = state.grid[np.arange(len(act)), state.position[:, 0] + pr, state.position[:, 1] + pc]
@@ -130,18 +136,32 @@ def test_switches_as_text_parse_to_make_overrides():
 
     assert parse_switches("") == {}
     assert parse_switches("gps=true, stride_probs=1/0/0,landmarks=8,obstacles=False,reward_scheme=height") == {
-        "gps": True, "stride_probs": (1.0, 0.0, 0.0), "landmarks": 8, "obstacles": False, "reward_scheme": "height"}
+        "gps": True,
+        "stride_probs": (1.0, 0.0, 0.0),
+        "landmarks": 8,
+        "obstacles": False,
+        "reward_scheme": "height",
+    }
     env, _ = make("2d-static-dense", **parse_switches("obstacles=true,landmarks=8"))
     assert env.config.obstacles and env.config.num_landmarks == 8
 
 
-@pytest.mark.parametrize("text, message", [
-    ("gps", r"switch 'gps' must be key=value; allowed keys: gps, stride_probs, obstacles, landmarks, reward_scheme"),
-    ("max_steps=10", r"unknown switch 'max_steps'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme"),
-    ("gps=true,gps=false", "switch 'gps' is given twice"),
-    ("stride_probs=1/a/0", "numbers joined by '/' expected"),
-    (None, "switches must be a string"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            "gps",
+            r"switch 'gps' must be key=value; allowed keys: gps, stride_probs, obstacles, landmarks, reward_scheme",
+        ),
+        (
+            "max_steps=10",
+            r"unknown switch 'max_steps'; allowed: gps, stride_probs, obstacles, landmarks, reward_scheme",
+        ),
+        ("gps=true,gps=false", "switch 'gps' is given twice"),
+        ("stride_probs=1/a/0", "numbers joined by '/' expected"),
+        (None, "switches must be a string"),
+    ],
+)
 def test_bad_switch_text_is_refused(text, message):
     from snac_jax.tasks import parse_switches
 
@@ -152,24 +172,27 @@ def test_bad_switch_text_is_refused(text, message):
 # --- SPEC §14-15: the landmark action and design changes as overrides and as text ---------------
 
 
-@pytest.mark.parametrize("task,overrides,match", [
-    ("2d-static-sparse", {"landmark_action": -1}, "landmark_action must be an int in 0..400"),
-    ("2d-static-sparse", {"landmark_action": True}, "landmark_action must be an int in 0..400"),
-    ("2d-static-sparse", {"landmark_action": 2.0}, "landmark_action must be an int in 0..400"),
-    ("2d-static-sparse", {"landmark_action": 401}, "landmark_action must be an int in 0..400"),
-    ("1d-static-sin", {"landmark_action": 2}, "landmark_action needs a 2D or 3D task"),
-    ("2d-static-sparse", {"design_change": (100, 300)}, "design_change applies to dynamic tasks only"),
-    ("2d-dynamic-dense", {"design_change": (300, 100)}, r"1 <= a <= b < max_steps=600"),
-    ("2d-dynamic-dense", {"design_change": (0, 100)}, r"1 <= a <= b < max_steps=600"),
-    ("2d-dynamic-dense", {"design_change": (-5, 100)}, r"1 <= a <= b < max_steps=600"),
-    ("2d-dynamic-dense", {"design_change": (100, 600)}, r"1 <= a <= b < max_steps=600"),
-    ("2d-dynamic-dense", {"design_change": (10, 20), "max_steps": 15}, r"b < max_steps=15"),
-    ("2d-dynamic-dense", {"design_change": (1.5, 20)}, "design_change must be two ints"),
-    ("2d-dynamic-dense", {"design_change": 100}, "design_change must be two ints"),
-    ("2d-dynamic-dense", {"design_change": (1, 2, 3)}, "design_change must be two ints"),
-    ("2d-dynamic-dense", {"design_change": (1, 2), "test_design": 0}, "cannot be combined with test_design"),
-    ("2d-dynamic-dense", {"design_change": (1, 2), "design_bank_size": 1}, "at least 2 designs"),
-])
+@pytest.mark.parametrize(
+    "task,overrides,match",
+    [
+        ("2d-static-sparse", {"landmark_action": -1}, "landmark_action must be an int in 0..400"),
+        ("2d-static-sparse", {"landmark_action": True}, "landmark_action must be an int in 0..400"),
+        ("2d-static-sparse", {"landmark_action": 2.0}, "landmark_action must be an int in 0..400"),
+        ("2d-static-sparse", {"landmark_action": 401}, "landmark_action must be an int in 0..400"),
+        ("1d-static-sin", {"landmark_action": 2}, "landmark_action needs a 2D or 3D task"),
+        ("2d-static-sparse", {"design_change": (100, 300)}, "design_change applies to dynamic tasks only"),
+        ("2d-dynamic-dense", {"design_change": (300, 100)}, r"1 <= a <= b < max_steps=600"),
+        ("2d-dynamic-dense", {"design_change": (0, 100)}, r"1 <= a <= b < max_steps=600"),
+        ("2d-dynamic-dense", {"design_change": (-5, 100)}, r"1 <= a <= b < max_steps=600"),
+        ("2d-dynamic-dense", {"design_change": (100, 600)}, r"1 <= a <= b < max_steps=600"),
+        ("2d-dynamic-dense", {"design_change": (10, 20), "max_steps": 15}, r"b < max_steps=15"),
+        ("2d-dynamic-dense", {"design_change": (1.5, 20)}, "design_change must be two ints"),
+        ("2d-dynamic-dense", {"design_change": 100}, "design_change must be two ints"),
+        ("2d-dynamic-dense", {"design_change": (1, 2, 3)}, "design_change must be two ints"),
+        ("2d-dynamic-dense", {"design_change": (1, 2), "test_design": 0}, "cannot be combined with test_design"),
+        ("2d-dynamic-dense", {"design_change": (1, 2), "design_bank_size": 1}, "at least 2 designs"),
+    ],
+)
 def test_extension_switches_are_checked_at_make(task, overrides, match):
     with pytest.raises(ValueError, match=match) as error:
         make(task, **overrides)
@@ -189,7 +212,9 @@ def test_parse_switches_reads_the_extensions():
     from snac_jax.tasks import parse_switches
 
     assert parse_switches("landmark_action=4,design_change=100/300") == {
-        "landmark_action": 4, "design_change": (100, 300)}
+        "landmark_action": 4,
+        "design_change": (100, 300),
+    }
     with pytest.raises(ValueError, match="two step numbers a/b"):
         parse_switches("design_change=1.5/3")
     env, _ = make("2d-dynamic-sparse", design_bank_size=4, **parse_switches("design_change=100/300,landmark_action=2"))

@@ -17,11 +17,11 @@ from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED, make_plan
 from agents.table.plan_format import format_plan
 from agents.table.presets import Variant, expand_tasks, load_presets
-from agents.table.report import build, markdown
 from agents.table.raw import READ_FROM_ADOPTED
+from agents.table.report import build, markdown
+from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from tests.table_cells import cell_files as _files
 from tests.table_cells import write_record
-from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 
 PRESETS = load_presets()
 
@@ -40,15 +40,20 @@ def _run_cli(argv: list[str]) -> int:
 
 def test_paper_columns_expand_to_environment_tasks():
     assert expand_tasks(["1d-static", "1d-static-sin", "2d-static-dense"]) == [
-        ("1d-static", "1d-static-sin"), ("1d-static", "1d-static-gauss"), ("1d-static", "1d-static-step"),
-        ("2d-static-dense", "2d-static-dense")]
+        ("1d-static", "1d-static-sin"),
+        ("1d-static", "1d-static-gauss"),
+        ("1d-static", "1d-static-step"),
+        ("2d-static-dense", "2d-static-dense"),
+    ]
     with pytest.raises(ValueError, match="unknown task"):
         expand_tasks(["4d-static"])
 
 
 def test_paper_budgets_estimates_and_caps(tmp_path):
-    rates = {"ppo": {"1d-static-sin": {"steps_per_s": 30_000, "eval_s": 10.0}},
-             "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
+    rates = {
+        "ppo": {"1d-static-sin": {"steps_per_s": 30_000, "eval_s": 10.0}},
+        "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
+    }
     cells = make_plan(PRESETS["paper"], ["ppo", "drqn", "dqn"], ["1d-static", "2d-static-dense"], 3, tmp_path, rates)
     by = {(c.algorithm, c.task): c for c in cells}
     assert len(cells) == 3 * 4 and {c.status for c in cells} == {"new"}
@@ -74,12 +79,15 @@ def test_paper_budgets_estimates_and_caps(tmp_path):
 
 def test_an_algorithms_own_wall_limit_replaces_the_presets(tmp_path):
     (tmp_path / "own.toml").write_text(
-        '[a]\nseeds = 3\nwall_limit_minutes = 30\n[a.budgets]\n'
-        'drqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\nppo = { env_steps = 10_000_000, source = "s" }\n')
+        "[a]\nseeds = 3\nwall_limit_minutes = 30\n[a.budgets]\n"
+        'drqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\nppo = { env_steps = 10_000_000, source = "s" }\n'
+    )
     preset = load_presets(tmp_path / "own.toml")["a"]
     assert (preset.wall_limit("drqn"), preset.wall_limit("ppo"), preset.wall_limit("dqn")) == (3600.0, 1800.0, 1800.0)
-    rates = {"drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
-             "ppo": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
+    rates = {
+        "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
+        "ppo": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
+    }
     drqn, ppo = make_plan(preset, ["drqn", "ppo"], ["1d-static-sin"], None, tmp_path, rates)
     # (3600 s - 3 x 10 s) x 3000/s / 3 seeds = 3.57M -> 3.5M; PPO keeps the preset's 30 minutes: 1.7M.
     assert (drqn.budget.env_steps, drqn.budget.capped, ppo.budget.env_steps) == (3_500_000, True, 1_700_000)
@@ -87,10 +95,16 @@ def test_an_algorithms_own_wall_limit_replaces_the_presets(tmp_path):
     assert "capped to fit ~30 min per cell (drqn 60)" in text
     assert "drqn capped: the largest budget (two significant figures) whose estimate fits 60 min" in text
     assert "ppo capped: the largest budget (two significant figures) whose estimate fits 30 min" in text
-    _refused(tmp_path / "bad.toml", '[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_limit_minutes = 0 }\n',
-             "drqn's wall_limit_minutes must be a positive number of minutes, got 0")
-    _refused(tmp_path / "odd.toml", '[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_minutes = 5 }\n',
-             "may give its own wall_limit_minutes")
+    _refused(
+        tmp_path / "bad.toml",
+        "[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_limit_minutes = 0 }\n",
+        "drqn's wall_limit_minutes must be a positive number of minutes, got 0",
+    )
+    _refused(
+        tmp_path / "odd.toml",
+        "[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_minutes = 5 }\n",
+        "may give its own wall_limit_minutes",
+    )
 
 
 def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, monkeypatch):
@@ -114,7 +128,6 @@ def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, 
         make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path, faster)
 
 
-
 def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, monkeypatch):
     from agents.training import checkpoint
     from agents.training.config import save_config
@@ -123,16 +136,28 @@ def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, mo
     assert (paper.seeds, paper.cheap_seeds, paper.cheap_minutes) == (3, 5, 5.0)
     # PPO's 10M steps (9,961,472 trained) x 5 seeds: at 1M steps/s and 1 s of evaluation per seed,
     # 49.8 s + 5 s < 300 s (cheap); at 100k steps/s, 498 s + 5 s is not.
-    rates = {"ppo": {"1d-static-sin": {"steps_per_s": 1_000_000, "eval_s": 1.0},
-                     "2d-static-dense": {"steps_per_s": 100_000, "eval_s": 1.0}}}
+    rates = {
+        "ppo": {
+            "1d-static-sin": {"steps_per_s": 1_000_000, "eval_s": 1.0},
+            "2d-static-dense": {"steps_per_s": 100_000, "eval_s": 1.0},
+        }
+    }
     seeds = lambda cells: {c.task: c.config.seeds for c in cells}
     cells = make_plan(paper, ["ppo"], ["1d-static", "2d-static-dense"], None, tmp_path, rates)
     assert seeds(cells) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5, "2d-static-dense": 3}
     assert cells[0].estimate_s == pytest.approx(5 * 9_961_472 / 1_000_000 + 5)
     assert "3 seeds each, 5 on cheap columns (each cell estimated under 5 min" in format_plan(cells, tmp_path)
     # One shape asked alone is judged with its column: the gauss and step shapes decide too.
-    assert seeds(make_plan(paper, ["ppo"], ["1d-static-sin"], None, tmp_path, {
-        "ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}})) == {"1d-static-sin": 3}
+    assert seeds(
+        make_plan(
+            paper,
+            ["ppo"],
+            ["1d-static-sin"],
+            None,
+            tmp_path,
+            {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}},
+        )
+    ) == {"1d-static-sin": 3}
     # One shape that is not cheap keeps the whole column at 3: the table averages shapes per seed index.
     step_slow = {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}}
     assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)).values()) == {3}
@@ -155,8 +180,10 @@ def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, mo
 
 
 def test_cheap_seeds_below_seeds_is_refused(tmp_path):
-    _refused(tmp_path / "fewer.toml", "[a]\nseeds = 3\ncheap_seeds = 2\n",
-             r"cheap_seeds \(2\) must be at least seeds \(3\)")
+    _refused(
+        tmp_path / "fewer.toml", "[a]\nseeds = 3\ncheap_seeds = 2\n", r"cheap_seeds \(2\) must be at least seeds \(3\)"
+    )
+
 
 def test_evaluation_estimates_scale_with_the_episodes():
     from agents.table.rates import eval_seconds
@@ -179,8 +206,24 @@ def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
 
 
 def test_dry_run_prints_the_plan(tmp_path, capsys):
-    assert _run_cli(["--preset", "paper", "--algorithms", "ppo", "drqn", "--tasks", "1d-static", "3d-dynamic-dense",
-                     "--runs-dir", str(tmp_path), "--dry-run"]) == 0
+    assert (
+        _run_cli(
+            [
+                "--preset",
+                "paper",
+                "--algorithms",
+                "ppo",
+                "drqn",
+                "--tasks",
+                "1d-static",
+                "3d-dynamic-dense",
+                "--runs-dir",
+                str(tmp_path),
+                "--dry-run",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "preset 'paper'" in out and "8 cells, 3 seeds each" in out and "total estimate:" in out
     assert out.count(" new ") == 8 and not any(tmp_path.iterdir())  # nothing started
@@ -206,15 +249,19 @@ def test_bootstrap_intervals():
     assert first[0] < values.mean() < first[1]
     # Stratified: seeds are resampled within each task, so constant tasks give a constant IQM.
     assert statistics.stratified_bootstrap_ci([[0.2, 0.9], [0.2, 0.9]], statistics.iqm_of_runs) == (
-        pytest.approx(0.55), pytest.approx(0.55))
+        pytest.approx(0.55),
+        pytest.approx(0.55),
+    )
     with pytest.raises(ValueError, match="finite"):
         statistics.stratified_bootstrap_ci([0.1, np.nan])
 
 
 def test_difference_intervals_by_hand():
     # Constant arms: the difference is exact.
-    assert statistics.difference_summary([0.5, 0.5], [0.2, 0.2]) == {"delta": pytest.approx(0.3),
-                                                                      "ci95": [pytest.approx(0.3)] * 2}
+    assert statistics.difference_summary([0.5, 0.5], [0.2, 0.2]) == {
+        "delta": pytest.approx(0.3),
+        "ci95": [pytest.approx(0.3)] * 2,
+    }
     # Arm seeds 0 and 1 against a constant base 0: resampled differences 0, 0.5, 1 with
     # probabilities 1/4, 1/2, 1/4, so the 2.5th and 97.5th percentiles are 0 and 1.
     assert statistics.difference_summary([0.0, 1.0], [0.0, 0.0, 0.0]) == {"delta": 0.5, "ci95": [0.0, 1.0]}
@@ -225,13 +272,16 @@ def test_difference_intervals_by_hand():
 
 
 def test_aggregation_by_hand(tmp_path):
-    raw = {"ppo": {
-        "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000, walls=(30.0, 60.0)),
-        "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000, walls=(120.0,)),
-        "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True, walls=(100.0, 180.0)),
-        "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),  # its curve was not kept
-        "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.5, 0.5], 1000),  # no column misses it
-    }, "drqn": {"1d-dynamic": _files("drqn", "1d-dynamic", [0.8], 500)}}
+    raw = {
+        "ppo": {
+            "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000, walls=(30.0, 60.0)),
+            "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000, walls=(120.0,)),
+            "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True, walls=(100.0, 180.0)),
+            "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),  # its curve was not kept
+            "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.5, 0.5], 1000),  # no column misses it
+        },
+        "drqn": {"1d-dynamic": _files("drqn", "1d-dynamic", [0.8], 500)},
+    }
     hand = {"1d-static": {"mean": 0.95, "seed": TUNING_EVAL_SEED}}
     table = build(raw, handcrafted=hand, preset="smoke", reps=2000)
     ppo = table["learners"]["ppo"]
@@ -239,7 +289,10 @@ def test_aggregation_by_hand(tmp_path):
     assert ppo["1d-static"]["seeds"] == [pytest.approx(0.6), pytest.approx(0.6)]
     assert ppo["1d-static"]["mean"] == pytest.approx(0.6) and ppo["1d-static"]["ci95"] == [pytest.approx(0.6)] * 2
     assert ppo["1d-static"]["paper"] == 0.776  # the paper's PPO, 1d-static
-    assert ppo["1d-static"]["budget"]["capped"] and ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
+    assert (
+        ppo["1d-static"]["budget"]["capped"]
+        and ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
+    )
     assert ppo["2d-static-dense"]["mean"] == pytest.approx(0.3) and ppo["2d-static-dense"]["ci95"] == [0.2, 0.4]
     # Training wall: the last cumulative wall_s of each shape, summed (60 + 120 + 180 s = 6 min).
     assert ppo["1d-static"]["budget"]["training_wall_s"] == 360.0
@@ -261,19 +314,25 @@ def test_aggregation_by_hand(tmp_path):
     assert f"REPORT_EVAL_SEED = {REPORT_EVAL_SEED}" in text and f"TUNING_EVAL_SEED = {TUNING_EVAL_SEED}" in text
 
 
-
 def test_a_column_with_more_seeds_adds_them_to_its_cell_and_not_to_the_iqm():
-    raw = {"sac": {"2d-static-dense": _files("sac", "2d-static-dense", [0.1, 0.2, 0.3, 0.9, 0.9], 1000),
-                   "2d-static-sparse": _files("sac", "2d-static-sparse", [0.4, 0.5, 0.6], 1000)}}
+    raw = {
+        "sac": {
+            "2d-static-dense": _files("sac", "2d-static-dense", [0.1, 0.2, 0.3, 0.9, 0.9], 1000),
+            "2d-static-sparse": _files("sac", "2d-static-sparse", [0.4, 0.5, 0.6], 1000),
+        }
+    }
     table = build(raw, reps=200)
     assert table["learners"]["sac"]["2d-static-dense"]["mean"] == pytest.approx(0.48)  # all five seeds
     # IQM over seeds 0-2 of both columns: .1 .2 .3 .4 .5 .6, one cut each end -> mean(.2 .3 .4 .5).
     assert table["iqm"]["sac"]["iqm"] == pytest.approx(0.35) and table["iqm"]["sac"]["runs"] == 3
     assert "| sac | 3, 5 |" in markdown({"x": table}, {"x": "test"})
 
+
 def test_a_new_learner_shows_its_bases_paper_row_under_the_bases_name():
-    raw = {"ppo-privileged": {"2d-static-sparse": _files("ppo-privileged", "2d-static-sparse", [0.4, 0.5], 1000)},
-           "drqn-her": {"2d-static-sparse": _files("drqn-her", "2d-static-sparse", [0.1, 0.2], 1000)}}
+    raw = {
+        "ppo-privileged": {"2d-static-sparse": _files("ppo-privileged", "2d-static-sparse", [0.4, 0.5], 1000)},
+        "drqn-her": {"2d-static-sparse": _files("drqn-her", "2d-static-sparse", [0.1, 0.2], 1000)},
+    }
     table = build(raw, handcrafted={}, preset="smoke", reps=200)
     text = markdown({"smoke": table}, {"smoke": "test preset"})
     assert table["paper_methods"] == {"ppo-privileged": "ppo", "drqn-her": "drqn_her"}
@@ -290,24 +349,34 @@ def _arm(task: str, arm: str, paper_arm: str, switches: str, means: list[float])
 
 def test_ablation_preset_has_every_arm_of_the_papers_table():
     preset = PRESETS["ablation"]
-    paper = json.loads((Path(__file__).parents[1] / "snac_jax" / "data" / "paper_results.json").read_text())["ablation_drqn"]
+    paper = json.loads((Path(__file__).parents[1] / "snac_jax" / "data" / "paper_results.json").read_text())[
+        "ablation_drqn"
+    ]
     arms = {task: {v.paper for v in preset.variants if task in v.tasks} for task in preset.tasks}
     assert arms == {task: set(paper[task]) - {"source"} for task in paper if task != "source"}
     assert preset.algorithms == ("drqn",) and preset.seeds >= 3
     cells = make_plan(preset, ["drqn"], ["2d-static-sparse"], None, Path("unused"), rates={})
-    assert [c.directory.name for c in cells] == ["2d-static-sparse.base", "2d-static-sparse.gps",
-                                                 "2d-static-sparse.no-uncertainty", "2d-static-sparse.obstacles",
-                                                 "2d-static-sparse.landmarks"]
+    assert [c.directory.name for c in cells] == [
+        "2d-static-sparse.base",
+        "2d-static-sparse.gps",
+        "2d-static-sparse.no-uncertainty",
+        "2d-static-sparse.obstacles",
+        "2d-static-sparse.landmarks",
+    ]
     assert cells[0].config.switches == "" and cells[3].config.env_overrides == {"obstacles": True}
     assert cells[1].record()["paper_variant"] == "+gps" and cells[1].budget.requested == 10_000 * 600
 
 
 def test_ablation_report_by_hand():
-    raw = {"drqn": {
-        "2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5, 0.7]),
-        "2d-static-dense.gps": _arm("2d-static-dense", "gps", "+gps", "gps=true", [0.8, 0.8]),
-        "3d-static-dense.no-obstacles": _arm("3d-static-dense", "no-obstacles", "-obstacle", "obstacles=false", [0.4]),
-    }}
+    raw = {
+        "drqn": {
+            "2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5, 0.7]),
+            "2d-static-dense.gps": _arm("2d-static-dense", "gps", "+gps", "gps=true", [0.8, 0.8]),
+            "3d-static-dense.no-obstacles": _arm(
+                "3d-static-dense", "no-obstacles", "-obstacle", "obstacles=false", [0.4]
+            ),
+        }
+    }
     table = ablation.build(raw, arms=["base", "gps", "no-obstacles"], preset="ablation", reps=2000)
     dense = table["ablation"]["drqn"]["2d-static-dense"]
     assert list(dense) == ["base", "gps"] and dense["base"]["paper"] == 0.772 and "delta" not in dense["base"]
@@ -316,7 +385,10 @@ def test_ablation_report_by_hand():
     assert dense["gps"]["paper"] == 0.079  # the paper's change from its base
     assert table["ablation"]["drqn"]["3d-static-dense"]["no-obstacles"]["delta"] is None  # no base cell yet
     text = "\n".join(ablation.section(table, "test"))
-    assert "| drqn | 2d-static-dense | gps (+gps) | `gps=true` | 0.800 [0.800, 0.800] | +0.200 [+0.100, +0.300] | +0.079 | 1k |" in text
+    assert (
+        "| drqn | 2d-static-dense | gps (+gps) | `gps=true` | 0.800 [0.800, 0.800] | +0.200 [+0.100, +0.300] | +0.079 | 1k |"
+        in text
+    )
     assert "| drqn | 2d-static-dense | base (base) | `—` | 0.600 [0.500, 0.700] | — | 0.772 | 1k |" in text
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
     assert "adopted" not in text
@@ -327,16 +399,24 @@ def test_ablation_report_by_hand():
 
 
 def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only():
-    raw = {"drqn": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5]),
-                    "2d-static-dense.renamed": _arm("2d-static-dense", "renamed", "+gps", "gps=true", [0.7])},
-           "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])},
-           "drqn-aux": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.6])}}
-    assert ablation.is_ablation(raw) and not ablation.is_ablation({"ppo": {"1d-dynamic": _files("ppo", "1d-dynamic", [0.5], 10)}})
+    raw = {
+        "drqn": {
+            "2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5]),
+            "2d-static-dense.renamed": _arm("2d-static-dense", "renamed", "+gps", "gps=true", [0.7]),
+        },
+        "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])},
+        "drqn-aux": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.6])},
+    }
+    assert ablation.is_ablation(raw) and not ablation.is_ablation(
+        {"ppo": {"1d-dynamic": _files("ppo", "1d-dynamic", [0.5], 10)}}
+    )
     table = ablation.build(raw, arms=["base", "gps"], reps=200)
     assert list(table["ablation"]["drqn"]["2d-static-dense"]) == ["base", "renamed"]  # an arm budgets.toml lost
     assert table["ablation"]["drqn"]["2d-static-dense"]["renamed"]["paper"] == 0.079
     assert table["ablation"]["ppo"]["2d-static-dense"]["base"]["paper"] is None  # the paper ablated DRQN
-    assert table["ablation"]["drqn-aux"]["2d-static-dense"]["base"]["paper"] is None  # DRQN's paper row, another learner
+    assert (
+        table["ablation"]["drqn-aux"]["2d-static-dense"]["base"]["paper"] is None
+    )  # DRQN's paper row, another learner
 
 
 def _refused(path: Path, text: str, match: str) -> None:
@@ -349,82 +429,127 @@ def _refused(path: Path, text: str, match: str) -> None:
 def test_ablation_presets_are_checked_when_loaded(tmp_path):
     base = '[a]\nseeds = 1\n[a.variants.base]\npaper = "base"\nswitches = ""\ntasks = ["1d-static"]\n'
     (tmp_path / "ok.toml").write_text(base)
-    assert load_presets(tmp_path / "ok.toml")["a"].variants[0].tasks == ("1d-static-sin", "1d-static-gauss", "1d-static-step")
+    assert load_presets(tmp_path / "ok.toml")["a"].variants[0].tasks == (
+        "1d-static-sin",
+        "1d-static-gauss",
+        "1d-static-step",
+    )
     _refused(tmp_path / "nobase.toml", base.replace("variants.base", "variants.gps"), "needs an arm named base")
-    _refused(tmp_path / "bad.toml", base.replace('switches = ""', 'switches = "gpss=true"'),
-             r"\[a.variants.base\]: unknown switch 'gpss'")
+    _refused(
+        tmp_path / "bad.toml",
+        base.replace('switches = ""', 'switches = "gpss=true"'),
+        r"\[a.variants.base\]: unknown switch 'gpss'",
+    )
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
-    _refused(tmp_path / "adopts.toml", base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'),
-             r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms")
+    _refused(
+        tmp_path / "adopts.toml",
+        base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'),
+        r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms",
+    )
     _refused(tmp_path / "self.toml", base.replace("seeds = 1", 'seeds = 1\nadopts = "a"'), r"\[a\] adopts 'a'")
 
 
-
 def test_a_budget_per_environment_task(tmp_path):
-    text = ('[b]\nseeds = 1\n[b.budgets]\n'
-            'pqn = { env_steps = { "1d-dynamic" = 3_000_000, "2d-static-sparse" = 9_000_000 }, source = "why" }\n')
+    text = (
+        "[b]\nseeds = 1\n[b.budgets]\n"
+        'pqn = { env_steps = { "1d-dynamic" = 3_000_000, "2d-static-sparse" = 9_000_000 }, source = "why" }\n'
+    )
     (tmp_path / "ok.toml").write_text(text)
     preset = load_presets(tmp_path / "ok.toml")["b"]
     cells = make_plan(preset, ["pqn"], ["1d-dynamic", "2d-static-sparse"], None, tmp_path, rates={})
     assert [c.budget.requested for c in cells] == [3_000_000, 9_000_000] and cells[0].budget.source == "b: why"
     assert [c.config.total_steps for c in cells] == [3_000_000, 9_000_000]
-    with pytest.raises(ValueError, match="the b preset gives pqn a budget on 1d-dynamic, 2d-static-sparse only, "
-                                         "not on 2d-static-dense"):
+    with pytest.raises(
+        ValueError, match="the b preset gives pqn a budget on 1d-dynamic, 2d-static-sparse only, not on 2d-static-dense"
+    ):
         make_plan(preset, ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
-    _refused(tmp_path / "typo.toml", text.replace('"1d-dynamic"', '"1d-dynamo"'),
-             r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]; allowed: 1d-static-sin")
+    _refused(
+        tmp_path / "typo.toml",
+        text.replace('"1d-dynamic"', '"1d-dynamo"'),
+        r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]; allowed: 1d-static-sin",
+    )
 
 
 def test_an_arm_can_switch_a_learner_setting_off():
     """The privileged-ablation preset's arms change learner settings, not the environment: each
     arm's config differs from the base arm's in its settings alone, and the report prints them."""
     preset = PRESETS["privileged-ablation"]
-    cells = {c.variant.name: c for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None,
-                                                  Path("unused"), rates={})}
+    cells = {
+        c.variant.name: c
+        for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={})
+    }
     assert list(cells) == ["base", "no-critic", "no-position", "curriculum"]
     base = cells["base"].config.to_json()
     changed = {name: {k: v for k, v in cell.config.to_json().items() if base[k] != v} for name, cell in cells.items()}
-    assert changed == {"base": {}, "no-critic": {"privileged_critic": False}, "no-position": {"position_coef": 0.0},
-                       "curriculum": {"stride_curriculum": 0.5}}
+    assert changed == {
+        "base": {},
+        "no-critic": {"privileged_critic": False},
+        "no-position": {"position_coef": 0.0},
+        "curriculum": {"stride_curriculum": 0.5},
+    }
     assert cells["base"].config.privileged_critic and cells["base"].config.position_coef > 0
     assert cells["no-critic"].record()["settings"] == {"privileged_critic": False}
 
     files = _arm("2d-static-sparse", "no-critic", "", "", [0.4])
     files["cell"]["settings"] = {"privileged_critic": False}
-    table = ablation.build({"ppo-privileged": {"2d-static-sparse.no-critic": files}}, arms=["base", "no-critic"], reps=200)
+    table = ablation.build(
+        {"ppo-privileged": {"2d-static-sparse.no-critic": files}}, arms=["base", "no-critic"], reps=200
+    )
     text = "\n".join(ablation.section(table, "test"))
-    assert "| ppo-privileged | 2d-static-sparse | no-critic | `privileged_critic=false` | 0.400 [0.400, 0.400] | — | — |" in text
+    assert (
+        "| ppo-privileged | 2d-static-sparse | no-critic | `privileged_critic=false` | 0.400 [0.400, 0.400] | — | — |"
+        in text
+    )
 
 
 def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
     """`--arms` plans the named arms alone (an arm whose run is the same as another preset's cell
     need not train again); an unknown arm, or arms of a preset without any, fail naming the arms."""
     preset = PRESETS["privileged-ablation"]
-    cells = make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={},
-                      arms=["no-position", "no-critic"])
+    cells = make_plan(
+        preset,
+        ["ppo-privileged"],
+        ["2d-static-sparse"],
+        None,
+        Path("unused"),
+        rates={},
+        arms=["no-position", "no-critic"],
+    )
     assert [c.variant.name for c in cells] == ["no-critic", "no-position"]
     with pytest.raises(ValueError, match="no arm.*'no-gps'.*its arms: base, no-critic, no-position, curriculum"):
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=["no-gps"])
     with pytest.raises(ValueError, match="not an ablation"):
         make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), rates={}, arms=["base"])
-    with pytest.raises(ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position, curriculum"):
+    with pytest.raises(
+        ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position, curriculum"
+    ):
         make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=[])
-    with pytest.raises(ValueError, match=r"no arm named in --arms of preset 'ablation' runs on 3d-static-dense; "
-                                         r"their tasks: gps: 2d-static-dense, 2d-static-sparse$"):
+    with pytest.raises(
+        ValueError,
+        match=r"no arm named in --arms of preset 'ablation' runs on 3d-static-dense; "
+        r"their tasks: gps: 2d-static-dense, 2d-static-sparse$",
+    ):
         make_plan(PRESETS["ablation"], ["drqn"], ["3d-static-dense"], None, Path("unused"), rates={}, arms=["gps"])
 
 
 def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
     arm = '[a]\nseeds = 1\n[a.variants.base]\ntasks = ["1d-static-sin"]\n'
-    _refused(tmp_path / "typo.toml", arm.replace("tasks =", 'setting = { x = 1 }\ntasks ='),
-             r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]")
-    _refused(tmp_path / "planned.toml", arm.replace("tasks =", "settings = { seeds = 1 }\ntasks ="),
-             r"settings may not set \['seeds'\]: the plan sets seed, seeds, switches")
+    _refused(
+        tmp_path / "typo.toml",
+        arm.replace("tasks =", "setting = { x = 1 }\ntasks ="),
+        r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]",
+    )
+    _refused(
+        tmp_path / "planned.toml",
+        arm.replace("tasks =", "settings = { seeds = 1 }\ntasks ="),
+        r"settings may not set \['seeds'\]: the plan sets seed, seeds, switches",
+    )
     (tmp_path / "option.toml").write_text(arm.replace("tasks =", "settings = { no_such_option = 1 }\ntasks ="))
     preset = load_presets(tmp_path / "option.toml")["a"]
     with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['no_such_option'\]"):
         make_plan(preset, ["ppo"], ["1d-static-sin"], None, tmp_path, rates={})
+
 
 # --- the smoke preset, end to end ----------------------------------------------------------------
 
@@ -442,8 +567,10 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
 
     cells = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
     assert [c.status for c in cells] == ["done", "partial"] and cells[1].done_steps == 2048 // 4
-    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
-            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
+    arms = (
+        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
+        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
+    )
     ablation = dataclasses.replace(smoke, name="abl", variants=arms, adopts="smoke")
     assert make_plan(ablation, ["ppo"], ["1d-static-gauss"], None, runs)[0].adopts_from is None  # unfinished twin
     assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
@@ -475,6 +602,7 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
     assert copied == [f"table/smoke/ppo/{t}.json" for t in ("1d-static-gauss", "1d-static-sin")]
     from agents.training import checkpoint
+
     for task, source in (("1d-static-sin", cells[0].directory), ("1d-static-gauss", cells[1].directory)):
         record = json.loads((results / "table" / "smoke" / "ppo" / f"{task}.json").read_text())
         assert list(record) == ["cell", "config", "eval", "curve"]  # the whole record in one file
@@ -500,8 +628,9 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     # A twin whose budget alone differs is adopted only as a wall-capped one (it takes the twin's budget).
     longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})
     assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].adopts_from is None
-    capped = make_plan(dataclasses.replace(longer, wall_limit_s=1e9), ["ppo"], ["1d-static-sin"], None, runs,
-                       arms=["base"])[0]
+    capped = make_plan(
+        dataclasses.replace(longer, wall_limit_s=1e9), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"]
+    )[0]
     assert capped.adopts_from == cells[0].directory
     assert (capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (2048, 2048, True)
 
@@ -512,9 +641,11 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
     from agents.table.report import write_report
 
     runs, results = tmp_path / "runs", tmp_path / "results"
-    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
-            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
-            Variant(name="no-uncertainty", paper="-uncertainty", switches="stride_probs=1/0/0", tasks=("1d-static-sin",)))
+    arms = (
+        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
+        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
+        Variant(name="no-uncertainty", paper="-uncertainty", switches="stride_probs=1/0/0", tasks=("1d-static-sin",)),
+    )
     preset = dataclasses.replace(PRESETS["smoke"], name="ablation", variants=arms)
     cells = make_plan(preset, ["ppo"], ["1d-static-sin"], None, runs)
     assert table_run.run_cells(cells, progress=False) == 3
@@ -526,9 +657,14 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
     table = json.loads(paths["json"].read_text())["ablation"]
     rows = table["ablation"]["ppo"]["1d-static-sin"]
     assert list(rows) == ["base", "gps", "no-uncertainty"] and rows["gps"]["delta"] is not None
-    assert "png:ablation" not in paths and "| ppo | 1d-static-sin | gps (+gps) | `gps=true` |" in paths["md"].read_text()
+    assert (
+        "png:ablation" not in paths and "| ppo | 1d-static-sin | gps (+gps) | `gps=true` |" in paths["md"].read_text()
+    )
     # no per-column figure for an ablation, but each arm's learning curve, from the copied metrics
-    assert paths["png:ablation-curves"] == results / "table-ablation-curves.png" and paths["png:ablation-curves"].stat().st_size
+    assert (
+        paths["png:ablation-curves"] == results / "table-ablation-curves.png"
+        and paths["png:ablation-curves"].stat().st_size
+    )
     assert "Learning curves of the arms: `table-ablation-curves.png`" in paths["md"].read_text()
 
 
@@ -537,8 +673,10 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
 
 def _abl(**changes):
     """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
-    arms = (Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
-            Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)))
+    arms = (
+        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
+        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
+    )
     return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms, adopts="smoke", **changes)
 
 
@@ -556,11 +694,11 @@ def no_training(monkeypatch):
 
 
 def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(tmp_path, no_training, monkeypatch):
-    from agents.training import checkpoint
     from agents.table import run as table_run
     from agents.table.files import read_cell, read_raw
     from agents.table.raw import raw_text
     from agents.table.report import write_report
+    from agents.training import checkpoint
 
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -572,8 +710,22 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     assert (base.status, base.adopts_from, base.adopts_record, gps.adopts_from) == ("new", path, True, None)
     printed = format_plan([base, gps], runs)
     row = next(line for line in printed.splitlines() if "1d-static-sin.base" in line)
-    assert row.split()[4:] == ["adopt", "0", "min", "00", "s", "adopts", "the", "record", str(path) + ",", "finished",
-                               "with", "the", "same", "settings"]
+    assert row.split()[4:] == [
+        "adopt",
+        "0",
+        "min",
+        "00",
+        "s",
+        "adopts",
+        "the",
+        "record",
+        str(path) + ",",
+        "finished",
+        "with",
+        "the",
+        "same",
+        "settings",
+    ]
     assert "(1 new, 1 adopted, " in printed
 
     moved, rename = [], Path.rename
@@ -589,19 +741,29 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     assert moved[0] == "cell.json" and moved[-1] == "eval.json" and len(moved) == 5
     made = base.directory
     assert sorted(p.name for p in made.iterdir() if p.name != checkpoint.LOCK_FILE) == [
-        "cell.json", "config.json", "curve.png", "eval.json", "metrics.jsonl"]  # no checkpoints
+        "cell.json",
+        "config.json",
+        "curve.png",
+        "eval.json",
+        "metrics.jsonl",
+    ]  # no checkpoints
     assert not (made.parent / ".adopting").exists() and (made / "curve.png").stat().st_size > 0
     cell = json.loads((made / "cell.json").read_text())
     assert (cell["preset"], cell["variant"], cell["adopted_from"], cell["adopted_record"]) == (
-        "abl", "base", "smoke/ppo/1d-static-sin", str(path))
+        "abl",
+        "base",
+        "smoke/ppo/1d-static-sin",
+        str(path),
+    )
     assert json.loads((made / "eval.json").read_text()) == record["eval"]
     assert json.loads((made / "config.json").read_text()) == source.config.to_json() == record["config"]
     assert checkpoint.read_metrics_lines(made / "metrics.jsonl") == record["curve"]
 
     # A later plan sees it done, with or without the record, and running it again touches nothing.
     for results_dir in (results, None):
-        [again] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"],
-                            results_dir=results_dir)
+        [again] = make_plan(
+            _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results_dir
+        )
         assert (again.status, again.adopts_from, again.estimate_s) == ("done", None, 0.0)
     before = {p.name: p.stat().st_mtime_ns for p in made.iterdir()}
     assert table_run.run_cell(again, progress=False)
@@ -631,7 +793,9 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     changed = json.loads(path.read_text())
     changed["config"]["learning_rate"] *= 2
     path.write_text(json.dumps(changed))
-    with pytest.raises(ValueError, match=re.escape(str(path)) + r" is the base of ppo/1d-static-sin.gps.*learning_rate"):
+    with pytest.raises(
+        ValueError, match=re.escape(str(path)) + r" is the base of ppo/1d-static-sin.gps.*learning_rate"
+    ):
         write_report("abl", None, results, reps=200)
     write_report("abl", runs, results, reps=200)
     copied = read_raw(arm.parent / "1d-static-sin.base.json")
@@ -654,9 +818,15 @@ def _gps_arm_copy(results, record):
     """The raw copy of `_abl()`'s gps arm, written by hand from the smoke preset's `record`."""
     arm = results / "table" / "abl" / "ppo" / "1d-static-sin.gps.json"
     arm.parent.mkdir(parents=True, exist_ok=True)
-    arm.write_text(record.read_text().replace('"preset": "smoke"', '"preset": "abl"').replace(
-        '"column": "1d-static",', '"column": "1d-static", "variant": "gps", "paper_variant": "+gps", '
-        '"switches": "gps=true", "settings": {},').replace('"switches": ""', '"switches": "gps=true"'))
+    arm.write_text(
+        record.read_text()
+        .replace('"preset": "smoke"', '"preset": "abl"')
+        .replace(
+            '"column": "1d-static",',
+            '"column": "1d-static", "variant": "gps", "paper_variant": "+gps", "switches": "gps=true", "settings": {},',
+        )
+        .replace('"switches": ""', '"switches": "gps=true"')
+    )
     return arm
 
 
@@ -718,13 +888,15 @@ def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused
     assert {p.name: p.read_bytes() for p in cut.directory.iterdir() if p.is_file()}.keys() == whole.keys()
     assert (cut.directory / "eval.json").read_bytes() == whole["eval.json"]
     # This cell's own training start, cut before its first checkpoint, is trained, as `adopt` does.
-    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"],
-                        results_dir=results)
+    [start] = make_plan(
+        _abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"], results_dir=results
+    )
     start.directory.mkdir(parents=True)
     (start.directory / "config.json").write_text(json.dumps(start.config.to_json()))
     (start.directory / "metrics.jsonl").write_text("")
-    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"],
-                        results_dir=results)
+    [start] = make_plan(
+        _abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"], results_dir=results
+    )
     assert start.adopts_record
     with pytest.raises(AssertionError, match="trained or evaluated"):
         table_run.run_cell(start, progress=False)
@@ -744,15 +916,17 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
     runs, results = tmp_path / "runs", tmp_path / "results"
 
     def adopted(preset=None, **record):
-        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"],
-                           results_dir=results)
+        [base] = make_plan(
+            preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results
+        )
         return base
 
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs, rates={})
     write_record(results, source, means=(0.5, 0.6, 0.7))
     assert adopted().adopts_from is None  # 3 seeds there, 2 here
-    [source] = make_plan(dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None,
-                         runs, rates={})
+    [source] = make_plan(
+        dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None, runs, rates={}
+    )
     write_record(results, source, episodes=3)
     assert adopted().adopts_from is None  # its protocol's 3 episodes, this cell's has 2
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -765,14 +939,21 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
     assert adopted(longer).adopts_from is None
     capped = adopted(dataclasses.replace(longer, wall_limit_s=1e9))
     assert (capped.adopts_from, capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (
-        path, 2048, 2048, True)
+        path,
+        2048,
+        2048,
+        True,
+    )
     assert capped.record()["budget"]["requested"] == 4096
 
 
-@pytest.mark.parametrize("damage, field", [
-    (lambda text: text[:-20], "not valid JSON"),
-    (lambda text: text.replace('"mean": 0.5', '"mean": 1.5'), r"eval\['1d-static-sin \(seed 0\)'\].mean"),
-])
+@pytest.mark.parametrize(
+    "damage, field",
+    [
+        (lambda text: text[:-20], "not valid JSON"),
+        (lambda text: text.replace('"mean": 0.5', '"mean": 1.5'), r"eval\['1d-static-sin \(seed 0\)'\].mean"),
+    ],
+)
 def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, damage, field):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -789,8 +970,17 @@ def test_the_cli_finds_record_twins_under_results_dir(tmp_path, capsys):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs, rates={})
     path = write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
-    argv = ["--preset", "landmark-action", "--algorithms", "pqn-belief", "--tasks", "2d-static-sparse",
-            "--runs-dir", str(runs), "--dry-run"]
+    argv = [
+        "--preset",
+        "landmark-action",
+        "--algorithms",
+        "pqn-belief",
+        "--tasks",
+        "2d-static-sparse",
+        "--runs-dir",
+        str(runs),
+        "--dry-run",
+    ]
     assert _run_cli([*argv, "--results-dir", str(results)]) == 0
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if "2d-static-sparse.base" in line)

@@ -4,7 +4,10 @@ from bench.table_rates import calibrated, idle_reference, merged
 
 IDLE_ONE_SEED = {"steps_per_s": 72_000, "seeds": 1, "source": "a results page"}
 RATES = {
-    "ppo": {"1d-static-sin": IDLE_ONE_SEED, "2d-static-dense": {"steps_per_s": 9_000, "seeds": 3, "load_avg": [2.0, 2.1]}},
+    "ppo": {
+        "1d-static-sin": IDLE_ONE_SEED,
+        "2d-static-dense": {"steps_per_s": 9_000, "seeds": 3, "load_avg": [2.0, 2.1]},
+    },
     "sac": {"1d-static-sin": {"steps_per_s": 80_000}},  # entries before seeds were recorded: one seed
 }
 MEASURED = {"wall_steps_per_s": 10_000, "cpu_steps_per_s": 6_000, "seeds": 3, "load_avg": [1.5, 1.6], "measured": "m"}

@@ -16,8 +16,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_rows_by_hand():
-    raw = {"ppo": {"2d-static-dense": _files("ppo", "2d-static-dense", [0.7, 0.8, 0.9], 1_000_000),
-                   "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.1, 0.2, 0.3], 500_000, capped=True)}}
+    raw = {
+        "ppo": {
+            "2d-static-dense": _files("ppo", "2d-static-dense", [0.7, 0.8, 0.9], 1_000_000),
+            "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.1, 0.2, 0.3], 500_000, capped=True),
+        }
+    }
     hand = {"2d-static-dense": {"mean": 0.949, "seed": 0}}
     text = learner_table({"paper": build(raw, handcrafted=hand, preset="paper", reps=200)})
     rows = text.splitlines()
@@ -47,7 +51,8 @@ def test_the_committed_readme_table_is_the_one_table_json_gives():
     tables = json.loads((ROOT / "bench" / "results" / "table.json").read_text())
     readme = (ROOT / "README.md").read_text()
     assert replace_block(readme, learner_table(tables)) == readme, (
-        "README.md's learner table is stale: run `snac table --report --readme README.md`")
+        "README.md's learner table is stale: run `snac table --report --readme README.md`"
+    )
 
 
 def test_cli_writes_the_readme_only_with_report(tmp_path, capsys):
@@ -59,8 +64,17 @@ def test_cli_writes_the_readme_only_with_report(tmp_path, capsys):
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{BEGIN}\nstale\n{END}\nrest\n")
     (tmp_path / "runs").mkdir()  # a --runs-dir given must exist
-    args = ["table", "--preset", "paper", "--runs-dir", str(tmp_path / "runs"), "--results-dir", str(results),
-            "--readme", str(readme)]
+    args = [
+        "table",
+        "--preset",
+        "paper",
+        "--runs-dir",
+        str(tmp_path / "runs"),
+        "--results-dir",
+        str(results),
+        "--readme",
+        str(readme),
+    ]
     assert main(args) == 2 and "--readme goes with --report" in capsys.readouterr().err
     assert main(args + ["--report", "--arms", "base"]) == 2 and "leave --arms out" in capsys.readouterr().err
     (tmp_path / "plain.md").write_text("no markers\n")

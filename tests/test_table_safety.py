@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.training import checkpoint
 from agents.table.presets import load_presets
+from agents.training import checkpoint
 from tests.table_cells import raw_copy_text, unpack_raw, write_cell
 
 PRESETS = load_presets()
@@ -64,9 +64,16 @@ class _Holder:
     def __init__(self, directory: Path):
         directory.mkdir(parents=True, exist_ok=True)
         self.process = subprocess.Popen(
-            [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
-             "f.truncate(0); f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)",
-             str(directory / checkpoint.LOCK_FILE)], stdout=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-c",
+                "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
+                "f.truncate(0); f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)",
+                str(directory / checkpoint.LOCK_FILE),
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         assert self.process.stdout.readline().strip() == "locked"
 
     def __enter__(self):
@@ -83,8 +90,8 @@ class _Holder:
 def test_a_second_table_run_is_refused_before_it_touches_a_cell(tmp_path, no_training):
     """The first process holds the preset's folder (and its cell, in its first chunk): the second
     is refused in one line, and the first's cell (config, metrics, lock) is left as it was."""
-    from agents.training.config import save_config
     from agents.table.plan import make_plan
+    from agents.training.config import save_config
 
     runs = tmp_path / "runs"
     [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -94,7 +101,9 @@ def test_a_second_table_run_is_refused_before_it_touches_a_cell(tmp_path, no_tra
     with _Holder(cell.directory):
         before = _tree(cell.directory)
         with _Holder(runs / "smoke"):
-            with pytest.raises(ValueError, match=r"smoke is in use by process 4242: one run directory takes one process"):
+            with pytest.raises(
+                ValueError, match=r"smoke is in use by process 4242: one run directory takes one process"
+            ):
                 _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
         # The preset's folder free, the cell still held (a `snac train --resume` on it, say).
         with pytest.raises(ValueError, match=r"1d-static-sin is in use by process 4242"):
@@ -119,7 +128,10 @@ def test_two_table_processes_the_second_refused_the_first_finishes_a_clean_cell(
     finally:
         first.kill()
     assert second.returncode == 2 and "Traceback" not in second.stderr
-    assert second.stderr.strip().splitlines()[-1].startswith("snac table: error: ") and "is in use by process" in second.stderr
+    assert (
+        second.stderr.strip().splitlines()[-1].startswith("snac table: error: ")
+        and "is in use by process" in second.stderr
+    )
     assert first.returncode == 0, err[-2000:]
     cell = tmp_path / "runs" / "smoke" / "ppo" / "1d-static-sin"
     assert [r["chunk"] for r in checkpoint.read_metrics_lines(cell / checkpoint.METRICS_FILE)] == [0, 1, 2, 3]
@@ -140,16 +152,22 @@ def test_a_cell_directory_holding_another_runs_files_is_refused_not_deleted(tmp_
     mine.mkdir(parents=True)
     (mine / "config.json").write_text('{"mine": true}\n')
     before = _tree(runs)
-    with pytest.raises(ValueError, match=r"1d-static-sin holds files that no start of this cell left there \(config.json"
-                                         r"\) and no checkpoint; the table deletes nothing it did not make: move"):
-        table_run.run_cells(make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={}), progress=False)
+    with pytest.raises(
+        ValueError,
+        match=r"1d-static-sin holds files that no start of this cell left there \(config.json"
+        r"\) and no checkpoint; the table deletes nothing it did not make: move",
+    ):
+        table_run.run_cells(
+            make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={}), progress=False
+        )
     with pytest.raises(ValueError, match="deletes nothing it did not make"):
         _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
     assert _tree(runs) == before
 
 
-def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_its_eval_is_refused(tmp_path,
-                                                                                                   no_training):
+def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_its_eval_is_refused(
+    tmp_path, no_training
+):
     """A cell trained on another machine and copied back with its files but not its checkpoints (a
     committed cell's files written back as a runs directory's) is done: planned so, never trained
     or evaluated again, its files untouched. Files of another cell or other settings are refused as
@@ -165,8 +183,22 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
     [cell] = make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs, rates={})
     assert cell.status == "done"
     assert table_run.run_cells([cell], progress=False) == 1  # finished cells counted, none trained
-    assert _run_cli(["--preset", "paper", "--algorithms", "dqn", "--tasks", "1d-dynamic", "--runs-dir", str(runs),
-                     "--no-progress"]) == 0
+    assert (
+        _run_cli(
+            [
+                "--preset",
+                "paper",
+                "--algorithms",
+                "dqn",
+                "--tasks",
+                "1d-dynamic",
+                "--runs-dir",
+                str(runs),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     after = {name: data for name, data in _tree(runs).items() if not name.endswith(checkpoint.LOCK_FILE)}
     assert after == before
 
@@ -187,15 +219,25 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
     with pytest.raises(ValueError, match=foreign):
         plan_with(edit_json("config.json", lambda c: {**c, "learning_rate": c["learning_rate"] * 2}))
     # This cell's, but not a finished run: nothing is left to resume or evaluate it from.
-    with pytest.raises(ValueError, match=r"^\S+1d-dynamic holds this cell's files without checkpoints and no finished "
-                                         r"eval.json: nothing is left to evaluate; move that directory away$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^\S+1d-dynamic holds this cell's files without checkpoints and no finished "
+        r"eval.json: nothing is left to evaluate; move that directory away$",
+    ):
         plan_with(lambda d: (d / "eval.json").unlink())
-    for cut, recorded in ((lambda d: (d / "metrics.jsonl").unlink(), 0),
-                          (lambda d: (d / "metrics.jsonl").write_text("".join(
-                              (d / "metrics.jsonl").read_text().splitlines(True)[:3])), 3)):
-        with pytest.raises(ValueError, match=rf"1d-dynamic holds this cell's files without checkpoints, and its "
-                                             rf"metrics.jsonl records {recorded} of the run's \d+ chunks: its training "
-                                             "did not finish"):
+    for cut, recorded in (
+        (lambda d: (d / "metrics.jsonl").unlink(), 0),
+        (
+            lambda d: (d / "metrics.jsonl").write_text("".join((d / "metrics.jsonl").read_text().splitlines(True)[:3])),
+            3,
+        ),
+    ):
+        with pytest.raises(
+            ValueError,
+            match=rf"1d-dynamic holds this cell's files without checkpoints, and its "
+            rf"metrics.jsonl records {recorded} of the run's \d+ chunks: its training "
+            "did not finish",
+        ):
             plan_with(cut)
     with pytest.raises(ValueError, match=foreign):  # a cell.json naming another task is another cell's
         plan_with(edit_json("cell.json", lambda c: {**c, "task": "1d-static-sin"}))
@@ -206,9 +248,9 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
     empty metrics.jsonl, a free lock) is resumed from the start, not deleted; a free lock alone
     leaves the directory new."""
     import agents.training.driver as driver
-    from agents.training.config import save_config
     from agents.table import run as table_run
     from agents.table.plan import make_plan
+    from agents.training.config import save_config
 
     runs = tmp_path / "runs"
     [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -234,11 +276,12 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
         make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
 
 
-def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained_again(tmp_path, no_training,
-                                                                                       monkeypatch, capsys):
-    from agents.training.config import save_config
+def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained_again(
+    tmp_path, no_training, monkeypatch, capsys
+):
     from agents.table import run as table_run
     from agents.table.plan import make_plan
+    from agents.training.config import save_config
 
     runs = tmp_path / "runs"
     cells = make_plan(PRESETS["smoke"], ["ppo", "ppo"], ["1d-static-sin"], None, runs, rates={})
@@ -279,32 +322,81 @@ def test_report_refuses_an_impossible_iou_naming_the_file_and_the_field(tmp_path
     assert not any(results.iterdir())  # nothing published
 
 
-@pytest.mark.parametrize("name, damage, message, raw_message", [
-    ("eval.json", lambda text: text[: len(text) // 2], r"eval.json is not valid JSON", r"sin.json is not valid JSON"),
-    ("eval.json", lambda text: "garbage", r"eval.json is not valid JSON", r"sin.json is not valid JSON"),
-    ("eval.json", lambda text: text.replace('"mean": 0.5', '"mean": NaN'),
-     r"eval.json: \['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan",
-     r"sin.json: eval\['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan"),
-    ("eval.json", lambda text: text.replace('"mean": 0.5', '"max": 0.5'), r"eval.json: unknown field\(s\) \['max'\] in",
-     r"sin.json: unknown field\(s\) \['max'\] in eval\['1d-static-sin \(seed 0\)'\]"),
-    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": "2"'), r"config.json: seeds must be an int >= 1, got '2'",
-     r"sin.json: config.seeds must be an int >= 1, got '2'"),
-    ("config.json", lambda text: "{}", r"config.json: algorithm is missing", r"sin.json: config.algorithm is missing"),
-    ("cell.json", lambda text: "[]", r"cell.json must hold a JSON object, got list", r"sin.json: cell must be an object, got list"),
-    ("cell.json", lambda text: text.replace('"protocol"', '"protocols"'), r"cell.json: unknown field\(s\) \['protocols'\]",
-     r"sin.json: unknown field\(s\) \['protocols'\] in cell"),
-    ("cell.json", lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "protocol"}),
-     r"cell.json: protocol is missing", r"sin.json: cell.protocol is missing"),
-    ("cell.json", lambda text: text.replace('"task": "1d-static-sin"', '"task": "1d-static-sine"'),
-     r"cell.json: unknown task '1d-static-sine'; allowed: 1d-static-sin", r"sin.json: unknown cell.task '1d-static-sine'"),
-    ("cell.json", lambda text: text.replace('"static_episodes": 2', '"static_episodes": 3'),
-     r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
-     r"sin.json: eval: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3"),
-    ("config.json", lambda text: text.replace('"seeds": 2', '"seeds": 3'), r"eval.json: holds 2 result\(s\), the run has seeds 3",
-     r"sin.json: eval: holds 2 result\(s\), the run has seeds 3"),
-])
-def test_report_refuses_a_damaged_cell_naming_the_file_and_the_field(tmp_path, capsys, name, damage, message,
-                                                                    raw_message):
+@pytest.mark.parametrize(
+    "name, damage, message, raw_message",
+    [
+        (
+            "eval.json",
+            lambda text: text[: len(text) // 2],
+            r"eval.json is not valid JSON",
+            r"sin.json is not valid JSON",
+        ),
+        ("eval.json", lambda text: "garbage", r"eval.json is not valid JSON", r"sin.json is not valid JSON"),
+        (
+            "eval.json",
+            lambda text: text.replace('"mean": 0.5', '"mean": NaN'),
+            r"eval.json: \['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan",
+            r"sin.json: eval\['1d-static-sin \(seed 0\)'\].mean must be a finite number in \[0, 1\], got nan",
+        ),
+        (
+            "eval.json",
+            lambda text: text.replace('"mean": 0.5', '"max": 0.5'),
+            r"eval.json: unknown field\(s\) \['max'\] in",
+            r"sin.json: unknown field\(s\) \['max'\] in eval\['1d-static-sin \(seed 0\)'\]",
+        ),
+        (
+            "config.json",
+            lambda text: text.replace('"seeds": 2', '"seeds": "2"'),
+            r"config.json: seeds must be an int >= 1, got '2'",
+            r"sin.json: config.seeds must be an int >= 1, got '2'",
+        ),
+        (
+            "config.json",
+            lambda text: "{}",
+            r"config.json: algorithm is missing",
+            r"sin.json: config.algorithm is missing",
+        ),
+        (
+            "cell.json",
+            lambda text: "[]",
+            r"cell.json must hold a JSON object, got list",
+            r"sin.json: cell must be an object, got list",
+        ),
+        (
+            "cell.json",
+            lambda text: text.replace('"protocol"', '"protocols"'),
+            r"cell.json: unknown field\(s\) \['protocols'\]",
+            r"sin.json: unknown field\(s\) \['protocols'\] in cell",
+        ),
+        (
+            "cell.json",
+            lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "protocol"}),
+            r"cell.json: protocol is missing",
+            r"sin.json: cell.protocol is missing",
+        ),
+        (
+            "cell.json",
+            lambda text: text.replace('"task": "1d-static-sin"', '"task": "1d-static-sine"'),
+            r"cell.json: unknown task '1d-static-sine'; allowed: 1d-static-sin",
+            r"sin.json: unknown cell.task '1d-static-sine'",
+        ),
+        (
+            "cell.json",
+            lambda text: text.replace('"static_episodes": 2', '"static_episodes": 3'),
+            r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
+            r"sin.json: eval: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
+        ),
+        (
+            "config.json",
+            lambda text: text.replace('"seeds": 2', '"seeds": 3'),
+            r"eval.json: holds 2 result\(s\), the run has seeds 3",
+            r"sin.json: eval: holds 2 result\(s\), the run has seeds 3",
+        ),
+    ],
+)
+def test_report_refuses_a_damaged_cell_naming_the_file_and_the_field(
+    tmp_path, capsys, name, damage, message, raw_message
+):
     runs, results, cell = _report(tmp_path)
     (cell / name).write_text(damage((cell / name).read_text()))
     code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
@@ -324,7 +416,10 @@ def test_report_dry_run_checks_everything_and_writes_nothing(tmp_path, capsys):
     runs, results, cell = _report(tmp_path)
     shutil.copytree(ROOT / "bench" / "results" / "table" / "paper", results / "table" / "paper")
     before = _tree(results)
-    assert _run_cli(["--preset", "smoke", "--report", "--dry-run", "--runs-dir", str(runs), "--results-dir", str(results)]) == 0
+    assert (
+        _run_cli(["--preset", "smoke", "--report", "--dry-run", "--runs-dir", str(runs), "--results-dir", str(results)])
+        == 0
+    )
     out = capsys.readouterr().out
     assert f"would copy {cell} to {results / 'table' / 'smoke' / 'ppo' / '1d-static-sin.json'}" in out
     assert f"would write {results / 'table.md'}" in out and f"would write {results / 'table-paper.png'}" in out
@@ -337,9 +432,16 @@ def test_report_needs_a_runs_directory_that_exists(tmp_path, capsys, monkeypatch
     results = tmp_path / "results"
     (tmp_path / "file").write_text("x")
     for runs, phrase in ((tmp_path / "nowhere", "does not exist"), (tmp_path / "file", "is a file")):
-        code, err = _main(["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys)
-        assert code == 2 and err.strip() == f"snac table: error: --runs-dir {runs} {phrase}" + (
-            ", not a directory of runs" if phrase == "is a file" else "") + "; give the directory `snac table` trained in"
+        code, err = _main(
+            ["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)], capsys
+        )
+        assert (
+            code == 2
+            and err.strip()
+            == f"snac table: error: --runs-dir {runs} {phrase}"
+            + (", not a directory of runs" if phrase == "is a file" else "")
+            + "; give the directory `snac table` trained in"
+        )
     assert not results.exists()
     # The default runs directory may be absent: the report is rebuilt from the results alone.
     monkeypatch.chdir(tmp_path)
@@ -363,7 +465,9 @@ def test_report_writes_through_no_link_in_the_results_and_keeps_a_readme_link(tm
     (outside / "table.md").write_text("someone else's\n")
     (results / "table.md").symlink_to(outside / "table.md")
     code, err = _main(argv, capsys)
-    assert code == 2 and "table.md is a symbolic link" in err and (outside / "table.md").read_text() == "someone else's\n"
+    assert (
+        code == 2 and "table.md is a symbolic link" in err and (outside / "table.md").read_text() == "someone else's\n"
+    )
     (results / "table.md").unlink()
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{BEGIN}\nstale\n{END}\n")

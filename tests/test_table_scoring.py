@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import pytest
 
 from agents.table import ablation
 from agents.table.plan import cell_config, make_plan
 from agents.table.presets import Variant, load_presets
-from agents.table.raw import raw_text
 from agents.table.scoring import scoring_config
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from tests.table_cells import cell_files, write_record
@@ -49,8 +47,9 @@ def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_m
     preset = PRESETS["safe-drops"]
     assert [v.name for v in preset.variants] == ["base", "safe", "at-evaluation"]
     arms = {v.name: v for v in preset.variants}
-    (base, _), (acting, _) = (cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, {}, arms[name])
-                              for name in ("base", "at-evaluation"))
+    (base, _), (acting, _) = (
+        cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, {}, arms[name]) for name in ("base", "at-evaluation")
+    )
     assert acting == base and not acting.safe_drops  # the same training
     assert arms["at-evaluation"].evaluation == {"safe_drops": True} and arms["safe"].evaluation == {}
     assert scoring_config(acting, arms["at-evaluation"].evaluation) == dataclasses.replace(acting, safe_drops=True)
@@ -66,31 +65,57 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
     base = '[a.variants.base]\ntasks = ["2d-static-dense"]\n'
     arm = '[a.variants.b]\ntasks = ["2d-static-dense"]\n'
     for name, text, message in [
-        ("both", head + base + arm + 'evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n',
-         r"\[a.variants.b\]: an arm with evaluation settings trains as the base arm .* may not give settings or switches"),
-        ("switches", head + base + arm + 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n',
-         "may not give settings or switches"),
+        (
+            "both",
+            head + base + arm + "evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n",
+            r"\[a.variants.b\]: an arm with evaluation settings trains as the base arm .* may not give settings or switches",
+        ),
+        (
+            "switches",
+            head + base + arm + 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n',
+            "may not give settings or switches",
+        ),
         ("table", head + base + arm + 'evaluation = "safe_drops"\n', r"evaluation must be a table of learner options"),
-        ("planned", head + base + arm + 'evaluation = { seeds = 2 }\n', r"evaluation may not set \['seeds'\]: the plan sets"
-         r" seed, seeds, switches, task, total_steps$"),
-        ("no adopts", head.replace('adopts = "beyond"\n', "") + base + arm + 'evaluation = { safe_drops = true }\n',
-         r"\[a\] has an arm with evaluation settings.*must adopt another's runs"),
-        ("base settings", head + base + 'settings = { gamma = 0.9 }\n' + arm + 'evaluation = { safe_drops = true }\n',
-         "its base arm give no settings, switches or evaluation"),
-        ("base scored", head + base + 'evaluation = { safe_drops = true }\n',
-         "its base arm give no settings, switches or evaluation"),
+        (
+            "planned",
+            head + base + arm + "evaluation = { seeds = 2 }\n",
+            r"evaluation may not set \['seeds'\]: the plan sets"
+            r" seed, seeds, switches, task, total_steps$",
+        ),
+        (
+            "no adopts",
+            head.replace('adopts = "beyond"\n', "") + base + arm + "evaluation = { safe_drops = true }\n",
+            r"\[a\] has an arm with evaluation settings.*must adopt another's runs",
+        ),
+        (
+            "base settings",
+            head + base + "settings = { gamma = 0.9 }\n" + arm + "evaluation = { safe_drops = true }\n",
+            "its base arm give no settings, switches or evaluation",
+        ),
+        (
+            "base scored",
+            head + base + "evaluation = { safe_drops = true }\n",
+            "its base arm give no settings, switches or evaluation",
+        ),
     ]:
         (tmp_path / f"{name}.toml").write_text(text)
         with pytest.raises(ValueError, match=message):
             load_presets(tmp_path / f"{name}.toml")
     # What the learner refuses is refused when planned, before anything trains: an option that is
     # not one of its acting options, and the mask on a task without the obstacle rule.
-    for lines, message in [('evaluation = { gamma = 0.5 }\n', r"pqn cannot act with \['gamma'\] at evaluation: .*"
-                                                              r"pqn's: safe_drops$"),
-                           ('evaluation = { safe_drops = true }\n', "obstacle")]:
+    for lines, message in [
+        (
+            "evaluation = { gamma = 0.5 }\n",
+            r"pqn cannot act with \['gamma'\] at evaluation: .*"
+            r"pqn's: safe_drops$",
+        ),
+        ("evaluation = { safe_drops = true }\n", "obstacle"),
+    ]:
         (tmp_path / "learner.toml").write_text(head + base + arm + lines)
         with pytest.raises(ValueError, match=message):
-            make_plan(load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
+            make_plan(
+                load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path, rates={}
+            )
     with pytest.raises(ValueError, match=r"ppo cannot act with \['gamma'\] at evaluation: .* ppo's: none$"):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path, rates={})
 
@@ -99,12 +124,16 @@ def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path,
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
     path = write_record(results, source)
-    [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results,
-                       arms=["base"])
+    [base] = make_plan(
+        _abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results, arms=["base"]
+    )
     assert (base.adopts_from, base.adopts_record) == (path, True)
-    with pytest.raises(ValueError, match=r"arm 'acting' of preset 'abl' scores the policy of smoke/ppo/1d-static-sin "
-                                         r"again: .* train it first \(snac table --preset smoke --tasks 1d-static-sin\) "
-                                         r"or leave the arm out \(--arms\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"arm 'acting' of preset 'abl' scores the policy of smoke/ppo/1d-static-sin "
+        r"again: .* train it first \(snac table --preset smoke --tasks 1d-static-sin\) "
+        r"or leave the arm out \(--arms\)",
+    ):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results)
 
 
@@ -115,18 +144,44 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
     config, budget = cell_config(preset, "ppo", SMOKE_TASK, 2, {}, preset.variants[1])
     directory = runs / "abl" / "ppo" / f"{SMOKE_TASK}.acting"
     directory.mkdir(parents=True)
-    row = {"min": 0.1, "std": 0.1, "ci95": [0.4, 0.6], "episodes": 2, "mean_length": 40.0, "mean_bricks_used": 3.0,
-           "mean_return": 1.0, "per_design": {}, "seed": REPORT_EVAL_SEED, "wall_s": 1.0}
-    evaluation = {f"{SMOKE_TASK} (seed {i})": {"task": f"{SMOKE_TASK} (seed {i})", "mean": 0.5, **row} for i in range(2)}
-    record = {"preset": "abl", "algorithm": "ppo", "column": "1d-static", "task": SMOKE_TASK,
-              "budget": dataclasses.asdict(budget), "eval_seed": REPORT_EVAL_SEED, "protocol": preset.protocol,
-              "variant": "acting", "paper_variant": "", "switches": "", "settings": {}}  # scored as it trained
+    row = {
+        "min": 0.1,
+        "std": 0.1,
+        "ci95": [0.4, 0.6],
+        "episodes": 2,
+        "mean_length": 40.0,
+        "mean_bricks_used": 3.0,
+        "mean_return": 1.0,
+        "per_design": {},
+        "seed": REPORT_EVAL_SEED,
+        "wall_s": 1.0,
+    }
+    evaluation = {
+        f"{SMOKE_TASK} (seed {i})": {"task": f"{SMOKE_TASK} (seed {i})", "mean": 0.5, **row} for i in range(2)
+    }
+    record = {
+        "preset": "abl",
+        "algorithm": "ppo",
+        "column": "1d-static",
+        "task": SMOKE_TASK,
+        "budget": dataclasses.asdict(budget),
+        "eval_seed": REPORT_EVAL_SEED,
+        "protocol": preset.protocol,
+        "variant": "acting",
+        "paper_variant": "",
+        "switches": "",
+        "settings": {},
+    }  # scored as it trained
     for name, content in (("config.json", config.to_json()), ("cell.json", record), ("eval.json", evaluation)):
         (directory / name).write_text(json.dumps(content))
-    (directory / "metrics.jsonl").write_text("".join(json.dumps({"chunk": i, "env_steps": 512 * (i + 1),
-                                                                 "wall_s": 1.0 + i}) + "\n" for i in range(4)))
-    with pytest.raises(ValueError, match=r"abl/ppo/1d-static-sin.acting was scored acting with its training settings, "
-                                         r"the arm now asks \{'gamma': 0.5\}; move that directory away"):
+    (directory / "metrics.jsonl").write_text(
+        "".join(json.dumps({"chunk": i, "env_steps": 512 * (i + 1), "wall_s": 1.0 + i}) + "\n" for i in range(4))
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"abl/ppo/1d-static-sin.acting was scored acting with its training settings, "
+        r"the arm now asks \{'gamma': 0.5\}; move that directory away",
+    ):
         make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
     (directory / "cell.json").write_text(json.dumps({**record, "evaluation": {"gamma": 0.5}}))
     [again] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
@@ -135,13 +190,20 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
 
 def test_the_report_prints_an_arms_settings_at_evaluation():
     files = cell_files("pqn-belief", "3d-dynamic-sparse", [0.5, 0.6, 0.55], 1000)
-    files["cell"].update(task="3d-dynamic-sparse", variant="at-evaluation", paper_variant="", switches="",
-                         settings={}, evaluation={"safe_drops": True})
-    table = ablation.build({"pqn-belief": {"3d-dynamic-sparse.at-evaluation": files}}, arms=["base", "at-evaluation"],
-                           reps=200)
+    files["cell"].update(
+        task="3d-dynamic-sparse",
+        variant="at-evaluation",
+        paper_variant="",
+        switches="",
+        settings={},
+        evaluation={"safe_drops": True},
+    )
+    table = ablation.build(
+        {"pqn-belief": {"3d-dynamic-sparse.at-evaluation": files}}, arms=["base", "at-evaluation"], reps=200
+    )
     text = "\n".join(ablation.section(table, "test"))
     assert "| pqn-belief | 3d-dynamic-sparse | at-evaluation | `safe_drops=true at evaluation` | 0.550" in text
-    assert "an arm whose settings say \"at evaluation\" trains as the base arm" in text
+    assert 'an arm whose settings say "at evaluation" trains as the base arm' in text
     del files["cell"]["evaluation"]  # a section without such an arm does not explain them
     table = ablation.build({"pqn-belief": {"3d-dynamic-sparse.at-evaluation": files}}, arms=["base"], reps=200)
     assert "at evaluation" not in "\n".join(ablation.section(table, "test"))
@@ -154,8 +216,8 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
 
     import agents.training.cli
     import agents.training.driver
-    from agents.training import checkpoint
     from agents.table import run as table_run
+    from agents.training import checkpoint
     from agents.training.trained import load_trained
 
     runs = tmp_path / "runs"
@@ -189,7 +251,8 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     # Restored, never trained: the twin's chunks and metrics, the twin's params, scored with gamma 0.5.
     assert trained == [True, True] and len(scored) == 2
     assert checkpoint.read_metrics_lines(acting.directory / "metrics.jsonl") == checkpoint.read_metrics_lines(
-        source.directory / "metrics.jsonl")
+        source.directory / "metrics.jsonl"
+    )
     config, params = scored[1]
     assert config == dataclasses.replace(source.config, gamma=0.5)
     _, twin, _ = load_trained(source.directory)

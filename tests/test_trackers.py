@@ -11,8 +11,23 @@ import pytest
 from agents.training import trackers
 from snac_jax.cli import main
 
-TINY = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
-        "--hidden-size", "8", "--rnn-size", "8", "--no-progress", "--devices", "1"]
+TINY = [
+    "--num-envs",
+    "16",
+    "--rollout-steps",
+    "8",
+    "--num-minibatches",
+    "2",
+    "--update-epochs",
+    "1",
+    "--hidden-size",
+    "8",
+    "--rnn-size",
+    "8",
+    "--no-progress",
+    "--devices",
+    "1",
+]
 
 
 def read_events(directory) -> dict[str, dict[int, float]]:
@@ -24,8 +39,8 @@ def read_events(directory) -> dict[str, dict[int, float]]:
     for path in sorted(directory.glob("events.out.tfevents.*")):
         data, offset = path.read_bytes(), 0
         while offset < len(data):
-            (length,) = struct.unpack("<Q", data[offset:offset + 8])
-            event = event_pb2.Event.FromString(data[offset + 12:offset + 12 + length])
+            (length,) = struct.unpack("<Q", data[offset : offset + 8])
+            event = event_pb2.Event.FromString(data[offset + 12 : offset + 12 + length])
             offset += 12 + length + 4
             for value in event.summary.value:
                 found.setdefault(value.tag, {})[event.step] = value.simple_value
@@ -33,13 +48,32 @@ def read_events(directory) -> dict[str, dict[int, float]]:
 
 
 def test_scalars_are_the_records_numbers_per_seed():
-    record = {"chunk": 0, "updates": 2, "env_steps": 256, "wall_s": 1.5, "steps_per_s": 100.0,
-              "episodes": [3, 0], "iou": [0.25, None], "loss": [float("nan"), 2.0], "diverged": ["loss"]}
+    record = {
+        "chunk": 0,
+        "updates": 2,
+        "env_steps": 256,
+        "wall_s": 1.5,
+        "steps_per_s": 100.0,
+        "episodes": [3, 0],
+        "iou": [0.25, None],
+        "loss": [float("nan"), 2.0],
+        "diverged": ["loss"],
+    }
     assert trackers.scalars(record, seeds=2) == {
-        "updates": 2.0, "wall_s": 1.5, "steps_per_s": 100.0, "episodes/seed0": 3.0, "episodes/seed1": 0.0,
-        "iou/seed0": 0.25, "loss/seed1": 2.0}
+        "updates": 2.0,
+        "wall_s": 1.5,
+        "steps_per_s": 100.0,
+        "episodes/seed0": 3.0,
+        "episodes/seed1": 0.0,
+        "iou/seed0": 0.25,
+        "loss/seed1": 2.0,
+    }
     assert set(trackers.scalars({"env_steps": 1, "iou": [1, 2, 3, 4]}, seeds=2, arms=2)) == {
-        "iou/arm0/seed0", "iou/arm0/seed1", "iou/arm1/seed0", "iou/arm1/seed1"}
+        "iou/arm0/seed0",
+        "iou/arm0/seed1",
+        "iou/arm1/seed0",
+        "iou/arm1/seed1",
+    }
 
 
 def test_train_log_tensorboard_writes_the_metrics_of_metrics_jsonl_across_a_resume(tmp_path):
@@ -47,10 +81,28 @@ def test_train_log_tensorboard_writes_the_metrics_of_metrics_jsonl_across_a_resu
     from agents.training.registry import make_config
 
     out = tmp_path / "run"
-    config = make_config("ppo", "1d-static-sin", num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1,
-                         hidden_size=8, rnn_size=8, seeds=2, total_steps=384, chunks=3, max_steps=8)
-    train(config, out, progress=False, stop_after_chunks=1, run_options={"eval_episodes": None, "no_eval": True},
-          log="tensorboard")  # killed after its first chunk; `snac train --resume --log` finishes it
+    config = make_config(
+        "ppo",
+        "1d-static-sin",
+        num_envs=16,
+        rollout_steps=8,
+        num_minibatches=2,
+        update_epochs=1,
+        hidden_size=8,
+        rnn_size=8,
+        seeds=2,
+        total_steps=384,
+        chunks=3,
+        max_steps=8,
+    )
+    train(
+        config,
+        out,
+        progress=False,
+        stop_after_chunks=1,
+        run_options={"eval_episodes": None, "no_eval": True},
+        log="tensorboard",
+    )  # killed after its first chunk; `snac train --resume --log` finishes it
     assert main(["train", "ppo", "--resume", str(out), "--no-progress", "--devices", "1", "--log", "tensorboard"]) == 0
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     events = read_events(out / trackers.TENSORBOARD_DIR)
@@ -69,10 +121,29 @@ def test_log_without_the_tracker_installed_is_refused_in_one_line(tmp_path, caps
     real = trackers.importlib.util.find_spec
     monkeypatch.setattr(trackers.importlib.util, "find_spec", lambda name: None if name == "wandb" else real(name))
     out = tmp_path / "run"
-    assert main(["train", "ppo", "--task", "1d-static-sin", *TINY, "--total-steps", "128", "--out", str(out),
-                 "--log", "wandb"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "ppo",
+                "--task",
+                "1d-static-sin",
+                *TINY,
+                "--total-steps",
+                "128",
+                "--out",
+                str(out),
+                "--log",
+                "wandb",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1] == 'snac train ppo: error: --log wandb needs wandb, which is not installed: pip install "snac-jax[wandb]"'
+    assert (
+        err[-1]
+        == 'snac train ppo: error: --log wandb needs wandb, which is not installed: pip install "snac-jax[wandb]"'
+    )
     assert not out.exists()  # refused before the run directory was made
 
 
@@ -91,8 +162,29 @@ def test_log_wandb_offline_gets_the_metrics(tmp_path, monkeypatch):
 
     monkeypatch.setattr(wandb, "init", init)
     out = tmp_path / "run"
-    assert main(["train", "ppo", "--task", "1d-static-sin", *TINY, "--total-steps", "256", "--chunks", "2",
-                 "--max-steps", "40", "--no-eval", "--out", str(out), "--log", "wandb"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "ppo",
+                "--task",
+                "1d-static-sin",
+                *TINY,
+                "--total-steps",
+                "256",
+                "--chunks",
+                "2",
+                "--max-steps",
+                "40",
+                "--no-eval",
+                "--out",
+                str(out),
+                "--log",
+                "wandb",
+            ]
+        )
+        == 0
+    )
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert logged == [(r["env_steps"], trackers.scalars(r, seeds=1)) for r in records]
     assert (out / "wandb").is_dir()

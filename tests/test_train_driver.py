@@ -7,10 +7,10 @@ import dataclasses
 import json
 import os
 import re
-import time
 import subprocess
 import sys
 import textwrap
+import time
 from typing import Any
 
 import jax
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from agents.training import checkpoint, trained
-from agents.training.registry import make_config
 from agents.training.driver import chunk_sizes, initial_state, read_metrics, train
+from agents.training.registry import make_config
 
 TINY = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
 
@@ -37,8 +37,9 @@ def test_chunk_sizes_cover_the_run():
 
 
 @pytest.mark.parametrize("ahead", [True, False])
-def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_nothing(tmp_path, capsys, monkeypatch,
-                                                                                    ahead):
+def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_nothing(
+    tmp_path, capsys, monkeypatch, ahead
+):
     """Chunks of 2 and 1 updates: each program compiles once, the 1-update one behind the first
     chunks' training where the driver compiles ahead (an accelerator; forced here) and when its
     chunk comes on a CPU; the run ends where one 3-update chunk ends."""
@@ -121,8 +122,10 @@ def test_a_failed_background_compile_is_warned_about_and_compiled_again_in_the_f
     assert programs.get(1) == "program 1"
     programs.close()
     assert [n for n, _ in threads] == [2, 1, 1] and threads[2][1] == threading.current_thread().name
-    assert written[1] == ("warning: compiling the chunk of 1 updates in the background failed (RuntimeError: "
-                          "RESOURCE_EXHAUSTED: out of memory); compiling it now")
+    assert written[1] == (
+        "warning: compiling the chunk of 1 updates in the background failed (RuntimeError: "
+        "RESOURCE_EXHAUSTED: out of memory); compiling it now"
+    )
     assert written[2].startswith("compiled a chunk of 1 updates in ") and "background" not in written[2]
 
 
@@ -208,7 +211,9 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
     for chunk in (0, 1):
         checkpoint.save_state(tmp_path, chunk, {"w": weights[chunk]})
     files = [p for p in (tmp_path / checkpoint.CHECKPOINT_DIR / "1").rglob("*") if p.is_file()]
-    cut = max(files, key=lambda p: p.stat().st_size) if damaged == "data" else next(p for p in files if p.name == damaged)
+    cut = (
+        max(files, key=lambda p: p.stat().st_size) if damaged == "data" else next(p for p in files if p.name == damaged)
+    )
     cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
     like = {"w": jnp.zeros((64, 64))}
     with pytest.raises(checkpoint.DamagedCheckpoint, match="checkpoint 1 cannot be read .truncated or corrupt files"):
@@ -232,7 +237,10 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
 def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
     config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
     train(config, tmp_path / "run", progress=False)
-    with pytest.raises(ValueError, match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(if it holds a run, continue it with --resume"):
+    with pytest.raises(
+        ValueError,
+        match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(if it holds a run, continue it with --resume",
+    ):
         train(config, tmp_path / "run", progress=False)
     with pytest.raises(ValueError, match="config.json is missing"):
         train(config, tmp_path / "empty", resume=True, progress=False)
@@ -281,8 +289,13 @@ TWO_DEVICES = textwrap.dedent(
 
 def _run_devices(devices: int, out_dir) -> dict:
     env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}", "JAX_PLATFORMS": "cpu"}
-    result = subprocess.run([sys.executable, "-c", TWO_DEVICES, str(devices), str(out_dir)],
-                            capture_output=True, text=True, env=env, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", TWO_DEVICES, str(devices), str(out_dir)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -301,9 +314,27 @@ def test_two_device_run_matches_one_device_shapes_and_learns(tmp_path):
 def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "snac_jax.cli", "train", "ppo", "--task", "1d-static-sin", "--recurrent",
-           "--total-steps", "256", "--num-envs", "16", "--chunks", "2", "--out", str(out), "--eval-episodes", "4",
-           "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snac_jax.cli",
+        "train",
+        "ppo",
+        "--task",
+        "1d-static-sin",
+        "--recurrent",
+        "--total-steps",
+        "256",
+        "--num-envs",
+        "16",
+        "--chunks",
+        "2",
+        "--out",
+        str(out),
+        "--eval-episodes",
+        "4",
+        "--no-progress",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for name in ("config.json", "metrics.jsonl", "curve.png", "eval.json"):
@@ -321,7 +352,10 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     from snac_jax.cli import main  # and `snac render --checkpoint` draws the trained policy
 
     gif = tmp_path / "run.gif"
-    assert main(["render", "--task", "1d-static-sin", "--checkpoint", str(out), "--out", str(gif), "--max-steps", "8"]) == 0
+    assert (
+        main(["render", "--task", "1d-static-sin", "--checkpoint", str(out), "--out", str(gif), "--max-steps", "8"])
+        == 0
+    )
     assert gif.stat().st_size > 0
 
 
@@ -339,8 +373,9 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
         return load(env, directory, **options)
 
     monkeypatch.setattr(trained, "checkpoint_policy", recording)
-    code, out, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "1", "--episodes", "2", "--devices", "1"],
-                          capsys)
+    code, out, err = _cli(
+        ["eval", "--checkpoint", str(run), "--seed-index", "1", "--episodes", "2", "--devices", "1"], capsys
+    )
     assert code == 0, err
     assert "training seed index 1" in out and "| 1d-static-sin | 2 |" in out and set(loaded) == {1}
     loaded.clear()
@@ -348,16 +383,31 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
     # without the flag the builder gets no option (a loader whose builder takes none still works)
     assert code == 0 and "training seed index 0" in out and set(loaded) == {None}, err
     loaded.clear()
-    code, out, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--seed-index", "1",
-                           "--out", str(tmp_path / "r.gif"), "--max-steps", "6"], capsys)
+    code, out, err = _cli(
+        [
+            "render",
+            "--task",
+            "1d-static-sin",
+            "--checkpoint",
+            str(run),
+            "--seed-index",
+            "1",
+            "--out",
+            str(tmp_path / "r.gif"),
+            "--max-steps",
+            "6",
+        ],
+        capsys,
+    )
     assert code == 0 and loaded == [1] and "(training seed 1)" in out, err
 
     code, _, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "2", "--episodes", "2"], capsys)
     assert code == 2 and "seed index (seed_index, --seed-index) must be in 0..1" in err
     code, _, err = _cli(["eval", "--policy", "random", "--seed-index", "0"], capsys)
     assert code == 2 and "--seed-index picks one training seed of a run: give it with --checkpoint DIR" in err
-    code, _, err = _cli(["render", "--task", "1d-static-sin", "--seed-index", "0", "--out", str(tmp_path / "r.gif")],
-                        capsys)
+    code, _, err = _cli(
+        ["render", "--task", "1d-static-sin", "--seed-index", "0", "--out", str(tmp_path / "r.gif")], capsys
+    )
     assert code == 2 and "give it with --checkpoint DIR" in err
 
 
@@ -395,7 +445,10 @@ def test_a_checkpoint_with_empty_slots_restores_into_a_state_without_them(tmp_pa
 
 def test_a_checkpoint_of_another_shape_is_refused_before_reading(tmp_path):
     checkpoint.save_state(tmp_path, 3, {"w": jnp.zeros((2, 3)), "b": jnp.zeros(3)})
-    with pytest.raises(ValueError, match=r"checkpoint 3 does not hold the state .*w is float32\[2, 3\], the config needs float32\[4, 3\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"checkpoint 3 does not hold the state .*w is float32\[2, 3\], the config needs float32\[4, 3\]",
+    ):
         checkpoint.restore_state(tmp_path, {"w": jnp.zeros((4, 3)), "b": jnp.zeros(3)})
     with pytest.raises(ValueError, match="missing c; unexpected b"):
         checkpoint.restore_state(tmp_path, {"w": jnp.zeros((2, 3)), "c": jnp.zeros(3)})
@@ -431,9 +484,15 @@ def test_two_processes_cannot_work_on_one_run_directory(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
-         "f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)", str(run / checkpoint.LOCK_FILE)],
-        stdout=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); fcntl.flock(f, fcntl.LOCK_EX); "
+            "f.write('process 4242'); f.flush(); print('locked', flush=True); time.sleep(120)",
+            str(run / checkpoint.LOCK_FILE),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert holder.stdout.readline().strip() == "locked"
@@ -458,7 +517,9 @@ def test_a_lock_is_never_followed_through_a_link(tmp_path):
         run = tmp_path / name
         run.mkdir()
         (run / checkpoint.LOCK_FILE).symlink_to(target)
-        with pytest.raises(ValueError, match=r"\.lock is a symbolic link, not a lock file: a run's lock is never followed"):
+        with pytest.raises(
+            ValueError, match=r"\.lock is a symbolic link, not a lock file: a run's lock is never followed"
+        ):
             with checkpoint.lock_run(run):
                 pass
         for check in (checkpoint.check_new_run_directory, lambda d: train(config, d, progress=False)):
@@ -479,17 +540,22 @@ def _stored_run(tmp_path, options: str):
     """A run directory with its config.json and the given run.json, and no chunk trained yet."""
     from agents.training.config import save_config
 
-    save_config(make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY), tmp_path / checkpoint.CONFIG_FILE)
+    save_config(
+        make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY), tmp_path / checkpoint.CONFIG_FILE
+    )
     (tmp_path / checkpoint.RUN_OPTIONS_FILE).write_text(options)
     return tmp_path
 
 
-@pytest.mark.parametrize("options, message", [
-    ('{"eval_episodes": 2, "no_eval": "false"}', r"run.json: no_eval must be true or false, got 'false'"),
-    ('{"eval_episodes": -5, "no_eval": false}', r"run.json: eval_episodes must be an int >= 1 or null, got -5"),
-    ('{"eval_episode": 2}', r"run.json: unknown field\(s\) \['eval_episode'\]; allowed: eval_episodes, no_eval"),
-    ('[]', r"run.json must hold a JSON object, got list"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ('{"eval_episodes": 2, "no_eval": "false"}', r"run.json: no_eval must be true or false, got 'false'"),
+        ('{"eval_episodes": -5, "no_eval": false}', r"run.json: eval_episodes must be an int >= 1 or null, got -5"),
+        ('{"eval_episode": 2}', r"run.json: unknown field\(s\) \['eval_episode'\]; allowed: eval_episodes, no_eval"),
+        ("[]", r"run.json must hold a JSON object, got list"),
+    ],
+)
 def test_resume_checks_run_json_before_training(tmp_path, capsys, options, message):
     import re
 
@@ -508,12 +574,15 @@ def test_metrics_lines_survive_a_torn_last_line(tmp_path):
         checkpoint.read_metrics_lines(path)
 
 
-@pytest.mark.parametrize("content, message", [
-    ("{\"algorithm\": \"ppo\", ", r"config.json is not valid JSON"),
-    ("[1, 2]", r"config.json must hold a JSON object, got list"),
-    ('{"algorithm": "ppo", "hidden_size": -3}', r"config.json: hidden_size must be an int >= 1"),
-    ('{"algorithm": "nope"}', r"config.json: unknown algorithm 'nope'"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ('{"algorithm": "ppo", ', r"config.json is not valid JSON"),
+        ("[1, 2]", r"config.json must hold a JSON object, got list"),
+        ('{"algorithm": "ppo", "hidden_size": -3}', r"config.json: hidden_size must be an int >= 1"),
+        ('{"algorithm": "nope"}', r"config.json: unknown algorithm 'nope'"),
+    ],
+)
 def test_a_corrupt_config_json_is_named(tmp_path, content, message):
     (tmp_path / checkpoint.CONFIG_FILE).write_text(content)
     with pytest.raises(ValueError, match=message):
@@ -528,17 +597,37 @@ def _cli(argv, capsys) -> tuple[int, str, str]:
     return code, out, err
 
 
-TINY_FLAGS = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
-              "--hidden-size", "8", "--rnn-size", "8", "--no-progress", "--devices", "1"]
+TINY_FLAGS = [
+    "--num-envs",
+    "16",
+    "--rollout-steps",
+    "8",
+    "--num-minibatches",
+    "2",
+    "--update-epochs",
+    "1",
+    "--hidden-size",
+    "8",
+    "--rnn-size",
+    "8",
+    "--no-progress",
+    "--devices",
+    "1",
+]
 
 
 def test_resume_refuses_options_the_run_fixed(tmp_path, capsys):
     from agents.training.config import save_config
 
     save_config(make_config("ppo", "1d-static-sin", total_steps=128, **TINY), tmp_path / checkpoint.CONFIG_FILE)
-    code, _, err = _cli(["train", "ppo", "--resume", str(tmp_path), "--total-steps", "5000", "--task", "1d-static-step"], capsys)
+    code, _, err = _cli(
+        ["train", "ppo", "--resume", str(tmp_path), "--total-steps", "5000", "--task", "1d-static-step"], capsys
+    )
     assert code == 2
-    assert err.startswith("snac train ppo: error: --resume continues the run as ") and "--task, --total-steps cannot change it" in err
+    assert (
+        err.startswith("snac train ppo: error: --resume continues the run as ")
+        and "--task, --total-steps cannot change it" in err
+    )
     code, _, err = _cli(["train", "dqn", "--resume", str(tmp_path)], capsys)
     assert code == 2 and "holds a ppo run, not dqn" in err
 
@@ -548,8 +637,10 @@ def test_training_banner_and_memory_checks_come_before_any_training(tmp_path, ca
     Sizes whose memory cannot fit are refused with the estimate before anything is allocated:
     the final evaluation's episodes too, before the training rather than after it."""
     out = tmp_path / "a"
-    code, _, err = _cli(["train", "ppo", "--total-steps", "1", *TINY_FLAGS, "--out", str(out),
-                         "--eval-episodes", "1000000000000"], capsys)
+    code, _, err = _cli(
+        ["train", "ppo", "--total-steps", "1", *TINY_FLAGS, "--out", str(out), "--eval-episodes", "1000000000000"],
+        capsys,
+    )
     assert "128 env steps (total_steps 1 rounded to whole updates of 128) x 1 seed(s)" in err
     assert code == 2 and "snac train ppo: error: 1,000,000,000,000 episodes at once needs about" in err
     huge = [f if f != "16" else "1000000000" for f in TINY_FLAGS]
@@ -569,8 +660,24 @@ def test_a_cli_run_keeps_its_options_and_its_files_are_readable(tmp_path, capsys
     old_umask = os.umask(0o022)
     try:
         run = tmp_path / "run"
-        code, out, err = _cli(["train", "ppo", "--total-steps", "256", "--chunks", "2", *TINY_FLAGS, "--max-steps", "40",
-                               "--eval-episodes", "2", "--out", str(run)], capsys)
+        code, out, err = _cli(
+            [
+                "train",
+                "ppo",
+                "--total-steps",
+                "256",
+                "--chunks",
+                "2",
+                *TINY_FLAGS,
+                "--max-steps",
+                "40",
+                "--eval-episodes",
+                "2",
+                "--out",
+                str(run),
+            ],
+            capsys,
+        )
     finally:
         os.umask(old_umask)
     assert code == 0, err
@@ -595,8 +702,9 @@ def test_a_cli_run_keeps_its_options_and_its_files_are_readable(tmp_path, capsys
     monkeypatch.undo()
 
     gif = tmp_path / "run.gif"
-    code, out, err = _cli(["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(gif),
-                           "--max-steps", "12"], capsys)
+    code, out, err = _cli(
+        ["render", "--task", "1d-static-sin", "--checkpoint", str(run), "--out", str(gif), "--max-steps", "12"], capsys
+    )
     assert code == 0, err
     assert "1d-static-sin, policy " in out and "final IoU" in out
     assert iio.imread(gif, index=None).shape[0] >= 2
@@ -609,16 +717,47 @@ def test_a_run_with_switches_is_scored_and_drawn_with_them(tmp_path, capsys):
     from snac_jax import make
 
     run = tmp_path / "run"
-    code, out, err = _cli(["train", "ppo", "--task", "2d-static-dense", "--total-steps", "256", "--chunks", "1",
-                           *TINY_FLAGS, "--switches", "gps=true", "--max-steps", "20", "--eval-episodes", "2",
-                           "--out", str(run)], capsys)
+    code, out, err = _cli(
+        [
+            "train",
+            "ppo",
+            "--task",
+            "2d-static-dense",
+            "--total-steps",
+            "256",
+            "--chunks",
+            "1",
+            *TINY_FLAGS,
+            "--switches",
+            "gps=true",
+            "--max-steps",
+            "20",
+            "--eval-episodes",
+            "2",
+            "--out",
+            str(run),
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "{'gps': True, 'max_steps': 20}" in err
     code, out, err = _cli(["eval", "--checkpoint", str(run), "--episodes", "2"], capsys)
     assert code == 0, err
     assert "'gps': True" in err and "| 2d-static-dense | 2 |" in out
-    code, out, err = _cli(["render", "--task", "2d-static-dense", "--checkpoint", str(run), "--out",
-                           str(tmp_path / "run.gif"), "--max-steps", "6"], capsys)
+    code, out, err = _cli(
+        [
+            "render",
+            "--task",
+            "2d-static-dense",
+            "--checkpoint",
+            str(run),
+            "--out",
+            str(tmp_path / "run.gif"),
+            "--max-steps",
+            "6",
+        ],
+        capsys,
+    )
     assert code == 0, err
     env, _ = make("2d-static-dense")
     with pytest.raises(ValueError, match="trained with switches 'gps=true'; build the env with them"):
@@ -701,8 +840,13 @@ def test_sigkill_at_any_point_then_resume_equals_an_uninterrupted_run(tmp_path):
     env.pop("XLA_FLAGS", None)
     for where in ("mid-chunk", "metrics-line", "checkpoint-write"):
         out = tmp_path / where
-        done = subprocess.run([sys.executable, "-c", KILLER, str(out), where, "2", json.dumps(config.to_json())],
-                              capture_output=True, text=True, env=env, timeout=600)
+        done = subprocess.run(
+            [sys.executable, "-c", KILLER, str(out), where, "2", json.dumps(config.to_json())],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
         assert done.returncode == -9, (where, done.stderr[-3000:])  # killed, not finished
         assert checkpoint.latest_chunk(out) == 1, where
         _, resumed = train(config, out, resume=True, progress=False, mesh=env_mesh(1))

@@ -23,8 +23,20 @@ from agents.training.registry import make_config
 from snac_jax.cli import main
 
 PPO = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
-PPO_FLAGS = ["--num-envs", "16", "--rollout-steps", "8", "--num-minibatches", "2", "--update-epochs", "1",
-             "--hidden-size", "8", "--rnn-size", "8"]
+PPO_FLAGS = [
+    "--num-envs",
+    "16",
+    "--rollout-steps",
+    "8",
+    "--num-minibatches",
+    "2",
+    "--update-epochs",
+    "1",
+    "--hidden-size",
+    "8",
+    "--rnn-size",
+    "8",
+]
 REPLAY = dict(num_envs=8, rollout_steps=8, batch_size=16, gradient_steps=1, buffer_size=8 * 40, max_steps=20)
 SAC = dict(REPLAY, hidden_sizes="16,16")
 DQN = dict(REPLAY, hidden_size=8)
@@ -79,8 +91,9 @@ def test_ctrl_c_in_snac_train_is_one_line_naming_the_resume_command(tmp_path, mo
     err = capsys.readouterr().err
     assert "Traceback" not in err
     command = f"snac train ppo --resume {shlex.quote(str(run))}"
-    assert err.splitlines()[-1] == (f"snac train ppo: interrupted; 2 of 3 chunks are done and checkpointed, and the "
-                                    f"run is resumable: {command}")
+    assert err.splitlines()[-1] == (
+        f"snac train ppo: interrupted; 2 of 3 chunks are done and checkpointed, and the run is resumable: {command}"
+    )
     assert checkpoint.latest_chunk(run) == 1
     assert [r["chunk"] for r in read_metrics(run)] == [0, 1]
     monkeypatch.undo()
@@ -97,8 +110,9 @@ def test_ctrl_c_before_a_run_starts_says_there_is_nothing_to_resume(tmp_path, mo
     monkeypatch.setattr(agents.training.registry, "build_algorithm", interrupted)
     run = tmp_path / "run"
     assert _snac(["train", "ppo", *PPO_FLAGS, "--total-steps", "128", "--out", str(run)]) == 130
-    assert capsys.readouterr().err.splitlines()[-1] == ("snac train ppo: interrupted before the run started; "
-                                                        "nothing to resume (start it again)")
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "snac train ppo: interrupted before the run started; nothing to resume (start it again)"
+    )
     assert not run.exists()
 
 
@@ -107,13 +121,29 @@ def test_sigint_to_snac_train_leaves_a_run_its_printed_command_finishes(tmp_path
     snac = Path(sys.executable).parent / "snac"
     run = tmp_path / "run"
     chunks = 40  # one update each: the run is still going when the signal comes
-    argv = [str(snac), "train", "ppo", "--task", "1d-static-sin", *PPO_FLAGS, "--total-steps", str(chunks * 16 * 8),
-            "--chunks", str(chunks), "--no-eval", "--no-progress", "--out", str(run)]
+    argv = [
+        str(snac),
+        "train",
+        "ppo",
+        "--task",
+        "1d-static-sin",
+        *PPO_FLAGS,
+        "--total-steps",
+        str(chunks * 16 * 8),
+        "--chunks",
+        str(chunks),
+        "--no-eval",
+        "--no-progress",
+        "--out",
+        str(run),
+    ]
     # A shell may start a background job with SIGINT ignored, and a child inherits that; with a
     # handler here (`ctrl_c_raises`) the child starts with the default, as under a terminal.
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     deadline = time.monotonic() + 300
-    while not (run / checkpoint.CHECKPOINT_DIR / "1").is_dir() and process.poll() is None and time.monotonic() < deadline:
+    while (
+        not (run / checkpoint.CHECKPOINT_DIR / "1").is_dir() and process.poll() is None and time.monotonic() < deadline
+    ):
         time.sleep(0.05)
     process.send_signal(signal.SIGINT)
     _, err = process.communicate(timeout=300)
@@ -121,15 +151,19 @@ def test_sigint_to_snac_train_leaves_a_run_its_printed_command_finishes(tmp_path
     assert "Traceback" not in err and "asyncio" not in err and "Exception" not in err
     said = [line for line in err.splitlines() if "interrupted" in line]
     assert len(said) == 1 and said[0] == err.splitlines()[-1]
-    found = re.fullmatch(rf"snac train ppo: interrupted; (\d+) of {chunks} chunks are done and checkpointed, and "
-                         r"the run is resumable: (snac train ppo --resume .+)", said[0])
+    found = re.fullmatch(
+        rf"snac train ppo: interrupted; (\d+) of {chunks} chunks are done and checkpointed, and "
+        r"the run is resumable: (snac train ppo --resume .+)",
+        said[0],
+    )
     assert found, said[0]
     done = int(found.group(1))
     assert checkpoint.latest_chunk(run) == done - 1
     assert [r["chunk"] for r in read_metrics(run)] == list(range(done))
     command = shlex.split(found.group(2))
-    resumed = subprocess.run([str(snac), *command[1:], "--no-progress"], capture_output=True, text=True,
-                             cwd=tmp_path, timeout=600)
+    resumed = subprocess.run(
+        [str(snac), *command[1:], "--no-progress"], capture_output=True, text=True, cwd=tmp_path, timeout=600
+    )
     assert resumed.returncode == 0, resumed.stderr
     assert [r["chunk"] for r in read_metrics(run)] == list(range(chunks))
 
@@ -142,21 +176,41 @@ def test_learning_starts_beyond_the_budget_is_refused_naming_the_largest_value()
     config = make_config("sac", "1d-static-sin", **SAC, total_steps=budget, learning_starts=budget)
     assert config.first_learning_update() == config.num_updates  # the largest value still learns
     for algorithm, options in (("sac", SAC), ("dqn", DQN)):
-        with pytest.raises(ValueError, match=rf"learning_starts \({budget + 1}\) is beyond the run's {budget} env steps "
-                                             rf"per seed .*no gradient step .*at most {budget}"):
+        with pytest.raises(
+            ValueError,
+            match=rf"learning_starts \({budget + 1}\) is beyond the run's {budget} env steps "
+            rf"per seed .*no gradient step .*at most {budget}",
+        ):
             make_config(algorithm, "1d-static-sin", **options, total_steps=budget, learning_starts=budget + 1)
 
 
 def test_a_run_too_short_to_fill_one_replay_window_is_refused():
-    with pytest.raises(ValueError, match=r"fewer than one sampled window \(sample_length 5\): no gradient step would be "
-                                         r"taken; total_steps must be at least 40"):
+    with pytest.raises(
+        ValueError,
+        match=r"fewer than one sampled window \(sample_length 5\): no gradient step would be "
+        r"taken; total_steps must be at least 40",
+    ):
         make_config("dqn", "1d-static-sin", **{**DQN, "rollout_steps": 1}, learning_starts=0, total_steps=8)
 
 
 def test_snac_train_refuses_learning_starts_beyond_the_budget_in_one_line(tmp_path, capsys):
     run = tmp_path / "run"
-    code = main(["train", "dqn", "--num-envs", "8", "--rollout-steps", "8", "--total-steps", "256",
-                 "--learning-starts", "100000", "--out", str(run)])
+    code = main(
+        [
+            "train",
+            "dqn",
+            "--num-envs",
+            "8",
+            "--rollout-steps",
+            "8",
+            "--total-steps",
+            "256",
+            "--learning-starts",
+            "100000",
+            "--out",
+            str(run),
+        ]
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1
@@ -174,8 +228,9 @@ def test_a_diverged_run_is_flagged_resumed_and_noted_beside_its_evaluation(tmp_p
     from agents.training.cli import evaluate_run
     from agents.training.plotting import plot_curve
 
-    config = make_config("sac", "1d-static-sin", **SAC, total_steps=3 * 64, chunks=3, learning_starts=2 * 64,
-                         reward_scale=1e38)
+    config = make_config(
+        "sac", "1d-static-sin", **SAC, total_steps=3 * 64, chunks=3, learning_starts=2 * 64, reward_scale=1e38
+    )
     run = tmp_path / "run"
     train(config, run, progress=False, stop_after_chunks=2)
     algorithm, state = train(config, run, resume=True, progress=False)  # reads and rewrites the nulls
@@ -185,11 +240,14 @@ def test_a_diverged_run_is_flagged_resumed_and_noted_beside_its_evaluation(tmp_p
     for record in records[1:]:
         assert "critic_loss" in record["diverged"] and record["critic_loss"] == [None]
     warnings = [line for line in capsys.readouterr().err.splitlines() if "diverged" in line]
-    assert warnings == [f"warning: training diverged in chunk 1: {', '.join(records[1]['diverged'])} not finite "
-                        f"(recorded as null in {run / checkpoint.METRICS_FILE}, the chunk flagged)"]
+    assert warnings == [
+        f"warning: training diverged in chunk 1: {', '.join(records[1]['diverged'])} not finite "
+        f"(recorded as null in {run / checkpoint.METRICS_FILE}, the chunk flagged)"
+    ]
     plot_curve(read_metrics(run), config.task, "diverged", run / "curve.png")  # nulls plot as gaps
 
     evaluate_run(algorithm, state, run, episodes=1)
     out = capsys.readouterr().out
-    assert re.search(r"note: training diverged: .*critic_loss.* not finite in chunks 1-2 \(2 chunks\) of metrics.jsonl",
-                     out)
+    assert re.search(
+        r"note: training diverged: .*critic_loss.* not finite in chunks 1-2 \(2 chunks\) of metrics.jsonl", out
+    )

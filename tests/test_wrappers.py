@@ -21,7 +21,9 @@ def _purejaxrl_rollout(env, params, num_envs=16, num_steps=200):
             obs, state = carry
             key_act, key_step = jax.random.split(step_key)
             actions = jax.vmap(env.action_space(params).sample)(jax.random.split(key_act, num_envs))
-            out = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(key_step, num_envs), state, actions, params)
+            out = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(key_step, num_envs), state, actions, params
+            )
             return (out[0], out[1]), out
 
         return jax.lax.scan(body, (obs, state), jax.random.split(key, num_steps))[1]

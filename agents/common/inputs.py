@@ -37,7 +37,7 @@ class ObsLayout:
     num_actions: int = 0
 
     @classmethod
-    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> "ObsLayout":
+    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> ObsLayout:
         return cls(
             env=env.observation_layout,
             height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
@@ -114,7 +114,11 @@ class ObsLayout:
 
     def remember(self, obs: jax.Array, action: jax.Array) -> dict[str, jax.Array]:
         """The memory after acting `action` on `obs`: what the next step reads as its previous one."""
-        return {"reset": jnp.zeros((), bool), "previous_obs": obs.astype(jnp.float32), "last_action": action.astype(jnp.int32)}
+        return {
+            "reset": jnp.zeros((), bool),
+            "previous_obs": obs.astype(jnp.float32),
+            "last_action": action.astype(jnp.int32),
+        }
 
     @property
     def num_height_classes(self) -> int:

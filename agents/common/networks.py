@@ -13,7 +13,7 @@ over seeds deadlocked on 2 CPU cores.
 from __future__ import annotations
 
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import flax.linen as nn
 import jax
@@ -57,8 +57,14 @@ class StridedConv(nn.Module):
         out = [-(-size // s) for size in x.shape[1:3]]  # "SAME": ceil(size / stride)
         pads = [max((o - 1) * s + k - size, 0) for o, size in zip(out, x.shape[1:3])]
         x = jnp.pad(x, [(0, 0)] + [(p // 2, p - p // 2) for p in pads] + [(0, 0)])
-        patches = jnp.stack([x[:, i : i + (out[0] - 1) * s + 1 : s, j : j + (out[1] - 1) * s + 1 : s]
-                             for i in range(k) for j in range(k)], axis=-2)  # (N, H', W', k*k, C), the kernel's order
+        patches = jnp.stack(
+            [
+                x[:, i : i + (out[0] - 1) * s + 1 : s, j : j + (out[1] - 1) * s + 1 : s]
+                for i in range(k)
+                for j in range(k)
+            ],
+            axis=-2,
+        )  # (N, H', W', k*k, C), the kernel's order
         return patches.reshape(patches.shape[:3] + (-1,)) @ weight.reshape(-1, self.features) + bias
 
 
@@ -138,9 +144,7 @@ class ScannedRNN(nn.Module):
     features: int
     cell: str = "gru"  # "gru" or "lstm"
 
-    @functools.partial(
-        nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False}
-    )
+    @functools.partial(nn.scan, variable_broadcast="params", in_axes=0, out_axes=0, split_rngs={"params": False})
     @nn.compact
     def __call__(self, carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         inputs, resets = step
@@ -152,8 +156,9 @@ class ScannedRNN(nn.Module):
         return nn.GRUCell(self.features, **inits)(carry, inputs)
 
 
-def mlp_head(x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense,
-             layer_norm: bool = False) -> jax.Array:
+def mlp_head(
+    x: jax.Array, hidden_size: int, out: int, gain: float, layer: Layer = dense, layer_norm: bool = False
+) -> jax.Array:
     x = hidden_activation(layer(hidden_size, np.sqrt(2))(x), layer_norm)
     return layer(out, gain)(x)
 
@@ -240,8 +245,9 @@ class QNetwork(nn.Module):
         return jnp.zeros((batch, self.carry_size), jnp.float32)
 
     @nn.compact
-    def __call__(self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False,
-                 noise_per_world: bool = False):
+    def __call__(
+        self, carry: jax.Array, frames: jax.Array, resets: jax.Array, noise: bool = False, noise_per_world: bool = False
+    ):
         """`noise`: the noisy layers draw their noise (rng "noise"), one draw for the batch or, with
         `noise_per_world`, one per (step, world); otherwise they are their mean."""
         layer = noisy_dense(self.sigma0, noise, noise_per_world) if self.noisy else dense
@@ -255,11 +261,14 @@ class QNetwork(nn.Module):
         if self.auxiliary_heads is not None:
             self.sow("intermediates", "auxiliary", self.auxiliary_heads(x))
         per_action = (self.num_actions,) if self.atoms == 1 else (self.num_actions, self.atoms)
-        advantage = lambda: mlp_head(x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer, self.layer_norm).reshape(
-            x.shape[:-1] + per_action)
+        advantage = lambda: mlp_head(
+            x, self.hidden_size, self.num_actions * self.atoms, 1.0, layer, self.layer_norm
+        ).reshape(x.shape[:-1] + per_action)
         if not self.dueling:
             return carry, advantage()
-        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer, self.layer_norm).reshape(x.shape[:-1] + (1,) + per_action[1:])
+        value = mlp_head(x, self.hidden_size, self.atoms, 1.0, layer, self.layer_norm).reshape(
+            x.shape[:-1] + (1,) + per_action[1:]
+        )
         advantage = advantage()  # built after the value stream, so parameter names stay those of the plain head
         return carry, value + advantage - advantage.mean(axis=-len(per_action), keepdims=True)
 

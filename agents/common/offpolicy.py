@@ -40,9 +40,9 @@ import numpy as np
 import optax
 from flax import struct
 
-from agents.training.config import TrainConfig, option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import frames_with_history
+from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
 
 
@@ -55,13 +55,15 @@ class ReplayConfig(TrainConfig):
     batch_size: int = option(256, "sampled sequences per gradient step", low=1)
     sequence_length: int = option(1, "steps per sampled sequence that get a loss", low=1)
     buffer_size: int = option(500_000, "replay capacity in env steps, over all worlds of a seed", low=1)
-    max_buffer_mb: float = option(2048.0, "the config is refused when the replay memory would exceed this",
-                                  low=0, low_open=True)
+    max_buffer_mb: float = option(
+        2048.0, "the config is refused when the replay memory would exceed this", low=0, low_open=True
+    )
     gamma: float = option(0.99, "discount", low=0, high=1)
     n_step: int = option(3, "steps of reward before the bootstrap", low=1)
     learning_starts: int = option(20_000, "env steps per seed before the first gradient step", low=0)
-    reward_scale: float = option(0.1, "rewards are multiplied by this for learning (not for reporting)",
-                                 low=0, low_open=True)
+    reward_scale: float = option(
+        0.1, "rewards are multiplied by this for learning (not for reporting)", low=0, low_open=True
+    )
 
     @property
     def context(self) -> int:
@@ -179,8 +181,12 @@ class ReplayLearner:
         """The replay: one row of `per_world` steps per world, sampled as windows of `sample_length`."""
         cfg = self.config
         return fbx.make_trajectory_buffer(
-            add_batch_size=cfg.num_envs, sample_batch_size=cfg.batch_size, sample_sequence_length=cfg.sample_length,
-            period=1, min_length_time_axis=cfg.sample_length, max_length_time_axis=self.per_world,
+            add_batch_size=cfg.num_envs,
+            sample_batch_size=cfg.batch_size,
+            sample_sequence_length=cfg.sample_length,
+            period=1,
+            min_length_time_axis=cfg.sample_length,
+            max_length_time_axis=self.per_world,
         )
 
     def check_memory(self) -> None:
@@ -208,8 +214,10 @@ class ReplayLearner:
 
     def describe_memory(self) -> str:
         parts = ", ".join(f"{name} {size / 2**20:.1f} MiB" for name, size in self.memory_bytes().items())
-        return (f"replay on device: {self.per_world} steps x {self.config.num_envs} worlds per seed; {parts} "
-                f"(limit {self.config.max_buffer_mb:g} MiB)")
+        return (
+            f"replay on device: {self.per_world} steps x {self.config.num_envs} worlds per seed; {parts} "
+            f"(limit {self.config.max_buffer_mb:g} MiB)"
+        )
 
     # --- the learner's hooks -------------------------------------------------------------------
 
@@ -221,7 +229,9 @@ class ReplayLearner:
         """`(params, target_params)` of a new run, from one network input `frames (1, 1, k, O)`."""
         raise NotImplementedError
 
-    def action_scores(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def action_scores(
+        self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         """`(carry, scores (T, B, A))` whose argmax is the greedy action, from `frames (T, B, k, O)`."""
         raise NotImplementedError
 
@@ -247,9 +257,15 @@ class ReplayLearner:
         n, k = self.config.num_envs, self.frame_stack
         history = jnp.zeros((n, k - 1, self.layout.obs_size), jnp.float32) if k > 1 else None
         return Worlds(
-            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32), history=history,
-            reset=jnp.ones((n,), bool), carry=self.initial_carry(n),
-            episode_return=jnp.zeros((n,), jnp.float32), episode=jnp.zeros((n,), jnp.int32),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=obs,
+            last_action=jnp.zeros((n,), jnp.int32),
+            history=history,
+            reset=jnp.ones((n,), bool),
+            carry=self.initial_carry(n),
+            episode_return=jnp.zeros((n,), jnp.float32),
+            episode=jnp.zeros((n,), jnp.int32),
         )
 
     def init(self, key: jax.Array) -> RunnerState:
@@ -262,8 +278,15 @@ class ReplayLearner:
         params, target_params = self.init_params(key_params, frames[None, :1])
         zero = jnp.zeros((), jnp.int32)
         return RunnerState(
-            params=params, target_params=target_params, opt_state=self.optimizer.init(params), worlds=worlds,
-            buffer=self.buffer.init(self._example_step()), key=key, update=zero, gradient_step=zero, env_steps=zero,
+            params=params,
+            target_params=target_params,
+            opt_state=self.optimizer.init(params),
+            worlds=worlds,
+            buffer=self.buffer.init(self._example_step()),
+            key=key,
+            update=zero,
+            gradient_step=zero,
+            env_steps=zero,
         )
 
     def _world_step(self, worlds: Worlds, keys: jax.Array, action: jax.Array, env_params):
@@ -273,8 +296,13 @@ class ReplayLearner:
             keys, worlds.env_state, action, env_params
         )
         done = terminated | truncated
-        step = Step(obs=worlds.obs.astype(jnp.int16), reset=worlds.reset, action=action.astype(jnp.int8),
-                    reward=reward, done=done)
+        step = Step(
+            obs=worlds.obs.astype(jnp.int16),
+            reset=worlds.reset,
+            action=action.astype(jnp.int8),
+            reward=reward,
+            done=done,
+        )
         return env_state, obs, reward, done, info, step, worlds
 
     def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
@@ -299,8 +327,14 @@ class ReplayLearner:
             "return_sum": jnp.where(done, episode_return, 0.0).sum(),
         }
         worlds = worlds.replace(
-            env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32),
-            history=history, reset=done, carry=carry, episode_return=jnp.where(done, 0.0, episode_return),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=worlds.obs,
+            last_action=action.astype(jnp.int32),
+            history=history,
+            reset=done,
+            carry=carry,
+            episode_return=jnp.where(done, 0.0, episode_return),
             episode=worlds.episode + done.astype(jnp.int32),
         )
         return worlds, step, stats
@@ -347,7 +381,9 @@ class ReplayLearner:
         params = optax.apply_updates(state.params, updates)
         gradient_step = state.gradient_step + 1
         target_params = self.update_target(params, state.target_params, gradient_step)
-        return state.replace(params=params, target_params=target_params, opt_state=opt_state, gradient_step=gradient_step)
+        return state.replace(
+            params=params, target_params=target_params, opt_state=opt_state, gradient_step=gradient_step
+        )
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
@@ -366,8 +402,13 @@ class ReplayLearner:
         ready = self.buffer.can_sample(buffer) & (state.env_steps >= cfg.learning_starts)
         state, info = jax.lax.cond(ready, learn, wait, state)
         filled = jnp.where(buffer.is_full, self.per_world, buffer.current_index) / self.per_world
-        metrics = {**info, **stats, **self.acting_metrics(state.env_steps), "buffer_fill": filled,
-                   "gradient_steps": state.gradient_step}
+        metrics = {
+            **info,
+            **stats,
+            **self.acting_metrics(state.env_steps),
+            "buffer_fill": filled,
+            "gradient_steps": state.gradient_step,
+        }
         return state.replace(update=state.update + 1), metrics
 
     def train_chunk(self, state: RunnerState, env_params, num_updates: int) -> tuple[RunnerState, dict]:
@@ -387,7 +428,9 @@ class ReplayLearner:
 
         def act(params, policy_state, obs, key):
             frames = frames_with_history(policy_state["history"], layout.acting_inputs(obs, policy_state))
-            carry, s = scores(params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None])
+            carry, s = scores(
+                params, policy_state["carry"][None], frames[None, None], policy_state["reset"][None, None]
+            )
             history = frames[1:] if k > 1 else None
             action = jnp.argmax(s[0, 0]).astype(jnp.int32)
             return action, {"carry": carry[0], "history": history, **layout.remember(obs, action)}

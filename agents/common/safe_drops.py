@@ -45,8 +45,10 @@ def neighbour_drop_targets(config: EnvConfig) -> np.ndarray:
 def require_obstacles(config: EnvConfig, task: str) -> None:
     """`safe_drops` refuses a world without the obstacle rule, where no robot is ever stuck."""
     if not config.obstacles:
-        raise ValueError(f"safe_drops needs the obstacle rule (3D, or 2D with obstacles=true); {task} has none, "
-                         "so its robot is never stuck")
+        raise ValueError(
+            f"safe_drops needs the obstacle rule (3D, or 2D with obstacles=true); {task} has none, "
+            "so its robot is never stuck"
+        )
 
 
 def allowed_actions(config: EnvConfig, window: jax.Array) -> jax.Array:

@@ -5,7 +5,8 @@ distributional one (Rainbow); and the values at truncations that PPO's and PQN's
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +41,9 @@ def gae(
     return advantages, advantages + values
 
 
-def n_step_returns(rewards: jax.Array, dones: jax.Array, gamma: float, n: int, length: int) -> tuple[jax.Array, jax.Array]:
+def n_step_returns(
+    rewards: jax.Array, dones: jax.Array, gamma: float, n: int, length: int
+) -> tuple[jax.Array, jax.Array]:
     """`(reward sums, bootstrap discounts)` of n-step returns for the first `length` steps of
     time-major `(length + n, ...)` arrays: the target of step t is `sums[t] + discounts[t] * value
     of the observation n steps on`. `dones[t]` means the episode ended at step t, so neither later
@@ -53,7 +56,9 @@ def n_step_returns(rewards: jax.Array, dones: jax.Array, gamma: float, n: int, l
     return target, (gamma**n) * alive
 
 
-def n_step_targets(rewards: jax.Array, dones: jax.Array, values: jax.Array, gamma: float, n: int, length: int) -> jax.Array:
+def n_step_targets(
+    rewards: jax.Array, dones: jax.Array, values: jax.Array, gamma: float, n: int, length: int
+) -> jax.Array:
     """n-step return targets for the first `length` steps of time-major `(length + n, ...)` arrays.
 
     `values[t]` is the bootstrap value of the observation at t; `dones[t]` means the episode ended

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from agents.training.config import option
 from agents.common.networks import QNetwork, stack_frames
 from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
 from agents.common.targets import n_step_targets
+from agents.training.config import option
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,8 +83,14 @@ class DQN(ReplayLearner):
 
     def make_network(self) -> QNetwork:
         cfg = self.config
-        return QNetwork(layout=self.layout, num_actions=self.env.num_actions, hidden_size=cfg.hidden_size,
-                        lstm_size=self.lstm_size, dueling=cfg.dueling, layer_norm=cfg.layer_norm)
+        return QNetwork(
+            layout=self.layout,
+            num_actions=self.env.num_actions,
+            hidden_size=cfg.hidden_size,
+            lstm_size=self.lstm_size,
+            dueling=cfg.dueling,
+            layer_norm=cfg.layer_norm,
+        )
 
     # --- hooks of the replay loop ----------------------------------------------------------------
 
@@ -155,9 +161,7 @@ class DQN(ReplayLearner):
         greedy_from = jax.lax.stop_gradient(q) if cfg.double_q else q_target
         next_action = jnp.argmax(greedy_from, axis=-1)
         values = jnp.take_along_axis(q_target, next_action[..., None], axis=-1)[..., 0]
-        targets = n_step_targets(
-            rewards[c:] * cfg.reward_scale, batch.done[c:], values, cfg.gamma, cfg.n_step, length
-        )
+        targets = n_step_targets(rewards[c:] * cfg.reward_scale, batch.done[c:], values, cfg.gamma, cfg.n_step, length)
         actions = batch.action[c : c + length].astype(jnp.int32)
         q_taken = jnp.take_along_axis(q[:length], actions[..., None], axis=-1)[..., 0]
         weights = mask[c : c + length]

@@ -8,8 +8,8 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
-from agents.training.config import option
 from agents.learners.dqn import DQN, DQNConfig
+from agents.training.config import option
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,9 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from agents.training.config import option
 from agents.common.offpolicy import RunnerState, Step, Worlds
 from agents.learners.drqn import DRQN, DRQNConfig
+from agents.training.config import option
 from snac_jax.config import EnvConfig
 from snac_jax.transition import drop_reward
 
@@ -97,16 +97,21 @@ class DRQNHER(DRQN):
         """Final grids kept per world: enough for every episode a buffer row can hold. An episode
         lasts at least min(brick budget, step limit) steps (3D can end sooner when stuck; a slot
         overwritten too early only drops that episode's relabelled copy)."""
-        shortest = max(1, min(int(np.min(np.asarray(self.env_params.design_max_bricks))),
-                              int(self.env_params.max_steps_in_episode)))
+        shortest = max(
+            1,
+            min(int(np.min(np.asarray(self.env_params.design_max_bricks))), int(self.env_params.max_steps_in_episode)),
+        )
         return self.per_world // shortest + 2
 
     def _example_step(self) -> HindsightStep:
         base = super()._example_step()
         return HindsightStep(
             **{f.name: getattr(base, f.name) for f in dataclasses.fields(Step)},
-            world=jnp.zeros((), jnp.int32), episode=jnp.zeros((), jnp.int32), drop_cell=jnp.zeros((), jnp.int32),
-            drop_height=jnp.zeros((), jnp.int16), stride=jnp.zeros((), jnp.int8),
+            world=jnp.zeros((), jnp.int32),
+            episode=jnp.zeros((), jnp.int32),
+            drop_cell=jnp.zeros((), jnp.int32),
+            drop_height=jnp.zeros((), jnp.int16),
+            stride=jnp.zeros((), jnp.int8),
         )
 
     def memory_bytes(self) -> dict[str, int]:
@@ -120,8 +125,9 @@ class DRQNHER(DRQN):
             grids=jnp.zeros((n, self.ring_size) + self.env.config.plan_shape, jnp.int16),
             episode=jnp.full((n, self.ring_size), -1, jnp.int32),
         )
-        return HindsightWorlds(**{f.name: getattr(worlds, f.name) for f in dataclasses.fields(Worlds)},
-                               final_grids=final_grids)
+        return HindsightWorlds(
+            **{f.name: getattr(worlds, f.name) for f in dataclasses.fields(Worlds)}, final_grids=final_grids
+        )
 
     def _world_step(self, worlds: HindsightWorlds, keys: jax.Array, action: jax.Array, env_params):
         """The environment's step, keeping the final grid of an ending episode, which the
@@ -136,9 +142,16 @@ class DRQNHER(DRQN):
             worlds.env_state.grid, stepped.grid, terminated
         )
         step = HindsightStep(
-            obs=worlds.obs.astype(jnp.int16), reset=worlds.reset, action=action.astype(jnp.int8), reward=reward,
-            done=done, world=jnp.arange(n, dtype=jnp.int32), episode=worlds.episode, drop_cell=drop_cell,
-            drop_height=drop_height, stride=info["stride"].astype(jnp.int8),
+            obs=worlds.obs.astype(jnp.int16),
+            reset=worlds.reset,
+            action=action.astype(jnp.int8),
+            reward=reward,
+            done=done,
+            world=jnp.arange(n, dtype=jnp.int32),
+            episode=worlds.episode,
+            drop_cell=drop_cell,
+            drop_height=drop_height,
+            stride=info["stride"].astype(jnp.int8),
         )
         ring, rows, slot = worlds.final_grids, jnp.arange(n), worlds.episode % self.ring_size
         final = jax.vmap(lambda g: plan_area(env.config, g))(stepped.grid).astype(jnp.int16)
@@ -157,7 +170,9 @@ class DRQNHER(DRQN):
         slot = batch.episode % self.ring_size
         grids = ring.grids[batch.world, slot]  # (L, S, *plan_shape)
         ended = ring.episode[batch.world, slot] == batch.episode
-        relabelled = (jnp.arange(rewards.shape[1]) < round(self.config.hindsight_fraction * self.config.batch_size))[None, :]
+        relabelled = (jnp.arange(rewards.shape[1]) < round(self.config.hindsight_fraction * self.config.batch_size))[
+            None, :
+        ]
         use = relabelled & ended
         rewards = jnp.where(use, hindsight_rewards(self.env.config, batch.drop_cell, batch.drop_height, grids), rewards)
         mask = jnp.where(relabelled, ended, True).astype(rewards.dtype)

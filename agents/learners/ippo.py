@@ -33,10 +33,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.training.config import TrainConfig, option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head
 from agents.common.targets import gae, truncation_values
+from agents.training.config import TrainConfig, option
 from snac_jax import multi
 from snac_jax.multi.rules import max_robots
 
@@ -67,8 +67,9 @@ class IPPOConfig(TrainConfig):
     max_grad_norm: float = option(0.5, "global gradient norm clip", low=0, low_open=True)
     hidden_size: int = option(64, "width of the encoder and the heads", low=1)
     rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
-    reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
-                                 low=0, low_open=True)
+    reward_scale: float = option(
+        0.01, "rewards are multiplied by this for learning (not for reporting)", low=0, low_open=True
+    )
 
     def check(self) -> None:
         from snac_jax.tasks import parse_switches, task_spec
@@ -152,8 +153,18 @@ class Transition(NamedTuple):
     carry_after: jax.Array  # (W, N, C) carries after `inputs`: they score `final_inputs`
 
 
-def team_objective(logits, value, action, old_log_prob, old_value, advantages, targets,
-                   clip_eps: float, vf_coef: float, ent_coef: float):
+def team_objective(
+    logits,
+    value,
+    action,
+    old_log_prob,
+    old_value,
+    advantages,
+    targets,
+    clip_eps: float,
+    vf_coef: float,
+    ent_coef: float,
+):
     """PPO's loss over every robot-step of a minibatch (all arrays of one shape, `logits` with
     the actions last): the clipped surrogate on normalised advantages, the clipped value loss and
     the entropy bonus; returns `(loss, info)`."""
@@ -166,8 +177,13 @@ def team_objective(logits, value, action, old_log_prob, old_value, advantages, t
     entropy = pi.entropy().mean()
     total = actor_loss + vf_coef * value_loss - ent_coef * entropy
     approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
-    return total, {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy,
-                   "approx_kl": approx_kl}
+    return total, {
+        "loss": total,
+        "value_loss": value_loss,
+        "actor_loss": actor_loss,
+        "entropy": entropy,
+        "approx_kl": approx_kl,
+    }
 
 
 class IPPO:
@@ -182,8 +198,11 @@ class IPPO:
         self.robots = config.robots
         self.layout = ObsLayout.from_env(self.team_env.single, self.env_params, previous_step=config.previous_step)
         self.network = TeamActorCritic(
-            layout=self.layout, num_actions=self.team_env.num_actions, num_robots=self.robots,
-            hidden_size=config.hidden_size, rnn_size=config.rnn_size if config.recurrent else 0,
+            layout=self.layout,
+            num_actions=self.team_env.num_actions,
+            num_robots=self.robots,
+            hidden_size=config.hidden_size,
+            rnn_size=config.rnn_size if config.recurrent else 0,
         )
         steps = config.num_updates * config.update_epochs * config.num_minibatches
         lr = optax.linear_schedule(config.learning_rate, 0.0, steps) if config.anneal_lr else config.learning_rate
@@ -204,7 +223,9 @@ class IPPO:
         worlds as one batch; returns `(carry (W, N, C), logits (T, W, N, A), value (T, W, N))`."""
         t, w, n = inputs.shape[:3]
         resets = jnp.broadcast_to(resets[..., None], (t, w, n)).reshape(t, w * n)
-        carry, logits, value = self.network.apply(params, carry.reshape(w * n, -1), inputs.reshape(t, w * n, -1), resets)
+        carry, logits, value = self.network.apply(
+            params, carry.reshape(w * n, -1), inputs.reshape(t, w * n, -1), resets
+        )
         return carry.reshape(w, n, -1), logits.reshape(t, w, n, -1), value.reshape(t, w, n)
 
     def _world_step(self, key, env_state, actions, env_params):
@@ -213,25 +234,43 @@ class IPPO:
             key, env_state, {name: actions[i] for i, name in enumerate(env.agents)}, env_params
         )
         stack = lambda by_agent: jnp.stack([by_agent[name] for name in env.agents])
-        return (stack(obs), env_state, rewards[env.agents[0]], dones["__all__"], infos["terminated"],
-                infos["final_iou"], stack(infos["final_observation"]))
+        return (
+            stack(obs),
+            env_state,
+            rewards[env.agents[0]],
+            dones["__all__"],
+            infos["terminated"],
+            infos["final_iou"],
+            stack(infos["final_observation"]),
+        )
 
     # --- pure functions -------------------------------------------------------------------------
 
     def init(self, key: jax.Array) -> RunnerState:
         w, n = self.config.num_envs, self.robots
         key, key_params, key_reset = jax.random.split(key, 3)
-        obs, env_state = jax.vmap(self.team_env.reset, in_axes=(0, None))(jax.random.split(key_reset, w), self.env_params)
+        obs, env_state = jax.vmap(self.team_env.reset, in_axes=(0, None))(
+            jax.random.split(key_reset, w), self.env_params
+        )
         obs = jnp.stack([obs[name] for name in self.team_env.agents], axis=1)
         worlds = Worlds(
-            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((w, n), jnp.int32),
-            reset=jnp.ones((w,), bool), carry=self.network.initial_carry(w * n).reshape(w, n, -1),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=obs,
+            last_action=jnp.zeros((w, n), jnp.int32),
+            reset=jnp.ones((w,), bool),
+            carry=self.network.initial_carry(w * n).reshape(w, n, -1),
             episode_return=jnp.zeros((w,), jnp.float32),
         )
         inputs = self._network_inputs(worlds).reshape(1, w * n, -1)[:, :1]
         params = self.network.init(key_params, self.network.initial_carry(1), inputs, jnp.ones((1, 1), bool))
-        return RunnerState(params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key,
-                           update=jnp.zeros((), jnp.int32))
+        return RunnerState(
+            params=params,
+            opt_state=self.optimizer.init(params),
+            worlds=worlds,
+            key=key,
+            update=jnp.zeros((), jnp.int32),
+        )
 
     def _network_inputs(self, worlds: Worlds) -> jax.Array:
         return self._inputs(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
@@ -253,9 +292,16 @@ class IPPO:
             episode_return = worlds.episode_return + reward
             no_reset = jnp.zeros_like(done)
             transition = Transition(
-                inputs=inputs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
-                reward=reward, terminated=terminated, done=done,
-                final_inputs=self._inputs(final_obs, worlds.obs, action, no_reset), carry_after=new_carry,
+                inputs=inputs,
+                reset=worlds.reset,
+                action=action,
+                log_prob=pi.log_prob(action),
+                value=value[0],
+                reward=reward,
+                terminated=terminated,
+                done=done,
+                final_inputs=self._inputs(final_obs, worlds.obs, action, no_reset),
+                carry_after=new_carry,
             )
             stats = {  # one episode per world, however many robots it has
                 "episodes": done.sum(),
@@ -263,13 +309,19 @@ class IPPO:
                 "return_sum": jnp.where(done, episode_return, 0.0).sum(),
             }
             worlds = Worlds(
-                env_state=env_state, obs=obs, previous_obs=worlds.obs, last_action=action.astype(jnp.int32),
-                reset=done, carry=new_carry, episode_return=jnp.where(done, 0.0, episode_return),
+                env_state=env_state,
+                obs=obs,
+                previous_obs=worlds.obs,
+                last_action=action.astype(jnp.int32),
+                reset=done,
+                carry=new_carry,
+                episode_return=jnp.where(done, 0.0, episode_return),
             )
             return (worlds, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(env_step, (state.worlds, state.key), None,
-                                                     length=self.config.rollout_steps)
+        (worlds, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        )
         return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
 
     def _advantages(self, params, batch: Transition, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
@@ -287,17 +339,37 @@ class IPPO:
             return value[0]
 
         following = jnp.concatenate([flat(batch.value)[1:], last_value.reshape(1, w * n)], axis=0)
-        next_values = jnp.where(done, truncation_values(score, done & ~terminated, flat(batch.final_inputs),
-                                                        flat(batch.carry_after)), following)
-        advantages, targets = gae(per_robot(batch.reward) * cfg.reward_scale, flat(batch.value), next_values,
-                                  terminated.astype(jnp.float32), done, cfg.gamma, cfg.gae_lambda)
+        next_values = jnp.where(
+            done,
+            truncation_values(score, done & ~terminated, flat(batch.final_inputs), flat(batch.carry_after)),
+            following,
+        )
+        advantages, targets = gae(
+            per_robot(batch.reward) * cfg.reward_scale,
+            flat(batch.value),
+            next_values,
+            terminated.astype(jnp.float32),
+            done,
+            cfg.gamma,
+            cfg.gae_lambda,
+        )
         return advantages.reshape(t, w, n), targets.reshape(t, w, n)
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets):
         cfg = self.config
         _, logits, value = self._apply(params, carry0, batch.inputs, batch.reset)
-        return team_objective(logits, value, batch.action, batch.log_prob, batch.value, advantages, targets,
-                              cfg.clip_eps, cfg.vf_coef, cfg.ent_coef)
+        return team_objective(
+            logits,
+            value,
+            batch.action,
+            batch.log_prob,
+            batch.value,
+            advantages,
+            targets,
+            cfg.clip_eps,
+            cfg.vf_coef,
+            cfg.ent_coef,
+        )
 
     def update(self, state: RunnerState, env_params) -> tuple[RunnerState, dict[str, jax.Array]]:
         cfg = self.config
@@ -317,8 +389,12 @@ class IPPO:
                 x = jnp.take(x, perm, axis=axis)
                 return jnp.moveaxis(x.reshape(x.shape[:axis] + (m, -1) + x.shape[axis + 1 :]), axis, 0)
 
-            minibatches = (split(carry0, 0), jax.tree.map(lambda x: split(x, 1), batch),
-                           split(advantages, 1), split(targets, 1))
+            minibatches = (
+                split(carry0, 0),
+                jax.tree.map(lambda x: split(x, 1), batch),
+                split(advantages, 1),
+                split(targets, 1),
+            )
 
             def minibatch_step(carry, minibatch):
                 params, opt_state = carry
@@ -332,8 +408,10 @@ class IPPO:
         (params, opt_state, key), info = jax.lax.scan(
             epoch, (state.params, state.opt_state, state.key), None, length=cfg.update_epochs
         )
-        return (state.replace(params=params, opt_state=opt_state, key=key, update=state.update + 1),
-                {**jax.tree.map(jnp.mean, info), **stats})
+        return (
+            state.replace(params=params, opt_state=opt_state, key=key, update=state.update + 1),
+            {**jax.tree.map(jnp.mean, info), **stats},
+        )
 
     def train_chunk(self, state: RunnerState, env_params, num_updates: int) -> tuple[RunnerState, dict]:
         """`num_updates` updates; metrics stacked along a leading axis of that length."""
@@ -346,16 +424,25 @@ class IPPO:
         n = self.robots
 
         def init(key, design):
-            return {"carry": self.network.initial_carry(n), "reset": jnp.ones((), bool),
-                    "previous_obs": jnp.zeros((n, self.layout.env_obs_size), jnp.float32),
-                    "last_action": jnp.zeros((n,), jnp.int32)}
+            return {
+                "carry": self.network.initial_carry(n),
+                "reset": jnp.ones((), bool),
+                "previous_obs": jnp.zeros((n, self.layout.env_obs_size), jnp.float32),
+                "last_action": jnp.zeros((n,), jnp.int32),
+            }
 
         def act(params, memory, obs, key):
             inputs = self._inputs(obs, memory["previous_obs"], memory["last_action"], memory["reset"])
-            carry, logits, _ = self._apply(params, memory["carry"][None], inputs[None, None], memory["reset"][None, None])
+            carry, logits, _ = self._apply(
+                params, memory["carry"][None], inputs[None, None], memory["reset"][None, None]
+            )
             actions = jnp.argmax(logits[0, 0], axis=-1).astype(jnp.int32)
-            return actions, {"carry": carry[0], "reset": jnp.zeros((), bool),
-                             "previous_obs": obs.astype(jnp.float32), "last_action": actions}
+            return actions, {
+                "carry": carry[0],
+                "reset": jnp.zeros((), bool),
+                "previous_obs": obs.astype(jnp.float32),
+                "last_action": actions,
+            }
 
         kind = "recurrent" if self.config.recurrent else "feed-forward"
         return multi.MultiPolicy(init, act, params, f"ippo-{kind}-{n}-robots")
@@ -366,9 +453,15 @@ class IPPO:
         if self._team is None:
             self._team = self.policy(None)
         team = self._team._replace(params=params)
-        return multi.evaluate_team_task(self.config.task, team, self.config.robots, static_episodes=static_episodes,
-                                        episodes_per_test_design=episodes_per_test_design, seed=seed,
-                                        **self.config.env_overrides).result
+        return multi.evaluate_team_task(
+            self.config.task,
+            team,
+            self.config.robots,
+            static_episodes=static_episodes,
+            episodes_per_test_design=episodes_per_test_design,
+            seed=seed,
+            **self.config.env_overrides,
+        ).result
 
 
 def make_train(config: IPPOConfig):

@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.training.config import TrainConfig, option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import ActorCritic
 from agents.common.targets import gae, truncation_values
+from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
 
 
@@ -59,14 +59,18 @@ class PPOConfig(TrainConfig):
     clip_eps: float = option(0.2, "PPO clip range of the ratio and the value", low=0, low_open=True)
     ent_coef: float = option(0.01, "entropy coefficient at the first update", low=0)
     ent_coef_end: float | None = option(
-        None, "entropy coefficient at the last update, annealed linearly from ent_coef (None: constant); "
-        "below 0 it pushes the policy toward the deterministic one the protocol scores", low=-1)
+        None,
+        "entropy coefficient at the last update, annealed linearly from ent_coef (None: constant); "
+        "below 0 it pushes the policy toward the deterministic one the protocol scores",
+        low=-1,
+    )
     vf_coef: float = option(0.5, "value loss weight", low=0)
     max_grad_norm: float = option(0.5, "global gradient norm clip", low=0, low_open=True)
     hidden_size: int = option(64, "width of the encoder and the heads", low=1)
     rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
-    reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
-                                 low=0, low_open=True)
+    reward_scale: float = option(
+        0.01, "rewards are multiplied by this for learning (not for reporting)", low=0, low_open=True
+    )
 
     def check(self) -> None:
         if self.num_envs % self.num_minibatches:
@@ -88,13 +92,19 @@ class Worlds:
     carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,) return of the running episode so far
 
-    def after_step(self, env_state, obs, action: jax.Array, done: jax.Array, carry: jax.Array,
-                   episode_return: jax.Array) -> "Worlds":
+    def after_step(
+        self, env_state, obs, action: jax.Array, done: jax.Array, carry: jax.Array, episode_return: jax.Array
+    ) -> Worlds:
         """The worlds after one step: the new observation, this one as the previous, the action
         taken, the carry after it, and the return restarted where the episode ended (`done`)."""
         return Worlds(
-            env_state=env_state, obs=obs, previous_obs=self.obs, last_action=action.astype(jnp.int32), reset=done,
-            carry=carry, episode_return=jnp.where(done, 0.0, episode_return),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=self.obs,
+            last_action=action.astype(jnp.int32),
+            reset=done,
+            carry=carry,
+            episode_return=jnp.where(done, 0.0, episode_return),
         )
 
 
@@ -167,12 +177,21 @@ class PPO:
         carry = self.network.initial_carry(n)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
         worlds = Worlds(
-            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
-            reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=obs,
+            last_action=jnp.zeros((n,), jnp.int32),
+            reset=jnp.ones((n,), bool),
+            carry=carry,
+            episode_return=jnp.zeros((n,), jnp.float32),
         )
         params = self.network.init(key_params, carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool))
         return RunnerState(
-            params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
+            params=params,
+            opt_state=self.optimizer.init(params),
+            worlds=worlds,
+            key=key,
+            update=jnp.zeros((), jnp.int32),
         )
 
     def _network_obs(self, worlds: Worlds) -> jax.Array:
@@ -194,10 +213,20 @@ class PPO:
             )
             done = terminated | truncated
             episode_return = worlds.episode_return + reward
-            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
+            final_obs = self.layout.with_previous_step(
+                info["final_observation"], worlds.obs, action, jnp.zeros_like(done)
+            )
             transition = Transition(
-                obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
-                reward=reward, terminated=terminated, done=done, final_obs=final_obs, carry_after=new_carry,
+                obs=net_obs,
+                reset=worlds.reset,
+                action=action,
+                log_prob=pi.log_prob(action),
+                value=value[0],
+                reward=reward,
+                terminated=terminated,
+                done=done,
+                final_obs=final_obs,
+                carry_after=new_carry,
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
@@ -218,8 +247,13 @@ class PPO:
         following = jnp.concatenate([batch.value[1:], last_value], axis=0)
         next_values = jnp.where(batch.done, self._final_values(params, batch), following)
         return gae(
-            batch.reward * cfg.reward_scale, batch.value, next_values,
-            batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
+            batch.reward * cfg.reward_scale,
+            batch.value,
+            next_values,
+            batch.terminated.astype(jnp.float32),
+            batch.done,
+            cfg.gamma,
+            cfg.gae_lambda,
         )
 
     def _final_values(self, params, batch: Transition) -> jax.Array:
@@ -295,7 +329,9 @@ class PPO:
 
         def act(params, policy_state, obs, key):
             net_obs = layout.acting_inputs(obs, policy_state)
-            carry, logits, _ = network.apply(params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None])
+            carry, logits, _ = network.apply(
+                params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None]
+            )
             action = jnp.argmax(logits[0, 0]).astype(jnp.int32)
             return action, {"carry": carry[0], **layout.remember(obs, action)}
 
@@ -318,7 +354,13 @@ def clipped_objective(logits, value, batch: Transition, advantages, targets, ent
     entropy = pi.entropy().mean()
     total = actor_loss + cfg.vf_coef * value_loss - ent_coef * entropy
     approx_kl = ((ratio - 1) - jnp.log(ratio)).mean()
-    info = {"loss": total, "value_loss": value_loss, "actor_loss": actor_loss, "entropy": entropy, "approx_kl": approx_kl}
+    info = {
+        "loss": total,
+        "value_loss": value_loss,
+        "actor_loss": actor_loss,
+        "entropy": entropy,
+        "approx_kl": approx_kl,
+    }
     return total, info
 
 

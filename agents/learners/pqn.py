@@ -35,11 +35,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from agents.training.config import TrainConfig, option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import LayerNormQNetwork
 from agents.common.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
 from agents.common.targets import q_lambda, truncation_values
+from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
 
 
@@ -69,14 +69,24 @@ class PQNConfig(TrainConfig):
     max_grad_norm: float = option(10.0, "global gradient norm clip", low=0, low_open=True)
     hidden_size: int = option(64, "width of the encoder and the Q head", low=1)
     rnn_size: int = option(32, "GRU units (recurrent only)", low=1)
-    reward_scale: float = option(0.01, "rewards are multiplied by this for learning (not for reporting)",
-                                 low=0, low_open=True)
-    time_limit_ends: bool = option(False, "the step limit ends the return (no bootstrap from the final observation), "
-                                   "as a termination does: the observation holds the step count")
-    stagger_starts: bool = option(True, "start each world a random number (up to an episode) of random steps in, "
-                                  "so that the worlds' rollouts hold different parts of their episodes")
-    safe_drops: bool = option(False, "never drop on the robot's last free neighbour, read from the window: that drop "
-                              "walls it in under the obstacle rule (agents.common.safe_drops)")
+    reward_scale: float = option(
+        0.01, "rewards are multiplied by this for learning (not for reporting)", low=0, low_open=True
+    )
+    time_limit_ends: bool = option(
+        False,
+        "the step limit ends the return (no bootstrap from the final observation), "
+        "as a termination does: the observation holds the step count",
+    )
+    stagger_starts: bool = option(
+        True,
+        "start each world a random number (up to an episode) of random steps in, "
+        "so that the worlds' rollouts hold different parts of their episodes",
+    )
+    safe_drops: bool = option(
+        False,
+        "never drop on the robot's last free neighbour, read from the window: that drop "
+        "walls it in under the obstacle rule (agents.common.safe_drops)",
+    )
 
     def check(self) -> None:
         if self.safe_drops:
@@ -100,13 +110,19 @@ class Worlds:
     carry: jax.Array  # (B, C) recurrent state (a placeholder for feed-forward)
     episode_return: jax.Array  # (B,) return of the running episode so far
 
-    def after_step(self, env_state, obs, action: jax.Array, done: jax.Array, carry: jax.Array,
-                   episode_return: jax.Array) -> "Worlds":
+    def after_step(
+        self, env_state, obs, action: jax.Array, done: jax.Array, carry: jax.Array, episode_return: jax.Array
+    ) -> Worlds:
         """The worlds after one step: the new observation, this one as the previous, the action
         taken, the carry after it, and the return restarted where the episode ended (`done`)."""
         return Worlds(
-            env_state=env_state, obs=obs, previous_obs=self.obs, last_action=action.astype(jnp.int32), reset=done,
-            carry=carry, episode_return=jnp.where(done, 0.0, episode_return),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=self.obs,
+            last_action=action.astype(jnp.int32),
+            reset=done,
+            carry=carry,
+            episode_return=jnp.where(done, 0.0, episode_return),
         )
 
 
@@ -155,7 +171,11 @@ class PQN:
             rnn_size=config.rnn_size if config.recurrent else 0,
         )
         gradient_steps = config.num_updates * config.update_epochs * config.num_minibatches
-        lr = optax.linear_schedule(config.learning_rate, 0.0, gradient_steps) if config.anneal_lr else config.learning_rate
+        lr = (
+            optax.linear_schedule(config.learning_rate, 0.0, gradient_steps)
+            if config.anneal_lr
+            else config.learning_rate
+        )
         # RAdam as in the paper's code: its rectified early steps need no warm-up while the
         # bootstrapped targets are still moving fast.
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.radam(lr))
@@ -172,12 +192,23 @@ class PQN:
         if self.config.stagger_starts:
             obs, env_state = self._stagger(jax.random.fold_in(key_reset, 1), obs, env_state)
         worlds = Worlds(
-            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
-            reset=jnp.ones((n,), bool), carry=self.network.initial_carry(n), episode_return=jnp.zeros((n,), jnp.float32),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=obs,
+            last_action=jnp.zeros((n,), jnp.int32),
+            reset=jnp.ones((n,), bool),
+            carry=self.network.initial_carry(n),
+            episode_return=jnp.zeros((n,), jnp.float32),
         )
-        params = self.network.init(key_params, worlds.carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool))
+        params = self.network.init(
+            key_params, worlds.carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool)
+        )
         return RunnerState(
-            params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
+            params=params,
+            opt_state=self.optimizer.init(params),
+            worlds=worlds,
+            key=key,
+            update=jnp.zeros((), jnp.int32),
         )
 
     def _stagger(self, key: jax.Array, obs: jax.Array, env_state) -> tuple[jax.Array, Any]:
@@ -207,8 +238,9 @@ class PQN:
     def _network_obs(self, worlds: Worlds) -> jax.Array:
         return self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
 
-    def epsilon_greedy(self, key_explore: jax.Array, key_random: jax.Array, q: jax.Array, net_obs: jax.Array,
-                       epsilon: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def epsilon_greedy(
+        self, key_explore: jax.Array, key_random: jax.Array, q: jax.Array, net_obs: jax.Array, epsilon: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         """Each world's action `(B,)`, epsilon-greedy over the actions `allowed` on `net_obs`, and
         the Q-values `(B, A)` with the refused ones at -inf: their max is what the targets bootstrap
         from. The rollouts of the PQN learners all act through it."""
@@ -242,10 +274,19 @@ class PQN:
             )
             done = terminated | truncated
             episode_return = worlds.episode_return + reward
-            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
+            final_obs = self.layout.with_previous_step(
+                info["final_observation"], worlds.obs, action, jnp.zeros_like(done)
+            )
             transition = Transition(
-                obs=net_obs, reset=worlds.reset, action=action, value=q.max(-1), reward=reward,
-                terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
+                obs=net_obs,
+                reset=worlds.reset,
+                action=action,
+                value=q.max(-1),
+                reward=reward,
+                terminated=terminated,
+                truncated=truncated,
+                final_obs=final_obs,
+                carry_after=new_carry,
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
@@ -261,7 +302,9 @@ class PQN:
         cfg = self.config
         last_obs = self._network_obs(worlds)
         _, last_q = self.network.apply(params, worlds.carry, last_obs[None], worlds.reset[None])
-        next_values = jnp.concatenate([batch.value[1:], masked_q(last_q[0], self.allowed(last_obs)).max(-1)[None]], axis=0)
+        next_values = jnp.concatenate(
+            [batch.value[1:], masked_q(last_q[0], self.allowed(last_obs)).max(-1)[None]], axis=0
+        )
 
         def score(carry, obs):
             _, q = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
@@ -273,8 +316,9 @@ class PQN:
         else:
             terminated, truncated = batch.terminated, batch.truncated & ~batch.terminated
             final_values = truncation_values(score, truncated, batch.final_obs, batch.carry_after)
-        return q_lambda(batch.reward * cfg.reward_scale, next_values, final_values, terminated, truncated,
-                        cfg.gamma, cfg.q_lambda)
+        return q_lambda(
+            batch.reward * cfg.reward_scale, next_values, final_values, terminated, truncated, cfg.gamma, cfg.q_lambda
+        )
 
     def _loss(self, params, carry0, batch: Transition, targets):
         _, q = self.network.apply(params, carry0, batch.obs, batch.reset)
@@ -330,7 +374,9 @@ class PQN:
 
         def act(params, policy_state, obs, key):
             net_obs = layout.acting_inputs(obs, policy_state)
-            carry, q = network.apply(params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None])
+            carry, q = network.apply(
+                params, policy_state["carry"][None], net_obs[None, None], policy_state["reset"][None, None]
+            )
             action = jnp.argmax(masked_q(q[0, 0], allowed(net_obs))).astype(jnp.int32)
             return action, {"carry": carry[0], **layout.remember(obs, action)}
 

@@ -33,11 +33,11 @@ import numpy as np
 import optax
 from jax.scipy.special import xlogy
 
-from agents.training.config import option
-from agents.learners.dqn import DQN, DQNConfig
-from agents.common.offpolicy import RunnerState, Step
 from agents.common.networks import QNetwork
+from agents.common.offpolicy import RunnerState, Step
 from agents.common.targets import categorical_projection, n_step_returns
+from agents.learners.dqn import DQN, DQNConfig
+from agents.training.config import option
 
 # Added to every priority: a window whose KL is 0 would otherwise never be drawn again.
 PRIORITY_FLOOR = 1e-6
@@ -57,12 +57,16 @@ class RainbowConfig(DQNConfig):
     atoms: int = option(101, "atoms of the support, evenly spaced from v_min to v_max", low=2)
     noisy: bool = option(True, "factorised noisy layers explore (without: plain layers, epsilon-greedy from eps_start)")
     sigma0: float = option(0.1, "noisy layers' initial noise scale: sigma = sigma0 / sqrt(fan_in)", low=0)
-    priority_exponent: float = option(0.5, "replay draws a window with probability ~ priority ** this (0: uniform)",
-                                      low=0, high=1)
-    importance_exponent: float = option(0.4, "importance-sampling exponent at the start, annealed linearly to 1 over total_steps",
-                                        low=0, high=1)
-    cross_entropy_priority: bool = option(False, "a window's new priority is its cross-entropy to the target "
-                                          "(Dopamine, the paper's code) rather than its KL")
+    priority_exponent: float = option(
+        0.5, "replay draws a window with probability ~ priority ** this (0: uniform)", low=0, high=1
+    )
+    importance_exponent: float = option(
+        0.4, "importance-sampling exponent at the start, annealed linearly to 1 over total_steps", low=0, high=1
+    )
+    cross_entropy_priority: bool = option(
+        False,
+        "a window's new priority is its cross-entropy to the target (Dopamine, the paper's code) rather than its KL",
+    )
     buffer_size: int = option(10_000, "replay capacity in env steps, over all worlds of a seed", low=1)
     num_envs: int = option(64, "parallel worlds per seed (split over devices)", low=1)
     gradient_steps: int = option(2, "gradient steps per learning phase", low=1)
@@ -109,8 +113,12 @@ class Rainbow(DQN):
     def make_buffer(self):
         cfg = self.config
         return fbx.make_prioritised_trajectory_buffer(
-            add_batch_size=cfg.num_envs, sample_batch_size=cfg.batch_size, sample_sequence_length=cfg.sample_length,
-            period=1, min_length_time_axis=cfg.sample_length, max_length_time_axis=self.per_world,
+            add_batch_size=cfg.num_envs,
+            sample_batch_size=cfg.batch_size,
+            sample_sequence_length=cfg.sample_length,
+            period=1,
+            min_length_time_axis=cfg.sample_length,
+            max_length_time_axis=self.per_world,
             priority_exponent=cfg.priority_exponent,
             # flashbax picks how it writes a batch of priorities by device (a scan on CPU).
             device=jax.default_backend() if jax.default_backend() in ("gpu", "tpu") else "cpu",
@@ -118,22 +126,37 @@ class Rainbow(DQN):
 
     # --- the network -------------------------------------------------------------------------------
 
-    def logits(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None,
-               per_world: bool = False):
+    def logits(
+        self,
+        params,
+        carry: jax.Array,
+        frames: jax.Array,
+        resets: jax.Array,
+        key: jax.Array | None = None,
+        per_world: bool = False,
+    ):
         """`(carry, logits (T, B, A, atoms))`; with `key` the noisy layers draw fresh noise from it
         (one draw for the batch, or with `per_world` one per step and world), without it they are
         their mean."""
         if key is None or not self.config.noisy:
             return self.network.apply(params, carry, frames, resets)
-        return self.network.apply(params, carry, frames, resets, noise=True, noise_per_world=per_world,
-                                  rngs={"noise": key})
+        return self.network.apply(
+            params, carry, frames, resets, noise=True, noise_per_world=per_world, rngs={"noise": key}
+        )
 
     def expected(self, logits: jax.Array) -> jax.Array:
         """Each action's expected return under its predicted distribution."""
         return (jax.nn.softmax(logits) * self.support).sum(axis=-1)
 
-    def q_values(self, params, carry: jax.Array, frames: jax.Array, resets: jax.Array, key: jax.Array | None = None,
-                 per_world: bool = False):
+    def q_values(
+        self,
+        params,
+        carry: jax.Array,
+        frames: jax.Array,
+        resets: jax.Array,
+        key: jax.Array | None = None,
+        per_world: bool = False,
+    ):
         """`(carry, Q-values (T, B, A))`; `key` draws a noisy network's noise, None: its mean (greedy)."""
         carry, logits = self.logits(params, carry, frames, resets, key, per_world)
         return carry, self.expected(logits)
@@ -149,8 +172,9 @@ class Rainbow(DQN):
 
     # --- learning ----------------------------------------------------------------------------------
 
-    def window_logits(self, params, target_params, frames: jax.Array, resets: jax.Array, key_online: jax.Array,
-                      key_target: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def window_logits(
+        self, params, target_params, frames: jax.Array, resets: jax.Array, key_online: jax.Array, key_target: jax.Array
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Logits `(length, S, A, atoms)` along a replayed window of `length + n` rows (row 0 = the
         batch's row `context`): the online network's at the learning rows `[0, length)`, and, under
         `stop_gradient`, the online and the target network's at the rows n steps later `[n, n + length)`.
@@ -168,7 +192,9 @@ class Rainbow(DQN):
         _, bootstrap_target = self.logits(target_params, carry, frames[n:], resets[n:], key_target)
         return learning, jax.lax.stop_gradient(bootstrap_online), jax.lax.stop_gradient(bootstrap_target)
 
-    def loss(self, params, target_params, batch: Step, weights: jax.Array, key_online: jax.Array, key_target: jax.Array):
+    def loss(
+        self, params, target_params, batch: Step, weights: jax.Array, key_online: jax.Array, key_target: jax.Array
+    ):
         """`(loss, (metrics, per-window priority))` of a time-major batch `(L, S)` with importance
         weights `(S,)`. The online and the target network draw independent noise. The priority is
         the window's mean KL, or its mean cross-entropy with `cross_entropy_priority`."""
@@ -176,10 +202,13 @@ class Rainbow(DQN):
         length, c, n = cfg.sequence_length, cfg.context, cfg.n_step
         frames, resets = self.replayed_frames(batch, batch.obs.astype(jnp.float32))
         learning, bootstrap_online, bootstrap_target = self.window_logits(
-            params, target_params, frames, resets, key_online, key_target)
+            params, target_params, frames, resets, key_online, key_target
+        )
         greedy_from = bootstrap_online if cfg.double_q else bootstrap_target
         next_action = jnp.argmax(self.expected(greedy_from), axis=-1)  # (length, S)
-        next_probs = jax.nn.softmax(jnp.take_along_axis(bootstrap_target, next_action[..., None, None], axis=-2)[..., 0, :])
+        next_probs = jax.nn.softmax(
+            jnp.take_along_axis(bootstrap_target, next_action[..., None, None], axis=-2)[..., 0, :]
+        )
         returns, discounts = n_step_returns(batch.reward[c:] * cfg.reward_scale, batch.done[c:], cfg.gamma, n, length)
         target = jax.lax.stop_gradient(categorical_projection(self.support, next_probs, returns, discounts))
 

@@ -32,11 +32,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from agents.training.config import option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import ObservationEncoder, scaled_init
 from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
 from agents.common.targets import n_step_targets
+from agents.training.config import option
 
 PARTS = ("actor", "critic", "log_alpha")  # what `params` holds; each part has its own Adam
 
@@ -55,16 +55,25 @@ class SACConfig(ReplayConfig):
     gradient_steps: int = option(8, "gradient steps per learning phase", low=1)
     batch_size: int = option(64, "sampled sequences per gradient step", low=1)
     n_step: int = option(1, "steps of reward before the bootstrap", low=1)
-    learning_starts: int = option(400, "env steps per seed of uniformly random actions before the actor acts "
-                                  "and the first gradient step", low=0)
-    learning_rate: float = option(3e-4, "Adam step size of the actor, the critics and the temperature",
-                                  low=0, low_open=True)
-    max_grad_norm: float = option(10.0, "gradient norm clip, for each of the actor, the critics and the temperature",
-                                  low=0, low_open=True)
-    tau: float = option(5e-3, "Polyak factor: the target critics move this share toward the critics per gradient step",
-                        low=0, high=1, low_open=True)
-    target_entropy_fraction: float = option(0.98, "the temperature is tuned toward a policy entropy of this times "
-                                            "log(number of actions)", low=0, high=1)
+    learning_starts: int = option(
+        400, "env steps per seed of uniformly random actions before the actor acts and the first gradient step", low=0
+    )
+    learning_rate: float = option(
+        3e-4, "Adam step size of the actor, the critics and the temperature", low=0, low_open=True
+    )
+    max_grad_norm: float = option(
+        10.0, "gradient norm clip, for each of the actor, the critics and the temperature", low=0, low_open=True
+    )
+    tau: float = option(
+        5e-3,
+        "Polyak factor: the target critics move this share toward the critics per gradient step",
+        low=0,
+        high=1,
+        low_open=True,
+    )
+    target_entropy_fraction: float = option(
+        0.98, "the temperature is tuned toward a policy entropy of this times log(number of actions)", low=0, high=1
+    )
     initial_alpha: float = option(1.0, "temperature at the start", low=0, low_open=True)
     hidden_sizes: str = option("64,64", "hidden layer widths of the actor and of each critic, comma-separated")
 
@@ -79,7 +88,9 @@ class SACConfig(ReplayConfig):
         except ValueError:
             ok = False
         if not ok:
-            raise ValueError(f"hidden_sizes must be comma-separated ints >= 1 such as '64,128,64', got {self.hidden_sizes!r}")
+            raise ValueError(
+                f"hidden_sizes must be comma-separated ints >= 1 such as '64,128,64', got {self.hidden_sizes!r}"
+            )
 
 
 # --- the losses, pure functions -------------------------------------------------------------------
@@ -116,7 +127,9 @@ def entropy(log_probs: jax.Array) -> jax.Array:
     return -(jnp.exp(log_probs) * log_probs).sum(axis=-1)
 
 
-def temperature_loss(log_alpha: jax.Array, log_probs: jax.Array, target_entropy: float, weights: jax.Array) -> jax.Array:
+def temperature_loss(
+    log_alpha: jax.Array, log_probs: jax.Array, target_entropy: float, weights: jax.Array
+) -> jax.Array:
     """log alpha (H(pi(.|s)) - target entropy), averaged over the weighted states. Descending it
     lowers alpha while the policy is more random than the target and raises it while it is less;
     only alpha learns from it."""
@@ -151,8 +164,9 @@ class TwinCritic(nn.Module):
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        critics = nn.vmap(ActionHead, variable_axes={"params": 0}, split_rngs={"params": True},
-                          in_axes=None, out_axes=0, axis_size=2)
+        critics = nn.vmap(
+            ActionHead, variable_axes={"params": 0}, split_rngs={"params": True}, in_axes=None, out_axes=0, axis_size=2
+        )
         return critics(layout=self.layout, num_actions=self.num_actions, layers=self.layers, gain=1.0)(obs)
 
 
@@ -223,5 +237,10 @@ class SAC(ReplayLearner):
         }
         total = sum(losses.values())
         q_taken = jnp.take_along_axis(q.min(axis=0), actions[..., None], axis=-1)[..., 0]
-        return total, {"loss": total, **losses, "alpha": alpha, "entropy": _weighted_mean(entropy(learned), weights),
-                       "q_mean": _weighted_mean(q_taken, weights)}
+        return total, {
+            "loss": total,
+            **losses,
+            "alpha": alpha,
+            "entropy": _weighted_mean(entropy(learned), weights),
+            "q_mean": _weighted_mean(q_taken, weights),
+        }

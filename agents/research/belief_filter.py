@@ -17,8 +17,9 @@ from snac_jax.config import MAX_STRIDE
 UNLIKELY = 1e-6  # the filter's weight on a position the window's padding contradicts
 
 
-def expected_design_window(p_row: jax.Array, p_col: jax.Array, design: jax.Array, window_shape: tuple[int, int],
-                           outside: float) -> jax.Array:
+def expected_design_window(
+    p_row: jax.Array, p_col: jax.Array, design: jax.Array, window_shape: tuple[int, int], outside: float
+) -> jax.Array:
     """The design the robot expects in its window, `(..., wr, wc)`, under independent beliefs
     `p_row (..., rows)` and `p_col (..., cols)` over the plan `design (..., rows, cols)`; window
     cells off the plan read `outside` (the window shows padding there).
@@ -77,7 +78,7 @@ def belief_cross_entropy(p_row: jax.Array, p_col: jax.Array, position: jax.Array
     """Mean over steps of -log P(true row) P(true column) under the belief, `position (..., 2)`:
     how well the belief the Q head read knew where the robot was (a metric, in the position
     loss's units; ln rows + ln cols when it guesses)."""
-    picked = (jnp.take_along_axis(p_row, position[..., 0:1], -1) * jnp.take_along_axis(p_col, position[..., 1:2], -1))
+    picked = jnp.take_along_axis(p_row, position[..., 0:1], -1) * jnp.take_along_axis(p_col, position[..., 1:2], -1)
     return -jnp.log(jnp.maximum(picked, 1e-12)).mean()
 
 
@@ -86,8 +87,13 @@ def start_belief(n: int) -> jax.Array:
     return jax.nn.one_hot(0, n)
 
 
-def filter_step(belief: tuple[jax.Array, jax.Array], reset: jax.Array, p_cells: jax.Array, sign: jax.Array,
-                window_padding: jax.Array) -> tuple[jax.Array, jax.Array]:
+def filter_step(
+    belief: tuple[jax.Array, jax.Array],
+    reset: jax.Array,
+    p_cells: jax.Array,
+    sign: jax.Array,
+    window_padding: jax.Array,
+) -> tuple[jax.Array, jax.Array]:
     """One step of the row and column filters, `belief = (b_row (B, rows), b_col (B, cols))`: back
     to the start where `reset`, else moved by the last action (`sign (B, 2)`: its row and column
     direction, 0 for a drop or no action) by `p_cells (B, MAX_STRIDE + 1)` cells, then corrected

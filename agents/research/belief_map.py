@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from agents.research.belief_filter import UNLIKELY, move_belief, padding_agrees
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
@@ -88,8 +87,15 @@ def add_drop(mean: jax.Array, var: jax.Array, target: jax.Array, capped: bool) -
     return mean + target, var + target * (1.0 - target)
 
 
-def map_last_drop(mean: jax.Array, var: jax.Array, belief: jax.Array, last_action: jax.Array, reset: jax.Array,
-                  drops: tuple, capped: bool) -> tuple[jax.Array, jax.Array]:
+def map_last_drop(
+    mean: jax.Array,
+    var: jax.Array,
+    belief: jax.Array,
+    last_action: jax.Array,
+    reset: jax.Array,
+    drops: tuple,
+    capped: bool,
+) -> tuple[jax.Array, jax.Array]:
     """The map `(mean, var)`, each `(B, rows, cols)`, after the last action's brick went in under
     the joint `belief` the robot dropped it with (`drop_target`, `add_drop`); empty where `reset`
     (a new episode's map). The one map update of the mapping filter and of `todo_compass`'s map."""
@@ -126,15 +132,26 @@ def correct_joint(belief: jax.Array, padding: jax.Array, log_likelihood: jax.Arr
     bricks' likelihood, after a floor of `UNLIKELY` under every position."""
     _, rows, cols = belief.shape
     wr, wc = padding.shape[1:]
-    agrees = (padding_agrees(padding[:, :, wc // 2], rows)[:, :, None] & padding_agrees(padding[:, wr // 2, :], cols)[:, None, :])
+    agrees = (
+        padding_agrees(padding[:, :, wc // 2], rows)[:, :, None]
+        & padding_agrees(padding[:, wr // 2, :], cols)[:, None, :]
+    )
     weight = jnp.exp(log_likelihood - log_likelihood.max(axis=(1, 2), keepdims=True))
     belief = (belief + UNLIKELY) * jnp.where(agrees, 1.0, UNLIKELY) * weight
     return belief / belief.sum(axis=(1, 2), keepdims=True)
 
 
-def mapping_filter_step(state: tuple[jax.Array, jax.Array, jax.Array], reset: jax.Array, p_cells: jax.Array,
-                        sign: jax.Array, last_action: jax.Array, window: jax.Array, drops: tuple, capped: bool,
-                        evidence_weight: float = 1.0):
+def mapping_filter_step(
+    state: tuple[jax.Array, jax.Array, jax.Array],
+    reset: jax.Array,
+    p_cells: jax.Array,
+    sign: jax.Array,
+    last_action: jax.Array,
+    window: jax.Array,
+    drops: tuple,
+    capped: bool,
+    evidence_weight: float = 1.0,
+):
     """One step: `state = (belief, mean, var)`, each `(B, rows, cols)`. The last action's brick goes
     into the map under the belief it was dropped with; where `reset` everything starts over
     (the corner, an empty map); the belief moves by the last action; then it is corrected by the

@@ -34,11 +34,11 @@ import numpy as np
 import optax
 from flax import struct
 
-from agents.training.config import option
-from agents.learners.drqn import DRQN, DRQNConfig
 from agents.common.inputs import ObsLayout
 from agents.common.networks import mlp_head
 from agents.common.offpolicy import Step
+from agents.learners.drqn import DRQN, DRQNConfig
+from agents.training.config import option
 from snac_jax.config import MAX_STRIDE
 from snac_jax.state import EnvParams
 
@@ -48,14 +48,21 @@ class AuxiliaryOptions:
     """The auxiliary losses' weights (0: off) and the stride curriculum, shared by the learners
     that train with them (`agents.research.ppo_privileged.PrivilegedPPOConfig`, `DRQNAuxConfig`, `PQNAuxConfig`)."""
 
-    position_coef: float = option(0.05, "weight of the loss predicting the true plan position from the recurrent "
-                                  "state (0: off)", low=0)
-    map_coef: float = option(0.0, "weight of the loss predicting the bricks on every plan cell from the recurrent "
-                             "state (0: off)", low=0)
-    move_coef: float = option(0.0, "weight of the loss predicting how many cells the last move carried the robot "
-                              "(0: off)", low=0)
-    stride_curriculum: float = option(0.0, "share of the run over which the stride noise grows from none (every "
-                                      "move one cell) to the task's (0: off)", low=0, high=1)
+    position_coef: float = option(
+        0.05, "weight of the loss predicting the true plan position from the recurrent state (0: off)", low=0
+    )
+    map_coef: float = option(
+        0.0, "weight of the loss predicting the bricks on every plan cell from the recurrent state (0: off)", low=0
+    )
+    move_coef: float = option(
+        0.0, "weight of the loss predicting how many cells the last move carried the robot (0: off)", low=0
+    )
+    stride_curriculum: float = option(
+        0.0,
+        "share of the run over which the stride noise grows from none (every move one cell) to the task's (0: off)",
+        low=0,
+        high=1,
+    )
 
 
 # --- pure pieces, each checked by hand in tests/test_privileged.py --------------------------------
@@ -143,14 +150,16 @@ class Auxiliary:
     is_move: np.ndarray  # bool per action: a move (not a drop)
 
     @classmethod
-    def from_config(cls, config) -> "Auxiliary":
+    def from_config(cls, config) -> Auxiliary:
         """From a config with `AuxiliaryOptions` (its task's environment is built once and cached)."""
         env, env_params = config.make_env()
         layout = ObsLayout.from_env(env, env_params)
         coefs = {"position": config.position_coef, "map": config.map_coef, "move": config.move_coef}
         return cls(
-            coefs={name: coef for name, coef in coefs.items() if coef > 0}, plan_shape=layout.plan_shape,
-            height_scale=layout.height_scale, is_move=move_directions(env.config).any(axis=-1),
+            coefs={name: coef for name, coef in coefs.items() if coef > 0},
+            plan_shape=layout.plan_shape,
+            height_scale=layout.height_scale,
+            is_move=move_directions(env.config).any(axis=-1),
         )
 
     def heads(self, hidden_size: int) -> AuxiliaryHeads | None:
@@ -194,8 +203,16 @@ def add_losses(total: jax.Array, info: dict, losses: dict[str, tuple[float, jax.
     return total, {**info, **{name: loss for name, (_, loss) in losses.items()}}
 
 
-def add_rollout_losses(auxiliary: Auxiliary, total: jax.Array, info: dict, sown: dict, position: jax.Array,
-                       built: jax.Array | None, action: jax.Array, reset: jax.Array) -> tuple[jax.Array, dict]:
+def add_rollout_losses(
+    auxiliary: Auxiliary,
+    total: jax.Array,
+    info: dict,
+    sown: dict,
+    position: jax.Array,
+    built: jax.Array | None,
+    action: jax.Array,
+    reset: jax.Array,
+) -> tuple[jax.Array, dict]:
     """The auxiliary losses of an on-policy learner (PPO, PQN), whose minibatch is whole rollout
     sequences `(T, B)`: every step of them is learned from, with the heads' outputs sown along
     them, the true `position (T, B, 2)` and `built` plan where each observation was made."""
@@ -238,23 +255,30 @@ class DRQNAux(StrideCurriculum, DRQN):
     def _example_step(self) -> AuxiliaryStep:
         base = super()._example_step()
         built = jnp.zeros(self.layout.plan_shape, jnp.int16) if "map" in self.auxiliary.coefs else None
-        return AuxiliaryStep(**{f.name: getattr(base, f.name) for f in dataclasses.fields(Step)},
-                             position=jnp.zeros((2,), jnp.int8), built=built)
+        return AuxiliaryStep(
+            **{f.name: getattr(base, f.name) for f in dataclasses.fields(Step)},
+            position=jnp.zeros((2,), jnp.int8),
+            built=built,
+        )
 
     def _world_step(self, worlds, keys: jax.Array, action: jax.Array, env_params):
         env_state, obs, reward, done, info, step, after = super()._world_step(worlds, keys, action, env_params)
         privileged = jax.vmap(self.env.privileged, in_axes=(0, None))(worlds.env_state, env_params)
         built = privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None
-        step = AuxiliaryStep(**{f.name: getattr(step, f.name) for f in dataclasses.fields(Step)},
-                             position=privileged.position.astype(jnp.int8), built=built)
+        step = AuxiliaryStep(
+            **{f.name: getattr(step, f.name) for f in dataclasses.fields(Step)},
+            position=privileged.position.astype(jnp.int8),
+            built=built,
+        )
         return env_state, obs, reward, done, info, step, after
 
     def loss(self, params, target_params, batch: AuxiliaryStep, obs, rewards, mask):
         """DQN's loss plus the auxiliary losses on the LSTM outputs of the learning steps."""
         frames, resets = self.replayed_frames(batch, obs)
         carry = self.burned_in_carry(params, frames, resets)
-        (_, q), sown = self.network.apply(params, carry, frames[self.burn_in :], resets[self.burn_in :],
-                                          mutable="intermediates")
+        (_, q), sown = self.network.apply(
+            params, carry, frames[self.burn_in :], resets[self.burn_in :], mutable="intermediates"
+        )
         loss, info = self.td_loss(q, target_params, frames, resets, batch, rewards, mask)
         if not self.auxiliary.coefs:
             return loss, info
@@ -264,6 +288,7 @@ class DRQNAux(StrideCurriculum, DRQN):
         cells, valid = move_targets(batch.position, batch.action, batch.reset, jnp.asarray(self.auxiliary.is_move))
         steps = slice(c, c + length)  # the learning steps: output 0 is batch row c
         built = None if batch.built is None else batch.built[steps]
-        losses = self.auxiliary.losses(outputs, batch.position[steps].astype(jnp.int32), built, cells[steps],
-                                       valid[steps], weights)
+        losses = self.auxiliary.losses(
+            outputs, batch.position[steps].astype(jnp.int32), built, cells[steps], valid[steps], weights
+        )
         return add_losses(loss, info, losses)

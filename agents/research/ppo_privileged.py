@@ -34,12 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
-from agents.training.config import option
 from agents.common.inputs import ObsLayout
 from agents.common.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.learners.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
 from agents.common.targets import gae, truncation_values
+from agents.learners.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
+from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
+from agents.training.config import option
 from snac_jax.state import PrivilegedState
 
 
@@ -53,8 +53,9 @@ class PrivilegedPPOConfig(AuxiliaryOptions, PPOConfig):
     paper_method: ClassVar[str] = "ppo"
     tuned_as: ClassVar[str] = "ppo"
 
-    privileged_critic: bool = option(True, "the critic also reads the privileged state (position, built plan, "
-                                     "design, stuck); the actor never does")
+    privileged_critic: bool = option(
+        True, "the critic also reads the privileged state (position, built plan, design, stuck); the actor never does"
+    )
 
 
 class PrivilegedEncoder(nn.Module):
@@ -77,13 +78,16 @@ class PrivilegedEncoder(nn.Module):
         lead = privileged.position.shape[:-1]
         built = privileged.built.astype(jnp.float32) / self.layout.height_scale
         remaining = privileged.design.astype(jnp.float32) / self.layout.height_scale - built
-        x = jnp.concatenate([
-            jax.nn.one_hot(privileged.position[..., 0], rows),
-            jax.nn.one_hot(privileged.position[..., 1], cols),
-            built.reshape(lead + (rows * cols,)),
-            remaining.reshape(lead + (rows * cols,)),
-            privileged.stuck[..., None].astype(jnp.float32),
-        ], axis=-1)
+        x = jnp.concatenate(
+            [
+                jax.nn.one_hot(privileged.position[..., 0], rows),
+                jax.nn.one_hot(privileged.position[..., 1], cols),
+                built.reshape(lead + (rows * cols,)),
+                remaining.reshape(lead + (rows * cols,)),
+                privileged.stuck[..., None].astype(jnp.float32),
+            ],
+            axis=-1,
+        )
         return nn.relu(nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(x))
 
 
@@ -140,8 +144,12 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         self.auxiliary = Auxiliary.from_config(config)
         base = self.network
         self.network = AsymmetricActorCritic(
-            layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
-            privileged_critic=config.privileged_critic, auxiliary_heads=self.auxiliary.heads(config.hidden_size),
+            layout=base.layout,
+            num_actions=base.num_actions,
+            hidden_size=base.hidden_size,
+            rnn_size=base.rnn_size,
+            privileged_critic=config.privileged_critic,
+            auxiliary_heads=self.auxiliary.heads(config.hidden_size),
         )
 
     def privileged_state(self, env_state, env_params) -> PrivilegedState:
@@ -154,14 +162,24 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         carry = self.network.initial_carry(n)
         obs, env_state = jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key_reset, n), self.env_params)
         worlds = Worlds(
-            env_state=env_state, obs=obs, previous_obs=obs, last_action=jnp.zeros((n,), jnp.int32),
-            reset=jnp.ones((n,), bool), carry=carry, episode_return=jnp.zeros((n,), jnp.float32),
+            env_state=env_state,
+            obs=obs,
+            previous_obs=obs,
+            last_action=jnp.zeros((n,), jnp.int32),
+            reset=jnp.ones((n,), bool),
+            carry=carry,
+            episode_return=jnp.zeros((n,), jnp.float32),
         )
         privileged = jax.tree.map(lambda x: x[None, :1], self.privileged_state(env_state, self.env_params))
-        params = self.network.init(key_params, carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool),
-                                   privileged)
+        params = self.network.init(
+            key_params, carry[:1], self._network_obs(worlds)[None, :1], jnp.ones((1, 1), bool), privileged
+        )
         return RunnerState(
-            params=params, opt_state=self.optimizer.init(params), worlds=worlds, key=key, update=jnp.zeros((), jnp.int32)
+            params=params,
+            opt_state=self.optimizer.init(params),
+            worlds=worlds,
+            key=key,
+            update=jnp.zeros((), jnp.int32),
         )
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, PrivilegedTransition, dict]:
@@ -185,11 +203,20 @@ class PrivilegedPPO(StrideCurriculum, PPO):
             )
             done = terminated | truncated
             episode_return = worlds.episode_return + reward
-            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
+            final_obs = self.layout.with_previous_step(
+                info["final_observation"], worlds.obs, action, jnp.zeros_like(done)
+            )
             transition = PrivilegedTransition(
-                obs=net_obs, reset=worlds.reset, action=action, log_prob=pi.log_prob(action), value=value[0],
-                reward=reward, terminated=terminated, done=done,
-                final_obs=(final_obs, self.privileged_state(stepped, env_params)), carry_after=new_carry,
+                obs=net_obs,
+                reset=worlds.reset,
+                action=action,
+                log_prob=pi.log_prob(action),
+                value=value[0],
+                reward=reward,
+                terminated=terminated,
+                done=done,
+                final_obs=(final_obs, self.privileged_state(stepped, env_params)),
+                carry_after=new_carry,
                 privileged=privileged,
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
@@ -211,8 +238,13 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         following = jnp.concatenate([batch.value[1:], last_value], axis=0)
         next_values = jnp.where(batch.done, self._final_values(params, batch), following)
         return gae(
-            batch.reward * cfg.reward_scale, batch.value, next_values,
-            batch.terminated.astype(jnp.float32), batch.done, cfg.gamma, cfg.gae_lambda,
+            batch.reward * cfg.reward_scale,
+            batch.value,
+            next_values,
+            batch.terminated.astype(jnp.float32),
+            batch.done,
+            cfg.gamma,
+            cfg.gae_lambda,
         )
 
     def _final_values(self, params, batch: PrivilegedTransition) -> jax.Array:
@@ -234,5 +266,6 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         )
         loss, info = clipped_objective(logits, value, batch, advantages, targets, ent_coef, self.config)
         privileged = batch.privileged
-        return add_rollout_losses(self.auxiliary, loss, info, sown, privileged.position, privileged.built,
-                                  batch.action, batch.reset)
+        return add_rollout_losses(
+            self.auxiliary, loss, info, sown, privileged.position, privileged.built, batch.action, batch.reset
+        )

@@ -13,11 +13,10 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from agents.common.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
+from agents.learners.pqn import PQN, PQNConfig, RunnerState, episode_stats, td_loss
 from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
 from agents.training.config import option
-from agents.common.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
-from agents.learners.pqn import PQN, PQNConfig, RunnerState, Worlds, episode_stats, td_loss
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,8 +32,9 @@ class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
 
-    position_coef: float = option(5e-4, "weight of the loss predicting the true plan position from the GRU state "
-                                  "(0: off)", low=0)
+    position_coef: float = option(
+        5e-4, "weight of the loss predicting the true plan position from the GRU state (0: off)", low=0
+    )
 
     def check(self) -> None:
         super().check()
@@ -44,8 +44,10 @@ class PQNAuxConfig(AuxiliaryOptions, PQNConfig):
 def require_recurrent(config: PQNConfig) -> None:
     """A learner whose heads read PQN-RNN's GRU state refuses a feed-forward network."""
     if not config.recurrent:
-        raise ValueError(f"{config.algorithm} needs recurrent=True: its auxiliary heads read the GRU's state "
-                         "(use pqn for a feed-forward PQN)")
+        raise ValueError(
+            f"{config.algorithm} needs recurrent=True: its auxiliary heads read the GRU's state "
+            "(use pqn for a feed-forward PQN)"
+        )
 
 
 class AuxiliaryQNetwork(LayerNormQNetwork):
@@ -92,7 +94,10 @@ class PQNAux(StrideCurriculum, PQN):
         self.auxiliary = Auxiliary.from_config(config)
         base = self.network
         self.network = AuxiliaryQNetwork(
-            layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
+            layout=base.layout,
+            num_actions=base.num_actions,
+            hidden_size=base.hidden_size,
+            rnn_size=base.rnn_size,
             auxiliary_heads=self.auxiliary.heads(config.hidden_size),
         )
 
@@ -102,8 +107,10 @@ class PQNAux(StrideCurriculum, PQN):
         if not self.auxiliary.coefs:
             return None
         privileged = jax.vmap(self.env.privileged, in_axes=(0, None))(env_state, env_params)
-        return {"position": privileged.position,
-                "built": privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None}
+        return {
+            "position": privileged.position,
+            "built": privileged.built.astype(jnp.int16) if "map" in self.auxiliary.coefs else None,
+        }
 
     def rollout(self, state: RunnerState, env_params) -> tuple[RunnerState, AuxiliaryTransition, dict]:
         """PQN's rollout, recording each step's auxiliary targets."""
@@ -122,10 +129,19 @@ class PQNAux(StrideCurriculum, PQN):
             )
             done = terminated | truncated
             episode_return = worlds.episode_return + reward
-            final_obs = self.layout.with_previous_step(info["final_observation"], worlds.obs, action, jnp.zeros_like(done))
+            final_obs = self.layout.with_previous_step(
+                info["final_observation"], worlds.obs, action, jnp.zeros_like(done)
+            )
             transition = AuxiliaryTransition(
-                obs=net_obs, reset=worlds.reset, action=action, value=q.max(-1), reward=reward,
-                terminated=terminated, truncated=truncated, final_obs=final_obs, carry_after=new_carry,
+                obs=net_obs,
+                reset=worlds.reset,
+                action=action,
+                value=q.max(-1),
+                reward=reward,
+                terminated=terminated,
+                truncated=truncated,
+                final_obs=final_obs,
+                carry_after=new_carry,
                 auxiliary=self.auxiliary_targets(worlds.env_state, env_params),
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
@@ -142,5 +158,6 @@ class PQNAux(StrideCurriculum, PQN):
         (_, q), sown = self.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         loss, info = td_loss(q, batch.action, targets)
         recorded = batch.auxiliary or {}  # None where every weight is 0 (nothing recorded, nothing added)
-        return add_rollout_losses(self.auxiliary, loss, info, sown, recorded.get("position"), recorded.get("built"),
-                                  batch.action, batch.reset)
+        return add_rollout_losses(
+            self.auxiliary, loss, info, sown, recorded.get("position"), recorded.get("built"), batch.action, batch.reset
+        )

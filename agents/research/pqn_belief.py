@@ -54,13 +54,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.learners.pqn import PQNConfig, td_loss
+from agents.research.belief_filter import belief_cross_entropy, expected_design_window, filter_step
+from agents.research.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
 from agents.research.drqn_aux import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losses, move_directions
 from agents.research.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
 from agents.training.config import option
-from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
-from agents.research.belief_filter import belief_cross_entropy, expected_design_window, filter_step
-from agents.research.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
-from agents.learners.pqn import PQNConfig, td_loss
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
 
@@ -76,8 +76,14 @@ class MoveHead(nn.Module):
     @nn.compact
     def __call__(self, parts: dict) -> jax.Array:
         lead = parts["window_classes"].shape[:-2]
-        seen = jnp.concatenate([parts["window_classes"].reshape(lead + (-1,)),
-                                parts["previous_window_classes"].reshape(lead + (-1,)), parts["last_action"]], axis=-1)
+        seen = jnp.concatenate(
+            [
+                parts["window_classes"].reshape(lead + (-1,)),
+                parts["previous_window_classes"].reshape(lead + (-1,)),
+                parts["last_action"],
+            ],
+            axis=-1,
+        )
         return mlp_head(seen, self.hidden_size, MAX_STRIDE + 1, 1.0)
 
 
@@ -110,7 +116,9 @@ class BeliefQNetwork(AuxiliaryQNetwork):
     @property
     def carry_size(self) -> int:
         rows, cols = self.layout.plan_shape
-        return self.rnn_size + (rows + cols if self.moves is not None else 0) + (rows * cols if self.todo_compass else 0)
+        return (
+            self.rnn_size + (rows + cols if self.moves is not None else 0) + (rows * cols if self.todo_compass else 0)
+        )
 
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -133,8 +141,9 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         if self.fixed_design is None:
             design = parts["design"]
         else:
-            design = jnp.broadcast_to(jnp.asarray(self.fixed_design, jnp.float32) / layout.height_scale,
-                                      obs.shape[:-1] + layout.plan_shape)
+            design = jnp.broadcast_to(
+                jnp.asarray(self.fixed_design, jnp.float32) / layout.height_scale, obs.shape[:-1] + layout.plan_shape
+            )
         expected = expected_design_window(p_row, p_col, design, self.view_shape, PADDING / layout.height_scale)
         (vr, vc), (wr, wc) = self.view_shape, layout.window_shape
         in_window = expected[..., (vr - wr) // 2 : (vr + wr) // 2, (vc - wc) // 2 : (vc + wc) // 2]
@@ -163,15 +172,24 @@ class BeliefQNetwork(AuxiliaryQNetwork):
             (b_row, b_col), built = state
             reset, p, s, action, padding = inputs
             if self.todo_compass:  # the last action's brick, under the belief it was dropped with; the mean alone
-                built, _ = map_last_drop(built, jnp.zeros_like(built), b_row[:, :, None] * b_col[:, None, :], action,
-                                         reset, drops, self.capped)
+                built, _ = map_last_drop(
+                    built,
+                    jnp.zeros_like(built),
+                    b_row[:, :, None] * b_col[:, None, :],
+                    action,
+                    reset,
+                    drops,
+                    self.capped,
+                )
             state = filter_step((b_row, b_col), reset, p, s, padding), built
             return state, state
 
         built = belief[:, rows + cols :].reshape(-1, rows, cols) if self.todo_compass else None
         ((b_row, b_col), built), (beliefs, maps) = jax.lax.scan(
-            step, ((belief[:, :rows], belief[:, rows : rows + cols]), built),
-            (resets, p_cells, sign, last_action, window == PADDING))
+            step,
+            ((belief[:, :rows], belief[:, rows : rows + cols]), built),
+            (resets, p_cells, sign, last_action, window == PADDING),
+        )
         last = [b_row, b_col] + ([built.reshape(built.shape[0], -1)] if self.todo_compass else [])
         return jnp.concatenate(last, axis=-1), beliefs, maps
 
@@ -206,8 +224,9 @@ class MappingBeliefQNetwork(BeliefQNetwork):
         drops = tuple(self.drops)
 
         def step(state, inputs):
-            state = mapping_filter_step(state, *inputs, drops=drops, capped=self.capped,
-                                        evidence_weight=self.evidence_weight)
+            state = mapping_filter_step(
+                state, *inputs, drops=drops, capped=self.capped, evidence_weight=self.evidence_weight
+            )
             return state, ((state[0].sum(axis=2), state[0].sum(axis=1)), state[1] if self.todo_compass else None)
 
         state = tuple(part.reshape(-1, rows, cols) for part in jnp.split(belief, 3, axis=-1))
@@ -231,43 +250,78 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     # the filter has no params, so its options may change at evaluation
     acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence", "brick_occupancy")
 
-    position_coef: float = option(5e-3, "weight of the loss predicting the true plan position from the GRU state "
-                                  "(trains the learned belief; 0: off, allowed with the filter)", low=0)
-    move_coef: float = option(5e-3, "weight of the loss predicting how many cells the last move carried the robot "
-                              "(trains the filter's move head; 0: off, allowed without the filter)", low=0)
-    view_radius: int = option(0, "half size of the expected design around the robot that the Q head reads (0: the "
-                              "window's; larger: an egocentric view of more of the design)", low=0)
-    design_encoder: bool = option(True, "also read a dynamic task's whole design through the design encoder (off: "
-                                  "the egocentric view alone)")
-    belief_filter: bool = option(True, "the belief is a histogram filter driven by a learned move head (trained by "
-                                 "the move loss: move_coef > 0); off: the position head (position_coef > 0)")
-    brick_map: bool = option(False, "the filter also maps the bricks it laid under its belief and weighs positions by "
-                             "how well the window's bricks match the map, with a joint belief over rows and columns "
-                             "(agents/research/belief_map.py)")
-    brick_evidence: float = option(1.0, "with brick_map, the weight of the window's bricks as evidence of the "
-                                   "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
-                                   "tempers it, as the window shows the same bricks step after step)", low=0, high=1)
-    todo_compass: bool = option(False, "the Q head also reads where the design's unbuilt cells lie under a map of the "
-                                "drops made under the belief: their expected share above, below, left and right of "
-                                "the believed position, and in all (with brick_map, that filter's map)")
-    brick_occupancy: bool = option(False, "with brick_map in 3D, the map holds whether a cell has a brick, not how "
-                                   "many, and reads the window so: a stack's height never enters the evidence (2D's "
-                                   "map is so already)")
+    position_coef: float = option(
+        5e-3,
+        "weight of the loss predicting the true plan position from the GRU state "
+        "(trains the learned belief; 0: off, allowed with the filter)",
+        low=0,
+    )
+    move_coef: float = option(
+        5e-3,
+        "weight of the loss predicting how many cells the last move carried the robot "
+        "(trains the filter's move head; 0: off, allowed without the filter)",
+        low=0,
+    )
+    view_radius: int = option(
+        0,
+        "half size of the expected design around the robot that the Q head reads (0: the "
+        "window's; larger: an egocentric view of more of the design)",
+        low=0,
+    )
+    design_encoder: bool = option(
+        True, "also read a dynamic task's whole design through the design encoder (off: the egocentric view alone)"
+    )
+    belief_filter: bool = option(
+        True,
+        "the belief is a histogram filter driven by a learned move head (trained by "
+        "the move loss: move_coef > 0); off: the position head (position_coef > 0)",
+    )
+    brick_map: bool = option(
+        False,
+        "the filter also maps the bricks it laid under its belief and weighs positions by "
+        "how well the window's bricks match the map, with a joint belief over rows and columns "
+        "(agents/research/belief_map.py)",
+    )
+    brick_evidence: float = option(
+        1.0,
+        "with brick_map, the weight of the window's bricks as evidence of the "
+        "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
+        "tempers it, as the window shows the same bricks step after step)",
+        low=0,
+        high=1,
+    )
+    todo_compass: bool = option(
+        False,
+        "the Q head also reads where the design's unbuilt cells lie under a map of the "
+        "drops made under the belief: their expected share above, below, left and right of "
+        "the believed position, and in all (with brick_map, that filter's map)",
+    )
+    brick_occupancy: bool = option(
+        False,
+        "with brick_map in 3D, the map holds whether a cell has a brick, not how "
+        "many, and reads the window so: a stack's height never enters the evidence (2D's "
+        "map is so already)",
+    )
 
     def check(self) -> None:
         super().check()
         require_recurrent(self)
         if self.belief_filter and not self.move_coef:
-            raise ValueError("pqn-belief with belief_filter needs move_coef > 0: the move loss trains the filter's "
-                             "move head")
+            raise ValueError(
+                "pqn-belief with belief_filter needs move_coef > 0: the move loss trains the filter's move head"
+            )
         if self.belief_filter and not self.previous_step:
-            raise ValueError("pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
-                             "before the last action and the action")
+            raise ValueError(
+                "pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
+                "before the last action and the action"
+            )
         if self.brick_evidence != 1.0 and not self.brick_map:
             raise ValueError(f"brick_evidence={self.brick_evidence} needs brick_map=True: it weighs the map's evidence")
         if self.brick_occupancy and not (self.brick_map and self.env_config().dim == 3):
-            raise ValueError(f"brick_occupancy needs brick_map=True on a 3D task, got brick_map={self.brick_map} on "
-                             f"{self.task}: it changes the 3D map of heights (2D's map holds occupancy already)")
+            raise ValueError(
+                f"brick_occupancy needs brick_map=True on a 3D task, got brick_map={self.brick_map} on "
+                f"{self.task}: it changes the 3D map of heights (2D's map holds occupancy already)"
+            )
         if self.todo_compass and not self.belief_filter:
             raise ValueError("todo_compass needs belief_filter=True: it maps the drops under the filter's belief")
         if self.brick_map and not self.belief_filter:
@@ -275,12 +329,15 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
         if self.view_radius:
             low, high = view_radius_range(self.env_config())
             if not low <= self.view_radius <= high:
-                raise ValueError(f"view_radius must be 0 or in {low}..{high} on {self.task}, got {self.view_radius}: at "
-                                 f"least the window's half size ({low}), as the view holds the window, and at most "
-                                 f"{high}, from where the view already shows the whole plan from every position")
+                raise ValueError(
+                    f"view_radius must be 0 or in {low}..{high} on {self.task}, got {self.view_radius}: at "
+                    f"least the window's half size ({low}), as the view holds the window, and at most "
+                    f"{high}, from where the view already shows the whole plan from every position"
+                )
         if not self.belief_filter and not self.position_coef:
-            raise ValueError("pqn-belief needs position_coef > 0 (or belief_filter): the position loss trains its "
-                             "belief")
+            raise ValueError(
+                "pqn-belief needs position_coef > 0 (or belief_filter): the position loss trains its belief"
+            )
 
 
 def view_radius_range(env_config) -> tuple[int, int]:
@@ -315,12 +372,24 @@ class PQNBelief(PQNAux):
         if config.belief_filter:  # the move loss trains the filter's own head, not one on the GRU state
             moves = tuple(map(tuple, move_directions(self.env.config).tolist()))
             others = tuple(name for name in heads.heads if name != "move")
-            heads = AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others) if others else None
+            heads = (
+                AuxiliaryHeads(plan_shape=heads.plan_shape, hidden_size=heads.hidden_size, heads=others)
+                if others
+                else None
+            )
         fields = dict(
-            layout=base.layout, num_actions=base.num_actions, hidden_size=base.hidden_size, rnn_size=base.rnn_size,
-            auxiliary_heads=heads, fixed_design=None if self.layout.dynamic else self._fixed_design(), moves=moves,
-            view_radius=config.view_radius, design_encoder=config.design_encoder, todo_compass=config.todo_compass,
-            drops=drop_table(self.env.config), capped=self.env.config.dim == 2 or config.brick_occupancy,
+            layout=base.layout,
+            num_actions=base.num_actions,
+            hidden_size=base.hidden_size,
+            rnn_size=base.rnn_size,
+            auxiliary_heads=heads,
+            fixed_design=None if self.layout.dynamic else self._fixed_design(),
+            moves=moves,
+            view_radius=config.view_radius,
+            design_encoder=config.design_encoder,
+            todo_compass=config.todo_compass,
+            drops=drop_table(self.env.config),
+            capped=self.env.config.dim == 2 or config.brick_occupancy,
         )
         if config.brick_map:
             self.network = MappingBeliefQNetwork(**fields, evidence_weight=config.brick_evidence)
@@ -333,8 +402,9 @@ class PQNBelief(PQNAux):
         (_, q), sown = self.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         loss, info = td_loss(q, batch.action, targets)
         recorded = batch.auxiliary
-        loss, info = add_rollout_losses(self.auxiliary, loss, info, sown, recorded["position"], recorded.get("built"),
-                                        batch.action, batch.reset)
+        loss, info = add_rollout_losses(
+            self.auxiliary, loss, info, sown, recorded["position"], recorded.get("built"), batch.action, batch.reset
+        )
         p_row, p_col = sown["intermediates"]["belief"][0]
         return loss, {**info, "belief_nll": belief_cross_entropy(p_row, p_col, recorded["position"])}
 
@@ -347,8 +417,13 @@ class PQNBelief(PQNAux):
         the action calls `act` beside it (bench/belief_episodes.py)."""
         network, layout = self.network, self.layout
         net_obs = layout.acting_inputs(obs, policy_state)
-        (carry, _), sown = network.apply(params, policy_state["carry"][None], net_obs[None, None],
-                                         policy_state["reset"][None, None], mutable="intermediates")
+        (carry, _), sown = network.apply(
+            params,
+            policy_state["carry"][None],
+            net_obs[None, None],
+            policy_state["reset"][None, None],
+            mutable="intermediates",
+        )
         rows, cols = layout.plan_shape
         if isinstance(network, MappingBeliefQNetwork):  # the carry after the GRU's state: belief, map mean, variance
             return carry[0, network.rnn_size : network.rnn_size + rows * cols].reshape(rows, cols)
@@ -366,8 +441,9 @@ class PQNBelief(PQNAux):
         if network.moves is None:
             raise ValueError("filter_inputs needs pqn-belief with belief_filter=True: the learned belief has no filter")
         net_obs = self.layout.acting_inputs(obs, policy_state)[None, None]
-        _, sown = network.apply(params, policy_state["carry"][None], net_obs, policy_state["reset"][None, None],
-                                mutable="intermediates")
+        _, sown = network.apply(
+            params, policy_state["carry"][None], net_obs, policy_state["reset"][None, None], mutable="intermediates"
+        )
         move_logits = sown["intermediates"]["auxiliary"][0]["move"]
         p_cells, last_action, sign, window = network.filter_inputs_from_move_logits(move_logits, net_obs)
         return policy_state["reset"][None], p_cells[0], sign[0], last_action[0], window[0]

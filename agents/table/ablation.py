@@ -42,8 +42,16 @@ def is_ablation(raw: dict) -> bool:
     return any("variant" in files["cell"] for cells in raw.values() for files in cells.values())
 
 
-def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str = "", reps: int = statistics.DEFAULT_REPS,
-          bootstrap_seed: int = 0, curves: bool = False) -> dict[str, Any]:
+def build(
+    raw: dict,
+    *,
+    arms: list[str],
+    paper: dict | None = None,
+    preset: str = "",
+    reps: int = statistics.DEFAULT_REPS,
+    bootstrap_seed: int = 0,
+    curves: bool = False,
+) -> dict[str, Any]:
     """table.json's section of an ablation preset from its copied cells (`raw.load_raw`); `arms`:
     the preset's arm names in the order the table lists them (arms it does not name follow, by
     name); `curves`: whether the arms' learning-curve figure was drawn (`curves`). The paper's
@@ -62,23 +70,35 @@ def build(raw: dict, *, arms: list[str], paper: dict | None = None, preset: str 
             for arm in sorted(found, key=order):
                 files, scores = found[arm], seed_means(found[arm])
                 paper_arm = paper.get(task, {}).get(files["cell"]["paper_variant"], {}) if ablated else {}
-                row = {**statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
-                       "paper_variant": files["cell"]["paper_variant"],
-                       "changes": arm_changes(files["cell"]["switches"], files["cell"].get("settings", {}),
-                                                  files["cell"].get("evaluation")),
-                       "budget": budget_record([files]), "paper": paper_arm.get("avg"),
-                       "adopted_from": files["cell"].get("adopted_from"),
-                       **({"own_copy": True} if _own_copy_of_adopted(arm, files) else {}),
-                       **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {})}
+                row = {
+                    **statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
+                    "paper_variant": files["cell"]["paper_variant"],
+                    "changes": arm_changes(
+                        files["cell"]["switches"], files["cell"].get("settings", {}), files["cell"].get("evaluation")
+                    ),
+                    "budget": budget_record([files]),
+                    "paper": paper_arm.get("avg"),
+                    "adopted_from": files["cell"].get("adopted_from"),
+                    **({"own_copy": True} if _own_copy_of_adopted(arm, files) else {}),
+                    **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {}),
+                }
                 if arm != BASE:  # the paper's value of an arm is its change from the base
-                    row["delta"] = (statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
-                                    if base is not None else None)
+                    row["delta"] = (
+                        statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
+                        if base is not None
+                        else None
+                    )
                 rows[arm] = row
             learners.setdefault(algorithm, {})[task] = rows
-    return {"preset": preset, "kind": "ablation", "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
-            "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
-            "ablation": learners,
-            "curves": curves}
+    return {
+        "preset": preset,
+        "kind": "ablation",
+        "train_seed": TRAIN_SEED,
+        "eval_seed": REPORT_EVAL_SEED,
+        "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
+        "ablation": learners,
+        "curves": curves,
+    }
 
 
 def _own_copy_of_adopted(arm: str, files: dict) -> bool:
@@ -94,45 +114,78 @@ def _interval(value: float, ci: list[float], signed: bool = False) -> str:
 
 def _scored_otherwise(table: dict) -> bool:
     """Whether an arm of the section acts with settings of its own when scored (`Variant.evaluation`)."""
-    return any(row.get("evaluation") for tasks in table["ablation"].values() for rows in tasks.values()
-               for row in rows.values())
+    return any(
+        row.get("evaluation")
+        for tasks in table["ablation"].values()
+        for rows in tasks.values()
+        for row in rows.values()
+    )
 
 
 def section(table: dict, description: str) -> list[str]:
     """table.md's section of an ablation preset."""
-    lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
-             "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings"
-             + ("; an arm whose settings say \"at evaluation\" trains as the base arm (taking over its run) and its "
-                "greedy policy acts with them when scored" if _scored_otherwise(table) else "")
-             + ". The paper's value of the base arm is its IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
-             "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
-             "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
-             "for two arms of three normal draws and no true difference it holds 0 only about four times in "
-             "five, so read a Δ as an effect only where it is large against the seeds' spread.", ""]
+    lines = [
+        f"## Preset `{table['preset']}`" + (f": {description}" if description else ""),
+        "",
+        "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings"
+        + (
+            '; an arm whose settings say "at evaluation" trains as the base arm (taking over its run) and its '
+            "greedy policy acts with them when scored"
+            if _scored_otherwise(table)
+            else ""
+        )
+        + ". The paper's value of the base arm is its IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
+        "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
+        "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
+        "for two arms of three normal draws and no true difference it holds 0 only about four times in "
+        "five, so read a Δ as an effect only where it is large against the seeds' spread.",
+        "",
+    ]
     if not table["ablation"]:
         return lines + [f"No finished cells yet: `snac table --preset {table['preset']} --dry-run` shows the plan.", ""]
-    lines += ["| learner | task | arm (paper's name) | switches, settings | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
-              "|---|---|---|---|---:|---:|---:|---:|"]
+    lines += [
+        "| learner | task | arm (paper's name) | switches, settings | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
+        "|---|---|---|---|---:|---:|---:|---:|",
+    ]
     for learner, tasks in table["ablation"].items():
         for task, rows in tasks.items():
             for arm, row in rows.items():
                 ours = _interval(row["mean"], row["ci95"])
-                delta = "—" if row.get("delta") is None else _interval(row["delta"]["delta"], row["delta"]["ci95"], True)
-                paper = "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
+                delta = (
+                    "—" if row.get("delta") is None else _interval(row["delta"]["delta"], row["delta"]["ci95"], True)
+                )
+                paper = (
+                    "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
+                )
                 paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
-                lines.append(f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
-                             f"{delta} | {paper} | {budget_text(row['budget'])} |")
-    adopted = [f"{learner} on {task} ({arm}): `{row['adopted_from']}`"
-               + (f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
-                  if row.get("own_copy") else "")
-               for learner, tasks in table["ablation"].items()
-               for task, rows in tasks.items() for arm, row in rows.items() if row.get("adopted_from")]
+                lines.append(
+                    f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
+                    f"{delta} | {paper} | {budget_text(row['budget'])} |"
+                )
+    adopted = [
+        f"{learner} on {task} ({arm}): `{row['adopted_from']}`"
+        + (
+            f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
+            if row.get("own_copy")
+            else ""
+        )
+        for learner, tasks in table["ablation"].items()
+        for task, rows in tasks.items()
+        for arm, row in rows.items()
+        if row.get("adopted_from")
+    ]
     if adopted:
-        lines += ["", "Arms that adopted another preset's finished run with the same config.json (`adopts` in "
-                  "budgets.toml) instead of training it again: " + "; ".join(adopted) + "."]
+        lines += [
+            "",
+            "Arms that adopted another preset's finished run with the same config.json (`adopts` in "
+            "budgets.toml) instead of training it again: " + "; ".join(adopted) + ".",
+        ]
     if table.get("curves"):
-        lines += ["", f"Learning curves of the arms: `{curves_name(table['preset'])}` (sampled training IoU, "
-                  "the mean over seeds and a band from the lowest to the highest seed)."]
+        lines += [
+            "",
+            f"Learning curves of the arms: `{curves_name(table['preset'])}` (sampled training IoU, "
+            "the mean over seeds and a band from the lowest to the highest seed).",
+        ]
     return lines + [""]
 
 

@@ -34,57 +34,109 @@ def _task(text: str) -> str:
 
 
 def add_parser(subparsers) -> None:
-    from agents.training.registry import ALGORITHMS
     from agents.table.presets import BUDGETS_FILE, load_presets
+    from agents.training.registry import ALGORITHMS
     from snac_jax.paper import PAPER_TASKS
 
     presets = load_presets()
     parser = subparsers.add_parser(
-        "table", help="the benchmark table: every learner on the paper's columns, several seeds, resumable",
-        description=__doc__.split("\n\n")[0])
-    parser.add_argument("--preset", choices=sorted(presets), default="paper",
-                        help="budget preset (" + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
-                        + f"), from {BUDGETS_FILE.name}")
-    parser.add_argument("--algorithms", nargs="+", default=None, metavar="ALGORITHM", choices=list(ALGORITHMS),
-                        help=f"default: the preset's, else every registered one ({', '.join(ALGORITHMS)})")
-    parser.add_argument("--tasks", nargs="+", default=None, metavar="TASK", type=_task,
-                        help=f"paper columns (default: the preset's, else all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
-                             "or environment task ids")
-    parser.add_argument("--arms", nargs="+", default=None, metavar="ARM",
-                        help="an ablation preset's arms to run (default: all of them; the report reads every arm found)")
-    parser.add_argument("--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)")
-    parser.add_argument("--runs-dir", type=Path, default=None,
-                        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
-                             f"(default {DEFAULT_RUNS_DIR}; with --report, a RUNS_DIR given must exist, the default "
-                             "may be absent: the report is then rebuilt from RESULTS_DIR alone)")
-    parser.add_argument("--dry-run", action="store_true",
-                        help="print the plan with estimated wall times and stop; with --report, check every cell and "
-                             "print what would be copied and written, writing nothing")
-    parser.add_argument("--report", action="store_true",
-                        help="copy each finished cell into one JSON file under RESULTS_DIR/table/<preset>/ and write "
-                             "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
-                             "(no training)")
-    parser.add_argument("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR,
-                        help=f"where --report writes, and where a preset that adopts another finds that preset's "
-                             f"cells when RUNS_DIR keeps no run of them (default {DEFAULT_RESULTS_DIR})")
-    parser.add_argument("--readme", type=Path, default=None, metavar="PATH",
-                        help="with --report: also rewrite the generated learner table in the README at PATH "
-                             "(between its marker lines; a symbolic link is refused: give the file it points to)")
+        "table",
+        help="the benchmark table: every learner on the paper's columns, several seeds, resumable",
+        description=__doc__.split("\n\n")[0],
+    )
+    parser.add_argument(
+        "--preset",
+        choices=sorted(presets),
+        default="paper",
+        help="budget preset ("
+        + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
+        + f"), from {BUDGETS_FILE.name}",
+    )
+    parser.add_argument(
+        "--algorithms",
+        nargs="+",
+        default=None,
+        metavar="ALGORITHM",
+        choices=list(ALGORITHMS),
+        help=f"default: the preset's, else every registered one ({', '.join(ALGORITHMS)})",
+    )
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        default=None,
+        metavar="TASK",
+        type=_task,
+        help=f"paper columns (default: the preset's, else all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
+        "or environment task ids",
+    )
+    parser.add_argument(
+        "--arms",
+        nargs="+",
+        default=None,
+        metavar="ARM",
+        help="an ablation preset's arms to run (default: all of them; the report reads every arm found)",
+    )
+    parser.add_argument(
+        "--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)"
+    )
+    parser.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=None,
+        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
+        f"(default {DEFAULT_RUNS_DIR}; with --report, a RUNS_DIR given must exist, the default "
+        "may be absent: the report is then rebuilt from RESULTS_DIR alone)",
+    )
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the plan with estimated wall times and stop; with --report, check every cell and "
+        "print what would be copied and written, writing nothing",
+    )
+    parser.add_argument(
+        "--report",
+        action="store_true",
+        help="copy each finished cell into one JSON file under RESULTS_DIR/table/<preset>/ and write "
+        "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
+        "(no training)",
+    )
+    parser.add_argument(
+        "--results-dir",
+        type=Path,
+        default=DEFAULT_RESULTS_DIR,
+        help=f"where --report writes, and where a preset that adopts another finds that preset's "
+        f"cells when RUNS_DIR keeps no run of them (default {DEFAULT_RESULTS_DIR})",
+    )
+    parser.add_argument(
+        "--readme",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="with --report: also rewrite the generated learner table in the README at PATH "
+        "(between its marker lines; a symbolic link is refused: give the file it points to)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_devices_argument(parser, cpu_default="1, as snac train")
     parser.set_defaults(func=run)
 
 
 def plan_from_args(args: argparse.Namespace):
-    from agents.training.registry import ALGORITHMS
     from agents.table.plan import make_plan
     from agents.table.presets import load_presets
+    from agents.training.registry import ALGORITHMS
     from snac_jax.paper import PAPER_TASKS
 
     preset = load_presets()[args.preset]
     algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
-    return make_plan(preset, algorithms, args.tasks or list(preset.tasks or PAPER_TASKS), args.seeds, args.runs_dir,
-                     arms=args.arms, results_dir=args.results_dir)
+    return make_plan(
+        preset,
+        algorithms,
+        args.tasks or list(preset.tasks or PAPER_TASKS),
+        args.seeds,
+        args.runs_dir,
+        arms=args.arms,
+        results_dir=args.results_dir,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -96,8 +148,10 @@ def run(args: argparse.Namespace) -> int:
         if not args.report:
             raise ValueError("--readme goes with --report (the README's table is written from the report)")
         if args.readme.is_symlink():
-            raise ValueError(f"--readme {args.readme} is a symbolic link; give the file it points to "
-                             f"({args.readme.resolve()}), so that the link stays a link")
+            raise ValueError(
+                f"--readme {args.readme} is a symbolic link; give the file it points to "
+                f"({args.readme.resolve()}), so that the link stays a link"
+            )
         if not args.readme.is_file():
             raise ValueError(f"--readme {args.readme}: no such file")
         replace_block(args.readme.read_text(), "")  # its marker lines are there, before any work
@@ -106,9 +160,9 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         return _report(args, given_runs_dir)
 
-    from agents.training import checkpoint
     from agents.table.plan_format import format_plan
     from agents.table.run import run_cells
+    from agents.training import checkpoint
 
     if args.dry_run:
         print(format_plan(plan_from_args(args), args.runs_dir))
@@ -117,8 +171,10 @@ def run(args: argparse.Namespace) -> int:
     cells = plan_from_args(args)
     print(format_plan(cells, args.runs_dir), flush=True)
     finished = run_cells(cells, progress=not args.no_progress, num_devices=args.devices)  # under that lock
-    print(f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",
-          file=sys.stderr)
+    print(
+        f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -131,13 +187,20 @@ def _report(args: argparse.Namespace, given_runs_dir: bool) -> int:
 
     runs_dir = args.runs_dir
     if not given_runs_dir and not runs_dir.exists():
-        print(f"no runs under {runs_dir} (the default --runs-dir): the report is rebuilt from "
-              f"{args.results_dir / 'table'} alone", file=sys.stderr)
+        print(
+            f"no runs under {runs_dir} (the default --runs-dir): the report is rebuilt from "
+            f"{args.results_dir / 'table'} alone",
+            file=sys.stderr,
+        )
         runs_dir = None
     paths = write_report(args.preset, runs_dir, args.results_dir, dry_run=args.dry_run)
     if args.dry_run:
         for key, path in paths.items():
-            print(f"would copy {key.removeprefix('copy:')} to {path}" if key.startswith("copy:") else f"would write {path}")
+            print(
+                f"would copy {key.removeprefix('copy:')} to {path}"
+                if key.startswith("copy:")
+                else f"would write {path}"
+            )
         if args.readme is not None:
             print(f"would rewrite the learner table in {args.readme}")
         return 0

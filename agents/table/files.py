@@ -15,8 +15,9 @@ instead of leaving it out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from agents.training import checkpoint, schemas
 from snac_jax.designs import NUM_TEST_DESIGNS
@@ -73,8 +74,10 @@ def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) ->
     with none in it), which the run trains again from the start. Anything else is a `ValueError`
     naming the directory: the table never deletes or overwrites files it did not make."""
     if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
-        raise ValueError(f"{directory} is not a directory (a link or a file), where a cell of the table goes; "
-                         "choose another --runs-dir")
+        raise ValueError(
+            f"{directory} is not a directory (a link or a file), where a cell of the table goes; "
+            "choose another --runs-dir"
+        )
     try:
         checkpoint.check_new_run_directory(directory)
         return False
@@ -89,14 +92,18 @@ def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) ->
     except ValueError:
         ours = False
     if ours and checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE):
-        raise ValueError(f"{directory} holds a start of this cell whose {checkpoint.METRICS_FILE} records chunks that "
-                         "no checkpoint kept; the table deletes nothing it did not make: remove that directory to "
-                         "train the cell from the start")
+        raise ValueError(
+            f"{directory} holds a start of this cell whose {checkpoint.METRICS_FILE} records chunks that "
+            "no checkpoint kept; the table deletes nothing it did not make: remove that directory to "
+            "train the cell from the start"
+        )
     if not ours:
         shown = ", ".join(entries[:6]) + (", ..." if len(entries) > 6 else "")
-        raise ValueError(f"{directory} holds files that no start of this cell left there ({shown}) and no checkpoint; "
-                         "the table deletes nothing it did not make: move that directory away, or choose another "
-                         "--runs-dir")
+        raise ValueError(
+            f"{directory} holds files that no start of this cell left there ({shown}) and no checkpoint; "
+            "the table deletes nothing it did not make: move that directory away, or choose another "
+            "--runs-dir"
+        )
     return True
 
 
@@ -113,14 +120,17 @@ def check_finished_without_checkpoints(directory: Path, config, episodes: int) -
     records = checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)
     chunks = len(chunk_sizes(config.num_updates, config.chunks))
     if not records or records[-1]["chunk"] != chunks - 1:
-        raise ValueError(f"{where}, and its {checkpoint.METRICS_FILE} records {len(records)} of the run's {chunks} "
-                         "chunks: its training did not finish, and nothing is left to resume it from; move that "
-                         "directory away")
+        raise ValueError(
+            f"{where}, and its {checkpoint.METRICS_FILE} records {len(records)} of the run's {chunks} "
+            "chunks: its training did not finish, and nothing is left to resume it from; move that "
+            "directory away"
+        )
     read_cell(directory)
 
 
-def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, cell_where: str, eval_where: str,
-               config_where: str) -> None:
+def check_cell(
+    config, cell: dict, results: dict, *, name: str, algorithm: str, cell_where: str, eval_where: str, config_where: str
+) -> None:
     """The checks between a cell's parts, each already read against its schema: `cell` and the
     config name the same algorithm and task, an arm's cell names its arm whole, the cell stands
     where its algorithm and name say (`name`, `algorithm`: its directory's or file's), and
@@ -134,12 +144,16 @@ def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, 
         raise ValueError(f"{cell_where}: an arm's cell needs variant, paper_variant and switches; {missing} missing")
     own = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
     if name != own or algorithm != cell["algorithm"]:
-        raise ValueError(f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands "
-                         f"({algorithm}/{name})")
+        raise ValueError(
+            f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands "
+            f"({algorithm}/{name})"
+        )
     problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
     if problem is not None:
-        raise ValueError(f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell "
-                         "again with `snac table` or move it away")
+        raise ValueError(
+            f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell "
+            "again with `snac table` or move it away"
+        )
 
 
 def read_cell(directory: Path) -> dict[str, Any]:
@@ -152,10 +166,22 @@ def read_cell(directory: Path) -> dict[str, Any]:
         raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
     cell = schemas.load(cell_path, schemas.CELL_JSON)
     results = schemas.load(eval_path, schemas.EVAL_JSON)
-    check_cell(config, cell, results, name=directory.name, algorithm=directory.parent.name, cell_where=str(cell_path),
-               eval_where=str(eval_path), config_where=checkpoint.CONFIG_FILE)
-    return {"config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON), "eval": results,
-            "cell": cell, "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)}
+    check_cell(
+        config,
+        cell,
+        results,
+        name=directory.name,
+        algorithm=directory.parent.name,
+        cell_where=str(cell_path),
+        eval_where=str(eval_path),
+        config_where=checkpoint.CONFIG_FILE,
+    )
+    return {
+        "config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON),
+        "eval": results,
+        "cell": cell,
+        "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE),
+    }
 
 
 def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
@@ -167,15 +193,23 @@ def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
     and the field (`eval['<seed>'].mean`) of the first problem."""
     from agents.training.registry import config_from_json
 
-    record = (schemas.load(path, schemas.RAW_CELL_JSON) if text is None
-              else loads_json(text, schemas.RAW_CELL_JSON, path))
+    record = (
+        schemas.load(path, schemas.RAW_CELL_JSON) if text is None else loads_json(text, schemas.RAW_CELL_JSON, path)
+    )
     try:
         config = config_from_json(record["config"])
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: config: {error}") from error
-    check_cell(config, record["cell"], record["eval"], name=path.name.removesuffix(RAW_SUFFIX),
-               algorithm=path.parent.name, cell_where=f"{path}: cell", eval_where=f"{path}: eval",
-               config_where="config")
+    check_cell(
+        config,
+        record["cell"],
+        record["eval"],
+        name=path.name.removesuffix(RAW_SUFFIX),
+        algorithm=path.parent.name,
+        cell_where=f"{path}: cell",
+        eval_where=f"{path}: eval",
+        config_where="config",
+    )
     return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}
 
 

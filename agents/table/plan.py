@@ -18,14 +18,24 @@ import math
 from pathlib import Path
 from typing import Any
 
-from agents.training import checkpoint
-from agents.training.config import TrainConfig
-from agents.training.registry import ALGORITHMS, config_class, make_config, tuned_source
-from agents.table.files import (EVAL_FILE, RECORD_FIELD, check_finished_without_checkpoints, eval_is_valid,
-                                 expected_episodes, new_cell_leftovers, own_files, read_record, record_copy, record_path)
+from agents.table.files import (
+    EVAL_FILE,
+    RECORD_FIELD,
+    check_finished_without_checkpoints,
+    eval_is_valid,
+    expected_episodes,
+    new_cell_leftovers,
+    own_files,
+    read_record,
+    record_copy,
+    record_path,
+)
 from agents.table.presets import Preset, Variant, expand_tasks
 from agents.table.rates import eval_seconds, load_rates, measured
 from agents.table.scoring import check_scored_as, missing_run, scoring_config, scoring_estimate
+from agents.training import checkpoint
+from agents.training.config import TrainConfig
+from agents.training.registry import ALGORITHMS, config_class, make_config, tuned_source
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.tasks import task_spec
 
@@ -68,8 +78,10 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     budget = preset.budgets.get(config.algorithm, {})
     if isinstance(budget.get("env_steps"), dict):  # one budget per environment task
         if config.task not in budget["env_steps"]:
-            raise ValueError(f"the {preset.name} preset gives {config.algorithm} a budget on "
-                             f"{', '.join(budget['env_steps'])} only, not on {config.task}")
+            raise ValueError(
+                f"the {preset.name} preset gives {config.algorithm} a budget on "
+                f"{', '.join(budget['env_steps'])} only, not on {config.task}"
+            )
         return int(budget["env_steps"][config.task]), f"{preset.name}: {budget['source']}"
     if "env_steps" in budget:
         return int(budget["env_steps"]), f"{preset.name}: {budget['source']}"
@@ -88,8 +100,9 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     return config.total_steps, f"{preset.name}: {why}"
 
 
-def cell_config(preset: Preset, algorithm: str, task: str, seeds: int, rates: dict,
-                variant: Variant | None = None) -> tuple[TrainConfig, Budget]:
+def cell_config(
+    preset: Preset, algorithm: str, task: str, seeds: int, rates: dict, variant: Variant | None = None
+) -> tuple[TrainConfig, Budget]:
     """The config a cell trains and its budget (capped to the preset's wall limit)."""
     arm = {} if variant is None else {**variant.settings, "switches": variant.switches}
     overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, "switches": "", **arm}
@@ -143,15 +156,33 @@ class Cell:
 
     def record(self) -> dict[str, Any]:
         """cell.json: what the table needs beside config.json and eval.json."""
-        arm = {} if self.variant is None else {"variant": self.variant.name, "paper_variant": self.variant.paper,
-                                                "switches": self.variant.switches, "settings": self.variant.settings,
-                                                **({"evaluation": self.evaluation} if self.evaluation else {})}
-        adopted = {} if self.adopts_from is None else {"adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.task}"}
+        arm = (
+            {}
+            if self.variant is None
+            else {
+                "variant": self.variant.name,
+                "paper_variant": self.variant.paper,
+                "switches": self.variant.switches,
+                "settings": self.variant.settings,
+                **({"evaluation": self.evaluation} if self.evaluation else {}),
+            }
+        )
+        adopted = (
+            {} if self.adopts_from is None else {"adopted_from": f"{self.preset.adopts}/{self.algorithm}/{self.task}"}
+        )
         if self.adopts_record:
             adopted[RECORD_FIELD] = str(self.adopts_from)
-        return {"preset": self.preset.name, "algorithm": self.algorithm, "column": self.column, "task": self.task,
-                "budget": dataclasses.asdict(self.budget), "eval_seed": REPORT_EVAL_SEED,
-                "protocol": self.preset.protocol, **arm, **adopted}
+        return {
+            "preset": self.preset.name,
+            "algorithm": self.algorithm,
+            "column": self.column,
+            "task": self.task,
+            "budget": dataclasses.asdict(self.budget),
+            "eval_seed": REPORT_EVAL_SEED,
+            "protocol": self.preset.protocol,
+            **arm,
+            **adopted,
+        }
 
 
 def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
@@ -161,8 +192,11 @@ def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
     finished run."""
     stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
-    if (differ == ["total_steps"] and cell.preset.wall_limit(cell.algorithm) is not None
-            and config.total_steps <= cell.budget.requested):
+    if (
+        differ == ["total_steps"]
+        and cell.preset.wall_limit(cell.algorithm) is not None
+        and config.total_steps <= cell.budget.requested
+    ):
         return []
     return differ
 
@@ -172,8 +206,9 @@ def _take_run_budget(cell: Cell, config: TrainConfig) -> None:
     equal to the cell's but for a wall cap)."""
     if config.total_steps != cell.config.total_steps:
         cell.config = config
-        cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps,
-                                          capped=config.total_steps < cell.budget.requested)
+        cell.budget = dataclasses.replace(
+            cell.budget, env_steps=config.total_steps, capped=config.total_steps < cell.budget.requested
+        )
 
 
 def _continues(cell: Cell, config: TrainConfig) -> bool:
@@ -193,14 +228,18 @@ def _check_same_config(cell: Cell) -> None:
     if differ:
         stored, wanted = config.to_json(), cell.config.to_json()
         changes = ", ".join(f"{k}: {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in differ)
-        raise ValueError(f"{cell.directory} holds a run made with other settings ({changes}); "
-                         "choose another --runs-dir or remove that directory")
+        raise ValueError(
+            f"{cell.directory} holds a run made with other settings ({changes}); "
+            "choose another --runs-dir or remove that directory"
+        )
     _take_run_budget(cell, config)
 
 
 def own_copy(cell: Cell) -> dict | None:
     """The cell.json of this cell's copy of a raw copy in its directory (`files.record_copy`), or None."""
-    return record_copy(cell.directory, (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name))
+    return record_copy(
+        cell.directory, (cell.preset.name, cell.algorithm, cell.task, cell.variant and cell.variant.name)
+    )
 
 
 def _finished_elsewhere(cell: Cell) -> bool:
@@ -233,9 +272,11 @@ def cell_state(cell: Cell) -> None:
         if (cell.directory / EVAL_FILE).is_file():
             episodes = expected_episodes(cell.task, cell.preset.protocol)
             if not eval_is_valid(cell.directory / EVAL_FILE, cell.config.seeds, episodes):
-                raise ValueError(f"{cell.directory / EVAL_FILE} is not a finished result of this cell, and the cell, "
-                                 f"copied from {copied[RECORD_FIELD]}, has no checkpoints to evaluate again: move "
-                                 "that directory away")
+                raise ValueError(
+                    f"{cell.directory / EVAL_FILE} is not a finished result of this cell, and the cell, "
+                    f"copied from {copied[RECORD_FIELD]}, has no checkpoints to evaluate again: move "
+                    "that directory away"
+                )
             cell.status, cell.done_steps = "done", cell.total_steps
             check_scored_as(cell.directory, cell.evaluation)
         return
@@ -277,7 +318,9 @@ def find_twin(cell: Cell, runs_dir: str | Path, results_dir: str | Path | None =
 def record_twin(cell: Cell, path: Path) -> tuple[TrainConfig, dict] | None:
     """The config and raw copy at `path` where it is the cell's twin (`files.read_record`: a
     damaged one is a `ValueError` naming it); the cell takes its budget (`_continues`)."""
-    return read_record(path, lambda config: _continues(cell, config), expected_episodes(cell.task, cell.preset.protocol))
+    return read_record(
+        path, lambda config: _continues(cell, config), expected_episodes(cell.task, cell.preset.protocol)
+    )
 
 
 def _run_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
@@ -323,12 +366,21 @@ def estimate(cell: Cell, rates: dict) -> None:
         return
     evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
     cell.estimate_s = remaining / rate + seeds * (evaluation[0] if evaluation else 0.0)
-    cell.estimate_from = source + (f", eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation
-                                   else ", eval not measured")
+    cell.estimate_from = source + (
+        f", eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation else ", eval not measured"
+    )
 
 
-def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: str | Path,
-              rates: dict | None = None, arms=None, results_dir: str | Path | None = None) -> list[Cell]:
+def make_plan(
+    preset: Preset,
+    algorithms,
+    tasks,
+    seeds: int | None,
+    runs_dir: str | Path,
+    rates: dict | None = None,
+    arms=None,
+    results_dir: str | Path | None = None,
+) -> list[Cell]:
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
     its config, budget, status and estimate. `results_dir`: where the record's raw copies are,
     for twins no run of `runs_dir` holds (`find_twin`; None: runs only)."""
@@ -340,18 +392,29 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         unknown = [a for a in arms if a not in names]
         if not names or unknown or not arms:
             wrong = f"has no arm(s) {unknown or list(arms)}" if arms else "needs at least one arm named"
-            raise ValueError(f"preset {preset.name!r} {wrong}; its arms: "
-                             f"{', '.join(names) if names else 'none (it is not an ablation)'}")
+            raise ValueError(
+                f"preset {preset.name!r} {wrong}; its arms: "
+                f"{', '.join(names) if names else 'none (it is not an ablation)'}"
+            )
         variants = tuple(v for v in preset.variants if v.name in arms)
     for algorithm in algorithms:
         if algorithm not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
         config_class(algorithm)
+
     def cell(algorithm, column, task, variant, count) -> Cell:
         config, budget = cell_config(preset, algorithm, task, count, rates, variant)
         name = task if variant is None else f"{task}.{variant.name}"
-        return Cell(algorithm=algorithm, column=column, task=task, config=config, budget=budget, preset=preset,
-                    directory=Path(runs_dir) / preset.name / algorithm / name, variant=variant)
+        return Cell(
+            algorithm=algorithm,
+            column=column,
+            task=task,
+            config=config,
+            budget=budget,
+            preset=preset,
+            directory=Path(runs_dir) / preset.name / algorithm / name,
+            variant=variant,
+        )
 
     cells, column_seeds = [], {}
     for algorithm in algorithms:
@@ -364,7 +427,8 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
                     if group not in column_seeds:
                         shapes = [t for _, t in expand_tasks([column]) if variant is None or t in variant.tasks]
                         column_seeds[group] = _column_seeds(
-                            preset, [cell(algorithm, column, t, variant, preset.cheap_seeds) for t in shapes], rates)
+                            preset, [cell(algorithm, column, t, variant, preset.cheap_seeds) for t in shapes], rates
+                        )
                     count = column_seeds[group]
                 cells.append(cell(algorithm, column, task, variant, count))
     if variants and not cells:
@@ -376,8 +440,10 @@ def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir: st
         if cell.status == "new":
             cell.adopts_from = find_twin(cell, runs_dir, results_dir)
             if not cell.adopts_record and (copied := own_copy(cell)) is not None:
-                raise ValueError(f"{cell.directory} holds a copy of {copied[RECORD_FIELD]} cut short, which this plan "
-                                 "does not adopt (another --results-dir, or the record changed): move that directory away")
+                raise ValueError(
+                    f"{cell.directory} holds a copy of {copied[RECORD_FIELD]} cut short, which this plan "
+                    "does not adopt (another --results-dir, or the record changed): move that directory away"
+                )
             if cell.evaluation and cell.adopts_from is None:
                 raise ValueError(missing_run(cell, runs_dir))
         estimate(cell, rates)
@@ -390,8 +456,12 @@ def _column_seeds(preset: Preset, cheap: list[Cell], rates: dict) -> int:
     under `cheap_minutes` (training and evaluation), else `seeds`. A started cell keeps the count
     it started with, as a started cell keeps its capped budget: both come from estimates, and
     re-measured rates must not strand a run."""
-    started = [checkpoint.read_config(c.directory).seeds for c in cheap if checkpoint.latest_chunk(c.directory) is not None
-               or (own_copy(c) is not None and (c.directory / checkpoint.CONFIG_FILE).is_file())]
+    started = [
+        checkpoint.read_config(c.directory).seeds
+        for c in cheap
+        if checkpoint.latest_chunk(c.directory) is not None
+        or (own_copy(c) is not None and (c.directory / checkpoint.CONFIG_FILE).is_file())
+    ]
     if started:
         return started[0] if started[0] in (preset.seeds, preset.cheap_seeds) else preset.seeds
     for c in cheap:

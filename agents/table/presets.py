@@ -18,8 +18,21 @@ BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured a
 
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
 _PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
-_PRESET_KEYS = {"description", "seeds", "cheap_seeds", "cheap_minutes", "wall_limit_minutes", "budgets", "settings",
-                "static_episodes", "episodes_per_test_design", "algorithms", "tasks", "variants", "adopts"}
+_PRESET_KEYS = {
+    "description",
+    "seeds",
+    "cheap_seeds",
+    "cheap_minutes",
+    "wall_limit_minutes",
+    "budgets",
+    "settings",
+    "static_episodes",
+    "episodes_per_test_design",
+    "algorithms",
+    "tasks",
+    "variants",
+    "adopts",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,8 +55,11 @@ class Variant:
 def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
     """An ablation arm's changes as the table prints them: its switches, its settings, then its
     evaluation-only settings."""
-    return ", ".join(([switches] if switches else []) + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
-                     + [f"{k}={json.dumps(v)} at evaluation" for k, v in sorted((evaluation or {}).items())])
+    return ", ".join(
+        ([switches] if switches else [])
+        + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
+        + [f"{k}={json.dumps(v)} at evaluation" for k, v in sorted((evaluation or {}).items())]
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,27 +109,45 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
     for name, table in tables.items():
         unknown = sorted(set(table) - _PRESET_KEYS)
         if unknown:
-            raise ValueError(f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}")
+            raise ValueError(
+                f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}"
+            )
         limit = table.get("wall_limit_minutes")
-        table = {**table, "budgets": {algorithm: _same_as(path, tables, name, algorithm, budget)
-                                      for algorithm, budget in table.get("budgets", {}).items()}}
+        table = {
+            **table,
+            "budgets": {
+                algorithm: _same_as(path, tables, name, algorithm, budget)
+                for algorithm, budget in table.get("budgets", {}).items()
+            },
+        }
         for algorithm, budget in table["budgets"].items():
             if set(budget) - {"env_steps", "episodes", "source", "wall_limit_minutes"} or (
-                    "env_steps" in budget and "episodes" in budget):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source) "
-                                 "or same_as, and may give its own wall_limit_minutes")
+                "env_steps" in budget and "episodes" in budget
+            ):
+                raise ValueError(
+                    f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source) "
+                    "or same_as, and may give its own wall_limit_minutes"
+                )
             own_limit = budget.get("wall_limit_minutes")
-            if own_limit is not None and (isinstance(own_limit, bool) or not isinstance(own_limit, (int, float))
-                                          or own_limit <= 0):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm}'s wall_limit_minutes must be a positive number "
-                                 f"of minutes, got {own_limit!r}")
+            if own_limit is not None and (
+                isinstance(own_limit, bool) or not isinstance(own_limit, (int, float)) or own_limit <= 0
+            ):
+                raise ValueError(
+                    f"{path}: [{name}.budgets] {algorithm}'s wall_limit_minutes must be a positive number "
+                    f"of minutes, got {own_limit!r}"
+                )
             per_task = budget.get("env_steps")
             if isinstance(per_task, dict) and sorted(set(per_task) - set(TASKS)):
-                raise ValueError(f"{path}: [{name}.budgets] {algorithm}'s env_steps names unknown task(s) "
-                                 f"{sorted(set(per_task) - set(TASKS))}; allowed: {', '.join(TASKS)}")
+                raise ValueError(
+                    f"{path}: [{name}.budgets] {algorithm}'s env_steps names unknown task(s) "
+                    f"{sorted(set(per_task) - set(TASKS))}; allowed: {', '.join(TASKS)}"
+                )
         presets[name] = Preset(
-            name=name, description=table.get("description", ""), seeds=int(table.get("seeds", 1)),
-            wall_limit_s=None if limit is None else 60.0 * limit, budgets=table.get("budgets", {}),
+            name=name,
+            description=table.get("description", ""),
+            seeds=int(table.get("seeds", 1)),
+            wall_limit_s=None if limit is None else 60.0 * limit,
+            budgets=table.get("budgets", {}),
             settings=table.get("settings", {}),
             static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
             episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
@@ -125,21 +159,30 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             adopts=table.get("adopts"),
         )
         if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
-            raise ValueError(f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
-                             f"({presets[name].seeds}): a cheap column gets more seeds, never fewer")
+            raise ValueError(
+                f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
+                f"({presets[name].seeds}): a cheap column gets more seeds, never fewer"
+            )
         arms = {v.name: v for v in presets[name].variants}
         if arms and BASE_ARM not in arms:
-            raise ValueError(f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)")
-        if any(v.evaluation for v in arms.values()) and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings
-                                                          or arms[BASE_ARM].switches or "adopts" not in table):
-            raise ValueError(f"{path}: [{name}] has an arm with evaluation settings, which scores the base arm's run "
-                             "again: the preset must adopt another's runs, and its base arm give no settings, switches "
-                             "or evaluation")
+            raise ValueError(
+                f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)"
+            )
+        if any(v.evaluation for v in arms.values()) and (
+            arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches or "adopts" not in table
+        ):
+            raise ValueError(
+                f"{path}: [{name}] has an arm with evaluation settings, which scores the base arm's run "
+                "again: the preset must adopt another's runs, and its base arm give no settings, switches "
+                "or evaluation"
+            )
     for name, preset in presets.items():
         plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
         if preset.adopts is not None and preset.adopts not in plain:
-            raise ValueError(f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
-                             f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}")
+            raise ValueError(
+                f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
+                f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}"
+            )
     return presets
 
 
@@ -152,41 +195,62 @@ def _same_as(path, tables: dict, preset: str, algorithm: str, budget: dict) -> d
     reference = budget["same_as"]
     other, _, learner = str(reference).partition(".")
     target = tables.get(other, {}).get("budgets", {}).get(learner) if isinstance(tables.get(other), dict) else None
-    if (set(budget) - {"same_as", "wall_limit_minutes"} or not isinstance(target, dict) or "same_as" in target
-            or not {"env_steps", "episodes"} & set(target)):
-        raise ValueError(f"{path}: [{preset}.budgets] {algorithm}'s same_as must name, as PRESET.ALGORITHM, another "
-                         f"entry that gives env_steps or episodes itself (and may come with wall_limit_minutes alone), "
-                         f"got {reference!r}")
+    if (
+        set(budget) - {"same_as", "wall_limit_minutes"}
+        or not isinstance(target, dict)
+        or "same_as" in target
+        or not {"env_steps", "episodes"} & set(target)
+    ):
+        raise ValueError(
+            f"{path}: [{preset}.budgets] {algorithm}'s same_as must name, as PRESET.ALGORITHM, another "
+            f"entry that gives env_steps or episodes itself (and may come with wall_limit_minutes alone), "
+            f"got {reference!r}"
+        )
     whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
     own = {k: v for k, v in budget.items() if k == "wall_limit_minutes"}
-    return {**{k: v for k, v in target.items() if k in ("env_steps", "episodes")},
-            "source": f"{whose}, {target['source']}" if "source" in target else whose, **own}
+    return {
+        **{k: v for k, v in target.items() if k in ("env_steps", "episodes")},
+        "source": f"{whose}, {target['source']}" if "source" in target else whose,
+        **own,
+    }
 
 
 def _variant(path, preset: str, name: str, table: dict) -> Variant:
     where = f"{path}: [{preset}.variants.{name}]"
     unknown = sorted(set(table) - {"paper", "switches", "settings", "evaluation", "tasks"})
     if unknown or "tasks" not in table:
-        raise ValueError(f"{where} must give tasks, and may give paper, switches, settings and evaluation"
-                         + (f"; unknown key(s) {unknown}" if unknown else ""))
+        raise ValueError(
+            f"{where} must give tasks, and may give paper, switches, settings and evaluation"
+            + (f"; unknown key(s) {unknown}" if unknown else "")
+        )
     settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
     for key, options in (("settings", settings), ("evaluation", evaluation)):
         if not isinstance(options, dict):
             raise ValueError(f"{where}: {key} must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
         reserved = sorted(set(options) & _PLANNED_OPTIONS)
         if reserved:
-            raise ValueError(f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))}"
-                             + (" (give an environment change as switches)" if key == "settings" else ""))
+            raise ValueError(
+                f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))}"
+                + (" (give an environment change as switches)" if key == "settings" else "")
+            )
     if evaluation and (settings or table.get("switches")):
-        raise ValueError(f"{where}: an arm with evaluation settings trains as the base arm (it scores the base's run "
-                         "again), so it may not give settings or switches")
+        raise ValueError(
+            f"{where}: an arm with evaluation settings trains as the base arm (it scores the base's run "
+            "again), so it may not give settings or switches"
+        )
     try:
         parse_switches(table.get("switches", ""))
         tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
-    return Variant(name=name, paper=table.get("paper", ""), switches=table.get("switches", ""), tasks=tasks,
-                   settings=settings, evaluation=evaluation)
+    return Variant(
+        name=name,
+        paper=table.get("paper", ""),
+        switches=table.get("switches", ""),
+        tasks=tasks,
+        settings=settings,
+        evaluation=evaluation,
+    )
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:
@@ -199,6 +263,7 @@ def expand_tasks(names) -> list[tuple[str, str]]:
         elif name in TASKS:
             pairs.append((paper_column(name), name))
         else:
-            raise ValueError(f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task "
-                             f"({', '.join(TASKS)})")
+            raise ValueError(
+                f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task ({', '.join(TASKS)})"
+            )
     return list(dict.fromkeys(pairs))

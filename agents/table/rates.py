@@ -27,7 +27,9 @@ def _kin(task: str) -> list[str]:
     """Tasks whose measured rate stands in for `task`'s, nearest first: itself, the same
     dimension and kind (static / dynamic), then the same dimension."""
     spec = task_spec(task)
-    same_kind = [t for t in TASKS if t != task and task_spec(t).dim == spec.dim and task_spec(t).dynamic == spec.dynamic]
+    same_kind = [
+        t for t in TASKS if t != task and task_spec(t).dim == spec.dim and task_spec(t).dynamic == spec.dynamic
+    ]
     same_dim = [t for t in TASKS if t not in same_kind and t != task and task_spec(t).dim == spec.dim]
     return [task, *same_kind, *same_dim]
 

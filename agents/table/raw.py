@@ -37,8 +37,9 @@ def raw_files(root: Path) -> list[Path]:
         if entry.name.startswith("."):
             continue
         if entry.is_symlink() or not entry.is_file() or entry.suffix != RAW_SUFFIX:
-            raise ValueError(f"{entry} is not a cell's raw copy (a file <task>[.<arm>]{RAW_SUFFIX}); "
-                             "move it out of the results")
+            raise ValueError(
+                f"{entry} is not a cell's raw copy (a file <task>[.<arm>]{RAW_SUFFIX}); move it out of the results"
+            )
         found.append(entry)
     return found
 
@@ -50,8 +51,10 @@ def refuse_links(root: Path, path: Path) -> None:
     for depth in range(1, len(parts) + 1):
         part = root.joinpath(*parts[:depth])
         if part.is_symlink():
-            raise ValueError(f"{part} is a symbolic link inside {root}; the report writes no file through a link: "
-                             "replace it with the file or folder itself")
+            raise ValueError(
+                f"{part} is a symbolic link inside {root}; the report writes no file through a link: "
+                "replace it with the file or folder itself"
+            )
 
 
 def _finite(value: Any) -> Any:
@@ -69,8 +72,10 @@ def _finite(value: Any) -> Any:
 def raw_text(files: dict) -> str:
     """A cell's raw copy as written: {"cell", "config", "eval", "curve"} indented, each curve
     record on one line, strict JSON (`_finite`)."""
-    parts = [f'  "{name}": ' + json.dumps(files[name], indent=2, allow_nan=False).replace("\n", "\n  ")
-             for name in ("cell", "config", "eval")]
+    parts = [
+        f'  "{name}": ' + json.dumps(files[name], indent=2, allow_nan=False).replace("\n", "\n  ")
+        for name in ("cell", "config", "eval")
+    ]
     curve = ",\n".join("    " + json.dumps(_finite(r), allow_nan=False) for r in files["metrics"])
     parts.append('  "curve": ' + (f"[\n{curve}\n  ]" if curve else "[]"))
     return "{\n" + ",\n".join(parts) + "\n}\n"
@@ -96,12 +101,17 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
         return []
     runs_dir, results_dir = Path(runs_dir), Path(results_dir)
     if not runs_dir.is_dir():
-        raise ValueError(f"--runs-dir {runs_dir} " + ("is a file, not a directory of runs" if runs_dir.exists()
-                                                     else "does not exist") + "; give the directory `snac table` trained in")
+        raise ValueError(
+            f"--runs-dir {runs_dir} "
+            + ("is a file, not a directory of runs" if runs_dir.exists() else "does not exist")
+            + "; give the directory `snac table` trained in"
+        )
     source, target = runs_dir / preset, results_dir / "table" / preset
     if source.is_dir() and target.is_dir() and source.resolve() == target.resolve():
-        raise ValueError(f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}; give the "
-                         "directory `snac table` trained in")
+        raise ValueError(
+            f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}; give the "
+            "directory `snac table` trained in"
+        )
     planned = []
     for directory in run_cells_in(source):
         files = read_cell(directory)
@@ -131,8 +141,11 @@ def _run_of(files: dict) -> dict:
     (the curve strict JSON), for `_same_run`."""
     from agents.training.registry import config_from_json
 
-    return {"config": config_from_json(files["config"]).to_json(), "eval": files["eval"],
-            "metrics": json.loads(raw_text(files))["curve"]}
+    return {
+        "config": config_from_json(files["config"]).to_json(),
+        "eval": files["eval"],
+        "metrics": json.loads(raw_text(files))["curve"],
+    }
 
 
 def _same_run(a: dict, b: dict) -> bool:
@@ -148,8 +161,13 @@ def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
     its own (`with_adopted_bases` reads none such), so both are copied."""
     cell = files["cell"]
     adopted_from = cell.get("adopted_from")
-    if (not adopted_from or cell.get("variant") != BASE_ARM or cell.get("evaluation") or cell.get("switches")
-            or cell.get("settings")):
+    if (
+        not adopted_from
+        or cell.get("variant") != BASE_ARM
+        or cell.get("evaluation")
+        or cell.get("switches")
+        or cell.get("settings")
+    ):
         return False
     path = record_path(results_dir, *adopted_from.split("/"))  # `<preset>/<algorithm>/<task>`
     return path.is_file() and _same_run(read_raw(path), _run_of(files))
@@ -157,8 +175,17 @@ def _copy_of_its_record(files: dict, results_dir: Path) -> bool:
 
 def _as_base(record: dict, adopts: str, algorithm: str, task: str, paper_name: str) -> dict:
     """The base arm read from the raw copy `record` of preset `adopts`' cell it adopted."""
-    return {**record, "cell": {**record["cell"], "variant": BASE_ARM, "paper_variant": paper_name, "switches": "",
-                               "settings": {}, "adopted_from": f"{adopts}/{algorithm}/{task}"}}
+    return {
+        **record,
+        "cell": {
+            **record["cell"],
+            "variant": BASE_ARM,
+            "paper_variant": paper_name,
+            "switches": "",
+            "settings": {},
+            "adopted_from": f"{adopts}/{algorithm}/{task}",
+        },
+    }
 
 
 def _adopted_tasks(raw: dict[str, dict[str, dict]], base: Variant):
@@ -179,8 +206,9 @@ adopted cell's record now holds another run, e.g. one trained again: `bases_to_k
 table says where the run lives."""
 
 
-def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path, preset: Preset | None,
-                       pending: Pending | None = None) -> dict[str, dict[str, dict]]:
+def with_adopted_bases(
+    raw: dict[str, dict[str, dict]], results_dir: str | Path, preset: Preset | None, pending: Pending | None = None
+) -> dict[str, dict[str, dict]]:
     """`raw` (`load_raw`, the cells of `preset`, None: a preset budgets.toml no longer has) with
     each base arm the preset adopts from another (`adopts`) read from that preset's raw copy
     (`_copy_of_its_record` left it uncopied), for every (learner, task of the base arm) with
@@ -201,17 +229,27 @@ def with_adopted_bases(raw: dict[str, dict[str, dict]], results_dir: str | Path,
             if files["cell"]["task"] != task:
                 continue
             changed = {"switches", *files["cell"].get("settings", {})}
-            differ = sorted(k for k in set(record["config"]) | set(files["config"])
-                            if k not in changed and record["config"].get(k) != files["config"].get(k))
+            differ = sorted(
+                k
+                for k in set(record["config"]) | set(files["config"])
+                if k not in changed and record["config"].get(k) != files["config"].get(k)
+            )
             if differ:
-                raise ValueError(f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
-                                 f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
-                                 "arm trained; train the base arm again (--arms base) or restore that record")
-        cells[f"{task}.{BASE_ARM}"] = {**_as_base(record, preset.adopts, algorithm, task, base.paper), READ_FROM_ADOPTED: True}
+                raise ValueError(
+                    f"{path} is the base of {algorithm}/{arm} (adopted), but their configs differ in "
+                    f"{', '.join(differ)} beyond the arm's own changes: the record changed since the "
+                    "arm trained; train the base arm again (--arms base) or restore that record"
+                )
+        cells[f"{task}.{BASE_ARM}"] = {
+            **_as_base(record, preset.adopts, algorithm, task, base.paper),
+            READ_FROM_ADOPTED: True,
+        }
     return raw
 
 
-def bases_to_keep(results_dir: str | Path, reported: str, presets: dict[str, Preset], pending: Pending) -> dict[Path, str]:
+def bases_to_keep(
+    results_dir: str | Path, reported: str, presets: dict[str, Preset], pending: Pending
+) -> dict[Path, str]:
     """The base copies the report must write before it replaces (`pending`) a raw copy of preset
     `reported` that another preset reads as its adopted base (`with_adopted_bases`): that
     preset's own `<task>.base.json` holding the run its arms were measured against, so a cell
@@ -257,7 +295,9 @@ def load_raw(results_dir: str | Path, preset: str, pending: Pending | None = Non
     raw: dict[str, dict[str, dict]] = {}
     plain = []
     for path in sorted(paths):
-        files = raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(path, pending.get(path))
+        files = raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(
+            path, pending.get(path)
+        )
         if "variant" not in files["cell"]:
             plain.append(path)
     if plain and len(plain) < sum(map(len, raw.values())):

@@ -46,20 +46,29 @@ def learner_table(tables: dict[str, dict]) -> str:
         return "No finished cells yet."
     first = next(iter(tables.values()))
     columns = first["columns"]
-    lines = ["| learner (preset) | env steps per seed | " + " | ".join(columns) + " |",
-             "|---|---|" + "---:|" * len(columns),
-             "| human (paper) | | " + " | ".join(_value(first["human"][c]["paper"]) for c in columns) + " |",
-             "| handcrafted, ours (paper) | | " + " | ".join(
-                 _cell(None, None) if c not in first["handcrafted"] else
-                 f"{first['handcrafted'][c]['mean']:.3f} ({_value(first['handcrafted'][c]['paper'])})"
-                 for c in columns) + " |"]
+    lines = [
+        "| learner (preset) | env steps per seed | " + " | ".join(columns) + " |",
+        "|---|---|" + "---:|" * len(columns),
+        "| human (paper) | | " + " | ".join(_value(first["human"][c]["paper"]) for c in columns) + " |",
+        "| handcrafted, ours (paper) | | "
+        + " | ".join(
+            _cell(None, None)
+            if c not in first["handcrafted"]
+            else f"{first['handcrafted'][c]['mean']:.3f} ({_value(first['handcrafted'][c]['paper'])})"
+            for c in columns
+        )
+        + " |",
+    ]
     for preset, table in tables.items():
         for learner, cells in table["learners"].items():
             paper = table["paper_rows"][learner]
             base = paper_base(table, learner)
             note = "" if base is None else f"; brackets: the paper's {base}"
-            lines.append(f"| {learner} ({preset} preset{note}) | {_budgets(cells)} | "
-                         + " | ".join(_cell(cells.get(c), paper.get(c)) for c in columns) + " |")
+            lines.append(
+                f"| {learner} ({preset} preset{note}) | {_budgets(cells)} | "
+                + " | ".join(_cell(cells.get(c), paper.get(c)) for c in columns)
+                + " |"
+            )
     return "\n".join(lines)
 
 
@@ -67,9 +76,10 @@ def replace_block(text: str, block: str) -> str:
     """`text` with what stands between its BEGIN and END lines replaced by `block`."""
     start, end = text.find(BEGIN), text.find(END)
     if start < 0 or end < start:
-        raise ValueError(f"the README has no generated learner table: it needs a line {BEGIN!r} and, after it, "
-                         f"a line {END!r}")
-    return text[:start + len(BEGIN)] + "\n" + block + "\n" + text[end:]
+        raise ValueError(
+            f"the README has no generated learner table: it needs a line {BEGIN!r} and, after it, a line {END!r}"
+        )
+    return text[: start + len(BEGIN)] + "\n" + block + "\n" + text[end:]
 
 
 def write_readme(path: str | Path, tables: dict[str, dict]) -> Path:

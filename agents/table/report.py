@@ -21,12 +21,22 @@ from typing import Any
 
 import numpy as np
 
-from agents.training import schemas
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
-from agents.table.raw import (Pending, bases_to_keep, budget_record, budget_text, copies, load_raw, refuse_links,
-                              seed_means, with_adopted_bases, write_copies)
+from agents.table.raw import (
+    Pending,
+    bases_to_keep,
+    budget_record,
+    budget_text,
+    copies,
+    load_raw,
+    refuse_links,
+    seed_means,
+    with_adopted_bases,
+    write_copies,
+)
+from agents.training import schemas
 from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
@@ -44,8 +54,14 @@ def _paper_method(algorithm: str) -> str | None:
     return config_class(algorithm).paper_method if algorithm in ALGORITHMS else None
 
 
-def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = None, preset: str = "",
-          reps: int = statistics.DEFAULT_REPS) -> dict[str, Any]:
+def build(
+    raw: dict,
+    *,
+    paper: dict | None = None,
+    handcrafted: dict | None = None,
+    preset: str = "",
+    reps: int = statistics.DEFAULT_REPS,
+) -> dict[str, Any]:
     """table.json's content from the copied cells (`load_raw`)."""
     paper = load_paper_results() if paper is None else paper
     learners, iqms, seed_matrix, paper_rows, paper_methods = {}, {}, {}, {}, {}
@@ -58,10 +74,15 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
                 continue
             per_task = [seed_means(c) for c in cells]
             if len({len(v) for v in per_task}) != 1:
-                raise ValueError(f"{algorithm} {column}: its tasks have different seed counts {[len(v) for v in per_task]}")
+                raise ValueError(
+                    f"{algorithm} {column}: its tasks have different seed counts {[len(v) for v in per_task]}"
+                )
             values = np.mean(per_task, axis=0)
-            learners[algorithm][column] = {**statistics.cell_summary(values, reps=reps, seed=BOOTSTRAP_SEED),
-                                           "budget": budget_record(cells), "paper": row.get(column, {}).get("avg")}
+            learners[algorithm][column] = {
+                **statistics.cell_summary(values, reps=reps, seed=BOOTSTRAP_SEED),
+                "budget": budget_record(cells),
+                "paper": row.get(column, {}).get("avg"),
+            }
             seed_matrix.setdefault(algorithm, []).append(values)
         columns = learners[algorithm]
         if columns:
@@ -71,24 +92,39 @@ def build(raw: dict, *, paper: dict | None = None, handcrafted: dict | None = No
             scores = np.stack([v[:common] for v in seed_matrix[algorithm]], axis=1)
             # the paper's IQM over the columns ours has, so that the two compare
             reported = [row[c]["avg"] for c in columns if row.get(c, {}).get("avg") is not None]
-            iqms[algorithm] = {**statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
-                               "columns": list(columns),
-                               "paper_iqm": statistics.iqm(reported) if reported else None,
-                               "paper_columns": len(reported)}
+            iqms[algorithm] = {
+                **statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
+                "columns": list(columns),
+                "paper_iqm": statistics.iqm(reported) if reported else None,
+                "paper_columns": len(reported),
+            }
         paper_rows[algorithm] = {c: row.get(c, {}).get("avg") for c in PAPER_TASKS}
         paper_methods[algorithm] = _paper_method(algorithm)
     human = paper_row(paper, "human")
     hand_paper = paper_row(paper, "handcrafted")
-    hand = {column: {"mean": handcrafted[column]["mean"], "ci95": None, "seeds": [handcrafted[column]["mean"]],
-                     "budget": None, "eval_seed": handcrafted[column].get("seed"),
-                     "paper": hand_paper.get(column, {}).get("avg")}
-            for column in PAPER_TASKS if handcrafted and column in handcrafted}
+    hand = {
+        column: {
+            "mean": handcrafted[column]["mean"],
+            "ci95": None,
+            "seeds": [handcrafted[column]["mean"]],
+            "budget": None,
+            "eval_seed": handcrafted[column].get("seed"),
+            "paper": hand_paper.get(column, {}).get("avg"),
+        }
+        for column in PAPER_TASKS
+        if handcrafted and column in handcrafted
+    }
     return {
-        "preset": preset, "columns": list(PAPER_TASKS), "train_seed": TRAIN_SEED, "eval_seed": REPORT_EVAL_SEED,
+        "preset": preset,
+        "columns": list(PAPER_TASKS),
+        "train_seed": TRAIN_SEED,
+        "eval_seed": REPORT_EVAL_SEED,
         "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": BOOTSTRAP_SEED},
         "human": {column: {"paper": human.get(column, {}).get("avg")} for column in PAPER_TASKS},
-        "handcrafted": hand, "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
-        "learners": learners, "iqm": iqms,
+        "handcrafted": hand,
+        "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
+        "learners": learners,
+        "iqm": iqms,
         "paper_rows": paper_rows,  # each learner's paper row on every column (None: not reported)
         "paper_methods": paper_methods,  # whose row of the paper that is (a new learner: its base's)
     }
@@ -102,10 +138,12 @@ def _header(table: dict) -> list[str]:
     """What every preset's section shares: how the numbers were made, which keys scored them."""
     hand_keys = ", ".join(map(str, table.get("handcrafted_eval_seeds", []))) or "—"
     return [
-        "# The benchmark table", "",
+        "# The benchmark table",
+        "",
         "Generated by `snac table --report` from the raw results under `bench/results/table/<preset>/` (one JSON "
         "file per finished cell: its cell record, config, evaluation of every seed and, where kept, its learning "
-        "curve; no checkpoints), one section per budget preset (`agents/table/budgets.toml`).", "",
+        "curve; no checkpoints), one section per budget preset (`agents/table/budgets.toml`).",
+        "",
         "- **Scores**: final IoU under the paper's protocol (SPEC §8), greedy policy. A cell is the mean over "
         "training seeds of each seed's protocol mean, with a 95% percentile bootstrap interval across seeds "
         f"({table['bootstrap']['reps']:,} resamples, rng seed {table['bootstrap']['seed']}); `1d-static` is, per "
@@ -125,7 +163,8 @@ def _header(table: dict) -> list[str]:
         "sources are in table.json).",
         "- **Paper rows**: `snac_jax/data/paper_results.json` (the paper's appendix table; — where it reports "
         "none), on every column it reports. A learner's paper IQM is over the columns ours has (one number per "
-        "column), so that it compares with ours; the human and handcrafted rows' IQM is over every column they have.", "",
+        "column), so that it compares with ours; the human and handcrafted rows' IQM is over every column they have.",
+        "",
     ]
 
 
@@ -155,41 +194,80 @@ def _paper_label(table: dict, learner: str) -> str:
 
 def _section(table: dict, description: str) -> list[str]:
     columns = table["columns"]
-    lines = [f"## Preset `{table['preset']}`" + (f": {description}" if description else ""), "",
-             "| row | " + " | ".join(columns) + " | IQM [95% CI] |", "|---|" + "---:|" * len(columns) + "---:|",
-             _reference_row("human (paper)", [table["human"][c]["paper"] for c in columns]),
-             _reference_row("handcrafted (ours)", [table["handcrafted"].get(c, {}).get("mean") for c in columns]),
-             _reference_row("handcrafted (paper)", [table["handcrafted"].get(c, {}).get("paper") for c in columns])]
+    lines = [
+        f"## Preset `{table['preset']}`" + (f": {description}" if description else ""),
+        "",
+        "| row | " + " | ".join(columns) + " | IQM [95% CI] |",
+        "|---|" + "---:|" * len(columns) + "---:|",
+        _reference_row("human (paper)", [table["human"][c]["paper"] for c in columns]),
+        _reference_row("handcrafted (ours)", [table["handcrafted"].get(c, {}).get("mean") for c in columns]),
+        _reference_row("handcrafted (paper)", [table["handcrafted"].get(c, {}).get("paper") for c in columns]),
+    ]
     for learner, cells in table["learners"].items():
         iqm = table["iqm"].get(learner)
-        ours = [f"{cells[c]['mean']:.3f} [{cells[c]['ci95'][0]:.3f}, {cells[c]['ci95'][1]:.3f}]" if c in cells else "—"
-                for c in columns]
-        iqm_text = "—" if not iqm else (f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
-                                        + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)"))
-        paper_iqm = (f"{iqm['paper_iqm']:.3f} (ours' {_columns(iqm['paper_columns'])})" if iqm and iqm["paper_iqm"] is not None
-                     else "—")
+        ours = [
+            f"{cells[c]['mean']:.3f} [{cells[c]['ci95'][0]:.3f}, {cells[c]['ci95'][1]:.3f}]" if c in cells else "—"
+            for c in columns
+        ]
+        iqm_text = (
+            "—"
+            if not iqm
+            else (
+                f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
+                + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)")
+            )
+        )
+        paper_iqm = (
+            f"{iqm['paper_iqm']:.3f} (ours' {_columns(iqm['paper_columns'])})"
+            if iqm and iqm["paper_iqm"] is not None
+            else "—"
+        )
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
-        lines.append(f"| {_paper_label(table, learner)} | " + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
-                     + f" | {paper_iqm} |")
+        lines.append(
+            f"| {_paper_label(table, learner)} | "
+            + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
+            + f" | {paper_iqm} |"
+        )
     if not table["learners"]:
-        lines += ["", "No finished cells yet: `snac table --preset "
-                  f"{table['preset']} --dry-run` shows the plan, `snac table --preset {table['preset']}` runs it."]
+        lines += [
+            "",
+            "No finished cells yet: `snac table --preset "
+            f"{table['preset']} --dry-run` shows the plan, `snac table --preset {table['preset']}` runs it.",
+        ]
         return lines + [""]
-    lines += ["", "Env steps per seed (`*`: capped to the wall-time limit):", "",
-              "| learner | seeds | " + " | ".join(columns) + " |", "|---|---:|" + "---:|" * len(columns)]
+    lines += [
+        "",
+        "Env steps per seed (`*`: capped to the wall-time limit):",
+        "",
+        "| learner | seeds | " + " | ".join(columns) + " |",
+        "|---|---:|" + "---:|" * len(columns),
+    ]
     for learner, cells in table["learners"].items():
         seeds = sorted({len(v["seeds"]) for v in cells.values()})
-        lines.append(f"| {learner} | {', '.join(map(str, seeds))} | "
-                     + " | ".join(budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns) + " |")
-    walls = {learner: {c: cell["budget"].get("training_wall_s") for c, cell in cells.items()}
-             for learner, cells in table["learners"].items()}
+        lines.append(
+            f"| {learner} | {', '.join(map(str, seeds))} | "
+            + " | ".join(budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns)
+            + " |"
+        )
+    walls = {
+        learner: {c: cell["budget"].get("training_wall_s") for c, cell in cells.items()}
+        for learner, cells in table["learners"].items()
+    }
     if any(w is not None for row in walls.values() for w in row.values()):
-        lines += ["", "Training wall time in minutes, every seed of a cell in one process (from the cell's "
-                  "curve; — where the curve was not kept: the learner's page says where its wall time is):", "",
-                  "| learner | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
+        lines += [
+            "",
+            "Training wall time in minutes, every seed of a cell in one process (from the cell's "
+            "curve; — where the curve was not kept: the learner's page says where its wall time is):",
+            "",
+            "| learner | " + " | ".join(columns) + " |",
+            "|---|" + "---:|" * len(columns),
+        ]
         for learner, row in walls.items():
-            lines.append(f"| {learner} | " + " | ".join(_f(None if row.get(c) is None else row[c] / 60, 1)
-                                                        for c in columns) + " |")
+            lines.append(
+                f"| {learner} | "
+                + " | ".join(_f(None if row.get(c) is None else row[c] / 60, 1) for c in columns)
+                + " |"
+            )
     return lines + [""]
 
 
@@ -217,8 +295,15 @@ def figure(table: dict, path: str | Path) -> None:
             cell = table["learners"][learner].get(column)
             if cell is not None:
                 low, high = cell["ci95"]
-                ax.errorbar(x, cell["mean"], yerr=[[cell["mean"] - low], [high - cell["mean"]]], fmt="o", color="C0",
-                            capsize=4, label="ours: mean, 95% CI" if x == 0 else None)
+                ax.errorbar(
+                    x,
+                    cell["mean"],
+                    yerr=[[cell["mean"] - low], [high - cell["mean"]]],
+                    fmt="o",
+                    color="C0",
+                    capsize=4,
+                    label="ours: mean, 95% CI" if x == 0 else None,
+                )
                 if cell["paper"] is not None:
                     ax.plot(x, cell["paper"], "x", color="C3", markersize=8, mew=2, label="paper")
         hand = table["handcrafted"].get(column)
@@ -237,15 +322,27 @@ def figure(table: dict, path: str | Path) -> None:
             handles.setdefault(label, handle)
     fig.suptitle(f"snac table, preset {table['preset']!r}", y=0.99, fontsize=11)
     if handles:
-        fig.legend(list(handles.values()), list(handles), loc="upper center", bbox_to_anchor=(0.5, 0.955),
-                   ncol=len(handles), frameon=False)
+        fig.legend(
+            list(handles.values()),
+            list(handles),
+            loc="upper center",
+            bbox_to_anchor=(0.5, 0.955),
+            ncol=len(handles),
+            frameon=False,
+        )
     fig.tight_layout(rect=(0, 0, 1, 0.9))
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)
 
 
-def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Path, *,
-                 reps: int = statistics.DEFAULT_REPS, dry_run: bool = False) -> dict[str, Path]:
+def write_report(
+    preset: str,
+    runs_dir: str | Path | None,
+    results_dir: str | Path,
+    *,
+    reps: int = statistics.DEFAULT_REPS,
+    dry_run: bool = False,
+) -> dict[str, Path]:
     """Copy `preset`'s finished cells from `runs_dir` (None: none), then rebuild table.md and table.json from
     every preset's raw results under `results_dir/table/`, and per preset `table-<preset>.png` (an
     ablation's: its arms' learning curves, `ablation.curves_name`). Every cell, copied or to be
@@ -262,25 +359,33 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
     pending: Pending = {destination: text for _, destination, text in planned}
     kept = bases_to_keep(results_dir, preset, presets, pending)
     pending.update(kept)
-    found = sorted({p.name for p in (results_dir / "table").glob("*") if p.is_dir()}
-                   | ({preset} if planned else set()),
-                   key=lambda n: (list(presets).index(n) if n in presets else len(presets), n))
+    found = sorted(
+        {p.name for p in (results_dir / "table").glob("*") if p.is_dir()} | ({preset} if planned else set()),
+        key=lambda n: (list(presets).index(n) if n in presets else len(presets), n),
+    )
     hand_path = results_dir / "handcrafted.json"
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     # Every copy the tables read, as it will be after the copies (a damaged one stops the report now);
     # an ablation's adopted base arm is read from the preset it adopts.
-    raws = {name: with_adopted_bases(load_raw(results_dir, name, pending), results_dir, presets.get(name), pending)
-            for name in found or [preset]}
+    raws = {
+        name: with_adopted_bases(load_raw(results_dir, name, pending), results_dir, presets.get(name), pending)
+        for name in found or [preset]
+    }
     for name in found or [preset]:
         arms = [v.name for v in presets[name].variants] if name in presets else []
         paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms else f"table-{name}.png")
     for path in paths.values():
         refuse_links(results_dir, path)
     if dry_run:
-        return {**{f"{'copy' if text is not None else 'uncopy'}:{source}": destination
-                   for source, destination, text in planned},
-                **{f"keep:{path}": path for path in kept}, **paths}
+        return {
+            **{
+                f"{'copy' if text is not None else 'uncopy'}:{source}": destination
+                for source, destination, text in planned
+            },
+            **{f"keep:{path}": path for path in kept},
+            **paths,
+        }
     for path, text in kept.items():
         atomic_write_text(path, text)
     write_copies(planned)
@@ -290,8 +395,9 @@ def write_report(preset: str, runs_dir: str | Path | None, results_dir: str | Pa
         if arms or ablation.is_ablation(raw):
             figure_path = results_dir / ablation.curves_name(name)
             drawn = ablation.curves(raw, arms=arms, path=figure_path, preset=name)
-            tables[name] = ablation.build(raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED,
-                                          curves=drawn)
+            tables[name] = ablation.build(
+                raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED, curves=drawn
+            )
             if drawn:
                 paths[f"png:{name}-curves"] = figure_path
         else:

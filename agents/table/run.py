@@ -13,17 +13,18 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from agents.training import checkpoint
-from agents.training.config import save_config
 from agents.table.files import CELL_FILE, EVAL_FILE
 from agents.table.plan import Cell, cell_state, own_copy, record_twin
 from agents.table.scoring import adoption_kept, scoring_config
+from agents.training import checkpoint
+from agents.training.config import save_config
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
 
 
-def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None = None,
-             num_devices: int | None = None) -> bool:
+def run_cell(
+    cell: Cell, *, progress: bool = True, stop_after_chunks: int | None = None, num_devices: int | None = None
+) -> bool:
     """Train (or resume) and evaluate one cell; True when it finished (`stop_after_chunks`, the
     tests' stand-in for a killed run, can leave it unfinished). `num_devices`: how many devices
     the worlds are split over (default: as `snac train`).
@@ -53,9 +54,14 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
             started = True  # the twin's finished run, to be scored again acting with the arm's settings
         elif cell.status == "new":  # a start cut before its first checkpoint (a copy's, too) trains afresh
             cell.adopts_from, cell.adopts_record = None, False
-        algorithm, state = train(cell.config, cell.directory, resume=started, progress=progress,
-                                 stop_after_chunks=stop_after_chunks,
-                                 mesh=devices.env_mesh(num_devices, cell.config.num_envs))
+        algorithm, state = train(
+            cell.config,
+            cell.directory,
+            resume=started,
+            progress=progress,
+            stop_after_chunks=stop_after_chunks,
+            mesh=devices.env_mesh(num_devices, cell.config.num_envs),
+        )
         atomic_write_json(cell.directory / CELL_FILE, adoption_kept(cell.directory, cell.record()))
         last = checkpoint.latest_chunk(cell.directory)
         if last != len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1:
@@ -63,7 +69,9 @@ def run_cell(cell: Cell, *, progress: bool = True, stop_after_chunks: int | None
             return False
         _plot_curve(cell, cell.directory)
         if cell.evaluation:
-            algorithm = build_algorithm(scoring_config(algorithm.config, cell.evaluation))  # the trained params, acting so
+            algorithm = build_algorithm(
+                scoring_config(algorithm.config, cell.evaluation)
+            )  # the trained params, acting so
         evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
     cell.status = "done"
     return True
@@ -80,8 +88,9 @@ def adopt(cell: Cell) -> None:
     skipped = [checkpoint.LOCK_FILE] + ([EVAL_FILE] if cell.evaluation else [])
 
     def copy(staging: Path) -> None:
-        shutil.copytree(cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True,
-                        ignore=shutil.ignore_patterns(*skipped))
+        shutil.copytree(
+            cell.adopts_from, staging, symlinks=True, dirs_exist_ok=True, ignore=shutil.ignore_patterns(*skipped)
+        )
 
     _assemble(cell, copy, cell_json_first=False)
     if cell.evaluation:
@@ -98,8 +107,9 @@ def adopt_record(cell: Cell) -> None:
     (`plan.cell_state`)."""
     found = record_twin(cell, cell.adopts_from)
     if found is None:
-        raise ValueError(f"{cell.adopts_from} is no longer a finished run with the settings of {cell.directory}; "
-                         "plan again")
+        raise ValueError(
+            f"{cell.adopts_from} is no longer a finished run with the settings of {cell.directory}; plan again"
+        )
     config, raw = found
 
     def copy(staging: Path) -> None:
@@ -139,12 +149,17 @@ def _plot_curve(cell: Cell, directory: Path) -> None:
     from agents.training.driver import read_metrics
     from agents.training.plotting import plot_curve
 
-    plot_curve(read_metrics(directory), cell.task, f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
-               directory / "curve.png")
+    plot_curve(
+        read_metrics(directory),
+        cell.task,
+        f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)",
+        directory / "curve.png",
+    )
 
 
-def run_cells(cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None,
-              num_devices: int | None = None) -> int:
+def run_cells(
+    cells: list[Cell], *, progress: bool = True, stop_after_chunks: int | None = None, num_devices: int | None = None
+) -> int:
     """Run every unfinished cell in order under one progress bar over the grid's env steps;
     returns how many cells are finished. The preset's folder is locked for the whole grid, so a
     second `snac table` on the same runs directory and preset is refused before it touches a
@@ -161,8 +176,16 @@ def _run_cells(cells: list[Cell], progress: bool, stop_after_chunks: int | None,
     total = sum(c.total_steps * c.config.seeds for c in cells)
     done = sum(c.done_steps * c.config.seeds for c in cells)
     name = cells[0].preset.name
-    bar = tqdm(total=total, initial=done, unit="step", unit_scale=True, desc=f"table {name}", disable=not progress,
-               dynamic_ncols=True, position=0)
+    bar = tqdm(
+        total=total,
+        initial=done,
+        unit="step",
+        unit_scale=True,
+        desc=f"table {name}",
+        disable=not progress,
+        dynamic_ncols=True,
+        position=0,
+    )
     try:
         for index, cell in enumerate(cells):
             if cell.status == "done":

@@ -10,11 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from agents.table.files import CELL_FILE, RECORD_FIELD
+from agents.table.rates import eval_seconds
 from agents.training import schemas
 from agents.training.config import TrainConfig
 from agents.training.registry import make_config
-from agents.table.files import CELL_FILE, RECORD_FIELD
-from agents.table.rates import eval_seconds
 
 
 def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConfig:
@@ -26,9 +26,11 @@ def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConf
     other = sorted(set(evaluation) - set(config.acting_options))
     if other:
         allowed = ", ".join(config.acting_options) or "none"
-        raise ValueError(f"{config.algorithm} cannot act with {other} at evaluation: an option there may change only how "
-                         f"the trained policy acts, not its network, its world or its training; {config.algorithm}'s: "
-                         f"{allowed}")
+        raise ValueError(
+            f"{config.algorithm} cannot act with {other} at evaluation: an option there may change only how "
+            f"the trained policy acts, not its network, its world or its training; {config.algorithm}'s: "
+            f"{allowed}"
+        )
     trained = {k: v for k, v in config.to_json().items() if k not in ("algorithm", "task")}
     return make_config(config.algorithm, config.task, **{**trained, **evaluation})
 
@@ -39,8 +41,10 @@ def check_scored_as(directory: Path, evaluation: dict[str, Any]) -> None:
     path = directory / CELL_FILE
     scored = schemas.load(path, schemas.CELL_JSON).get("evaluation", {}) if path.is_file() else {}
     if scored != evaluation:
-        raise ValueError(f"{directory} was scored acting with {scored or 'its training settings'}, the arm now asks "
-                         f"{evaluation or 'its training settings'}; move that directory away to score the run again")
+        raise ValueError(
+            f"{directory} was scored acting with {scored or 'its training settings'}, the arm now asks "
+            f"{evaluation or 'its training settings'}; move that directory away to score the run again"
+        )
 
 
 def adoption_kept(directory: Path, record: dict[str, Any]) -> dict[str, Any]:
@@ -59,10 +63,12 @@ def missing_run(cell, runs_dir) -> str:
     """The error of an arm scored acting otherwise (`plan.Cell`) whose base run is not there to
     take over: it has no params of its own to score, and training some would not be the base's."""
     preset = cell.preset
-    return (f"arm {cell.variant.name!r} of preset {preset.name!r} scores the policy of {preset.adopts}/{cell.algorithm}/"
-            f"{cell.task} again: that run, finished with its checkpoints and this arm's training settings, is not "
-            f"under {runs_dir}; train it first (snac table --preset {preset.adopts} --tasks {cell.task}) or leave the "
-            "arm out (--arms)")
+    return (
+        f"arm {cell.variant.name!r} of preset {preset.name!r} scores the policy of {preset.adopts}/{cell.algorithm}/"
+        f"{cell.task} again: that run, finished with its checkpoints and this arm's training settings, is not "
+        f"under {runs_dir}; train it first (snac table --preset {preset.adopts} --tasks {cell.task}) or leave the "
+        "arm out (--arms)"
+    )
 
 
 def scoring_estimate(cell, rates: dict) -> tuple[float | None, str]:
@@ -71,4 +77,6 @@ def scoring_estimate(cell, rates: dict) -> tuple[float | None, str]:
     evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
     if evaluation is None:
         return None, cell.estimate_from + ", scored again: eval not measured"
-    return cell.config.seeds * evaluation[0], cell.estimate_from + f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})"
+    return cell.config.seeds * evaluation[
+        0
+    ], cell.estimate_from + f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})"

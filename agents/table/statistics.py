@@ -14,7 +14,7 @@ Scores are arrays of shape (runs, tasks); every task has the same number of runs
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy import stats
@@ -104,7 +104,8 @@ def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int 
     if reps < 1:
         raise ValueError(f"reps must be >= 1, got {reps}")
     rng = np.random.default_rng(seed)
-    resampled = (scores[rng.integers(0, len(scores), size=(reps, len(scores)))].mean(axis=1)
-                 - baseline[rng.integers(0, len(baseline), size=(reps, len(baseline)))].mean(axis=1))
+    resampled = scores[rng.integers(0, len(scores), size=(reps, len(scores)))].mean(axis=1) - baseline[
+        rng.integers(0, len(baseline), size=(reps, len(baseline)))
+    ].mean(axis=1)
     low, high = np.percentile(resampled, [2.5, 97.5])
     return {"delta": float(scores.mean() - baseline.mean()), "ci95": [float(low), float(high)]}

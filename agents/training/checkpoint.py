@@ -17,8 +17,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import jax
 import numpy as np
@@ -83,10 +84,14 @@ def _open_lock(directory: Path, create: bool) -> int | None:
         return None
     except OSError:
         if path.is_symlink():
-            raise ValueError(f"{path} is a symbolic link, not a lock file: a run's lock is never followed; "
-                             "remove the link if it is not this run's") from None
+            raise ValueError(
+                f"{path} is a symbolic link, not a lock file: a run's lock is never followed; "
+                "remove the link if it is not this run's"
+            ) from None
         if path.exists() and not path.is_file():
-            raise ValueError(f"{path} is not a plain file, not a lock file: remove it if it is not this run's") from None
+            raise ValueError(
+                f"{path} is not a plain file, not a lock file: remove it if it is not this run's"
+            ) from None
         raise
     if not stat.S_ISREG(os.fstat(fd).st_mode):
         os.close(fd)
@@ -279,7 +284,9 @@ def _check_matches(directory, chunk: int, stored: dict, wanted: dict) -> None:
     for path in sorted(set(wanted) & set(stored)):
         have, need = stored[path], wanted[path]
         if tuple(have.shape) != tuple(need.shape) or np.dtype(have.dtype) != np.dtype(need.dtype):
-            problems.append(f"{'/'.join(path)} is {have.dtype}{list(have.shape)}, the config needs {need.dtype}{list(need.shape)}")
+            problems.append(
+                f"{'/'.join(path)} is {have.dtype}{list(have.shape)}, the config needs {need.dtype}{list(need.shape)}"
+            )
     if problems:
         listed = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
         raise ValueError(
@@ -307,12 +314,16 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
             )
         item = getattr(metadata, "item_metadata", metadata)
         if item is None:  # orbax answers None when it cannot parse the checkpoint's _METADATA
-            raise DamagedCheckpoint(f"{directory}: checkpoint {chunk} cannot be read (truncated or corrupt files?): "
-                                    "its metadata does not parse")
+            raise DamagedCheckpoint(
+                f"{directory}: checkpoint {chunk} cannot be read (truncated or corrupt files?): "
+                "its metadata does not parse"
+            )
         stored_tree = getattr(item, "tree", item)
         storable = to_storable(like)
-        wanted = {path: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
-                  for path, x in _leaves_by_path(storable).items()}
+        wanted = {
+            path: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
+            for path, x in _leaves_by_path(storable).items()
+        }
         _check_matches(directory, chunk, _metadata_leaves(stored_tree), wanted)
         with _damage_is_named(directory, chunk):
             restored = manager.restore(chunk, args=ocp.args.StandardRestore(_shaped_like(stored_tree, wanted)))

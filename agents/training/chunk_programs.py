@@ -9,8 +9,9 @@ sat idle. On a CPU the compile would take the cores the training runs on, and th
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import jax
 
@@ -26,8 +27,9 @@ class ChunkPrograms:
     compile once, when its program is first used, and a background compile that failed (then
     compiled again in the foreground, with the device idle)."""
 
-    def __init__(self, lower: Callable[[int], Any], sizes: Iterable[int], write: Callable[[str], None],
-                 background: bool):
+    def __init__(
+        self, lower: Callable[[int], Any], sizes: Iterable[int], write: Callable[[str], None], background: bool
+    ):
         self._lower = lower
         self._needed = list(dict.fromkeys(sizes))  # distinct, in the order the run needs them
         self._write = write
@@ -48,9 +50,11 @@ class ChunkPrograms:
                     program, seconds = self._background.pop(n).result()
                     where = " (in the background)"
                 except Exception as error:  # e.g. out of device memory beside the training: try again alone
-                    self._write(f"warning: compiling the chunk of {n} updates in the background failed "
-                                f"({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
-                                "compiling it now")
+                    self._write(
+                        f"warning: compiling the chunk of {n} updates in the background failed "
+                        f"({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+                        "compiling it now"
+                    )
             if program is None:
                 program, seconds = self._compile(n)
             self._write(f"compiled a chunk of {n} updates in {seconds:.1f} s{where}")

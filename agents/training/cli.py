@@ -25,6 +25,7 @@ DEFAULT_TASK = "1d-static-sin"
 
 def flag_type(spec):
     """An argparse type that parses a field's value and checks it against its declaration."""
+
     def parse(text: str):
         try:
             value = spec.kind(text)
@@ -53,8 +54,9 @@ def add_config_flags(parser: argparse.ArgumentParser, config_cls) -> tuple[str, 
         if spec.kind is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
         else:
-            parser.add_argument(flag, type=flag_type(spec), default=None, metavar=spec.kind.__name__.upper(),
-                                help=help_text)
+            parser.add_argument(
+                flag, type=flag_type(spec), default=None, metavar=spec.kind.__name__.upper(), help=help_text
+            )
         names.append(spec.name)
     return tuple(names)
 
@@ -67,23 +69,50 @@ def add_parser(subparsers) -> None:
     algorithms = parser.add_subparsers(dest="algorithm", required=True)
     for name, entry in ALGORITHMS.items():
         sub = algorithms.add_parser(name, help=entry.summary)
-        sub.add_argument("--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}")
-        sub.add_argument("--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)")
-        sub.add_argument("--resume", type=Path, default=None, metavar="DIR",
-                         help="continue the run in DIR as its config.json describes (only --eval-episodes, --[no-]eval, "
-                              "--no-progress, --log and --devices may be given; the first two default to the run's own)")
-        sub.add_argument("--eval-episodes", type=positive_int, default=None,
-                         help="episodes per design for the final evaluation (default: the paper's protocol)")
-        sub.add_argument("--eval", dest="no_eval", action="store_false", default=None,
-                         help="run the final evaluation (the default; on --resume, even if the run was started without)")
+        sub.add_argument(
+            "--task", type=task_id, default=None, help=f"default {DEFAULT_TASK}; one of: {', '.join(TASKS)}"
+        )
+        sub.add_argument(
+            "--out", type=Path, default=None, help="run directory (default runs/<algorithm>-<task>-<time>)"
+        )
+        sub.add_argument(
+            "--resume",
+            type=Path,
+            default=None,
+            metavar="DIR",
+            help="continue the run in DIR as its config.json describes (only --eval-episodes, --[no-]eval, "
+            "--no-progress, --log and --devices may be given; the first two default to the run's own)",
+        )
+        sub.add_argument(
+            "--eval-episodes",
+            type=positive_int,
+            default=None,
+            help="episodes per design for the final evaluation (default: the paper's protocol)",
+        )
+        sub.add_argument(
+            "--eval",
+            dest="no_eval",
+            action="store_false",
+            default=None,
+            help="run the final evaluation (the default; on --resume, even if the run was started without)",
+        )
         sub.add_argument("--no-eval", dest="no_eval", action="store_true", help="skip the final evaluation")
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
-        sub.add_argument("--log", choices=tuple(TRACKERS), default=None,
-                         help="also send each chunk's metrics (as in metrics.jsonl) to TensorBoard (DIR/tensorboard/) "
-                              "or wandb (the [wandb] extra; WANDB_MODE=offline keeps it on disk)")
-        sub.add_argument("--sweep", action="append", default=None, metavar="NAME=V1,V2",
-                         help="train every value (the grid of all --sweep options, x --seeds) in one compiled program; "
-                              "each arm's config, metrics and evaluation under DIR/arms/<i>/; float settings only")
+        sub.add_argument(
+            "--log",
+            choices=tuple(TRACKERS),
+            default=None,
+            help="also send each chunk's metrics (as in metrics.jsonl) to TensorBoard (DIR/tensorboard/) "
+            "or wandb (the [wandb] extra; WANDB_MODE=offline keeps it on disk)",
+        )
+        sub.add_argument(
+            "--sweep",
+            action="append",
+            default=None,
+            metavar="NAME=V1,V2",
+            help="train every value (the grid of all --sweep options, x --seeds) in one compiled program; "
+            "each arm's config, metrics and evaluation under DIR/arms/<i>/; float settings only",
+        )
         add_devices_argument(sub, cpu_default="1, measured faster for training")
         add_process_arguments(sub)
         options = add_config_flags(sub, config_class(name))
@@ -198,8 +227,10 @@ def run(args: argparse.Namespace) -> int:
     if resume:
         fixed = _options_fixed_by_the_run(args)
         if fixed:
-            raise ValueError(f"--resume continues the run as {args.resume / checkpoint.CONFIG_FILE} describes; "
-                             f"{', '.join(fixed)} cannot change it (start a new run in a new directory instead)")
+            raise ValueError(
+                f"--resume continues the run as {args.resume / checkpoint.CONFIG_FILE} describes; "
+                f"{', '.join(fixed)} cannot change it (start a new run in a new directory instead)"
+            )
         out_dir = args.resume
         config = checkpoint.read_config(out_dir)
         if config.algorithm != args.algorithm:
@@ -218,19 +249,28 @@ def run(args: argparse.Namespace) -> int:
     args.run_directory = out_dir  # what an interruption names (`run_command`)
     options["no_eval"] = bool(options["no_eval"])
     steps = config.num_updates * config.steps_per_update
-    rounded = "" if steps == config.total_steps else (
-        f" (total_steps {config.total_steps:,} rounded to whole updates of {config.steps_per_update:,})")
+    rounded = (
+        ""
+        if steps == config.total_steps
+        else (f" (total_steps {config.total_steps:,} rounded to whole updates of {config.steps_per_update:,})")
+    )
     arms = 1 if swept is None else swept.num_arms
     grid = "" if swept is None else f" x {arms} arms ({', '.join(swept.names)})"
-    print(f"{config.algorithm} on {config.task}: {steps:,} env steps{rounded} x {config.seeds} seed(s){grid}, "
-          f"{config.num_envs} worlds; writing {out_dir}", file=sys.stderr)
+    print(
+        f"{config.algorithm} on {config.task}: {steps:,} env steps{rounded} x {config.seeds} seed(s){grid}, "
+        f"{config.num_envs} worlds; writing {out_dir}",
+        file=sys.stderr,
+    )
 
     algorithm = build_algorithm(config)
     describe = getattr(algorithm, "describe_memory", None)  # replay learners: say the buffer's size
     if describe is not None:
         print(describe(), file=sys.stderr)
-    memory.require(f"training {config.seeds} seed(s){grid} x {config.num_envs:,} worlds", arms * training_memory_bytes(algorithm),
-                   "use fewer worlds (--num-envs), shorter rollouts, fewer seeds or fewer arms")
+    memory.require(
+        f"training {config.seeds} seed(s){grid} x {config.num_envs:,} worlds",
+        arms * training_memory_bytes(algorithm),
+        "use fewer worlds (--num-envs), shorter rollouts, fewer seeds or fewer arms",
+    )
     if not options["no_eval"]:
         _require_evaluation_memory(algorithm, options["eval_episodes"])  # now, not after the training
     mesh = training_mesh(args.devices, config.num_envs)
@@ -238,8 +278,16 @@ def run(args: argparse.Namespace) -> int:
     print(f"worlds split over {mesh.devices.size} {mesh.devices.flat[0].platform} device(s)", file=sys.stderr)
     writer = jax.process_index() == 0  # across processes, process 0 writes the run directory
     with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
-        algorithm, state = train(config, out_dir, resume=resume, progress=not args.no_progress, mesh=mesh,
-                                 run_options=None if resume else options, swept=swept, log=args.log)
+        algorithm, state = train(
+            config,
+            out_dir,
+            resume=resume,
+            progress=not args.no_progress,
+            mesh=mesh,
+            run_options=None if resume else options,
+            swept=swept,
+            log=args.log,
+        )
         if not writer:
             return 0
         if resume:
@@ -250,7 +298,9 @@ def run(args: argparse.Namespace) -> int:
             return 0
         config = algorithm.config
         kind = " (recurrent)" if getattr(config, "recurrent", False) else ""
-        plot_curve(read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png")
+        plot_curve(
+            read_metrics(out_dir), config.task, f"{config.algorithm}{kind} on {config.task}", out_dir / "curve.png"
+        )
         print(f"wrote {out_dir / 'curve.png'}", file=sys.stderr)
         if not options["no_eval"]:
             evaluate_run(algorithm, state, out_dir, options["eval_episodes"])
@@ -288,8 +338,12 @@ def evaluate_sweep(config, swept, state, out_dir: Path, options: dict | None) ->
     for arm in range(swept.num_arms):
         arm_config, directory = swept.arm_config(config, arm), arm_dir(out_dir, arm)
         runs = slice(arm * config.seeds, (arm + 1) * config.seeds)
-        plot_curve(read_metrics(directory), config.task, f"{config.algorithm} on {config.task}: {swept.label(arm)}",
-                   directory / "curve.png")
+        plot_curve(
+            read_metrics(directory),
+            config.task,
+            f"{config.algorithm} on {config.task}: {swept.label(arm)}",
+            directory / "curve.png",
+        )
         if options is None:
             continue
         print(f"\n## arm {arm}: {swept.label(arm)}")
@@ -303,8 +357,9 @@ def evaluate_sweep(config, swept, state, out_dir: Path, options: dict | None) ->
         print("| arm | settings | per seed | mean |\n|---:|---|---|---:|\n" + "\n".join(rows))
 
 
-def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: int | None = None,
-                 counts: dict[str, int] | None = None) -> list:
+def evaluate_run(
+    algorithm, state, out_dir: Path, episodes: int | None, seed: int | None = None, counts: dict[str, int] | None = None
+) -> list:
     """The protocol on each seed's greedy policy: table on stdout, `out_dir/eval.json`. `seed` is
     the evaluation key (default `TUNING_EVAL_SEED`; `snac table` reports with `REPORT_EVAL_SEED`);
     `counts` (`static_episodes`, `episodes_per_test_design`) replaces `episodes` where given."""
@@ -320,26 +375,37 @@ def evaluate_run(algorithm, state, out_dir: Path, episodes: int | None, seed: in
         counts = {} if episodes is None else {"static_episodes": episodes, "episodes_per_test_design": episodes}
     overrides = config.env_overrides  # scored on the episodes it trained on
     if overrides:
-        print(f"evaluated with the run's training settings {overrides} (the protocol's numbers assume the task's own)",
-              file=sys.stderr)
+        print(
+            f"evaluated with the run's training settings {overrides} (the protocol's numbers assume the task's own)",
+            file=sys.stderr,
+        )
     results = []
     for index in range(config.seeds):
         params = jax.tree.map(lambda x: x[index], state.params)
-        team = getattr(algorithm, "evaluate_team", None)  # a team of robots (agents.learners.ippo) runs its own episodes
+        team = getattr(
+            algorithm, "evaluate_team", None
+        )  # a team of robots (agents.learners.ippo) runs its own episodes
         if team is not None:
             protocol = {"static_episodes": STATIC_EPISODES, "episodes_per_test_design": EPISODES_PER_TEST_DESIGN}
             result = team(params, **{**protocol, **counts}, seed=TUNING_EVAL_SEED if seed is None else seed)
         else:
-            result = evaluate_task(config.task, algorithm.policy(params), **counts, **overrides,
-                                   seed=TUNING_EVAL_SEED if seed is None else seed)
+            result = evaluate_task(
+                config.task,
+                algorithm.policy(params),
+                **counts,
+                **overrides,
+                seed=TUNING_EVAL_SEED if seed is None else seed,
+            )
         if config.seeds > 1:
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)
     diverged = divergence_note(read_metrics(out_dir))
     paper = paper_row(load_paper_results(), config.paper_method)
     paper = {r.task: paper_cell(paper, config.task) for r in results}
-    print(f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
-          f"(the paper's {paper_column(config.task)} column)")
+    print(
+        f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
+        f"(the paper's {paper_column(config.task)} column)"
+    )
     print()
     print(markdown_table(results, paper))
     if diverged:

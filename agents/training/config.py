@@ -26,12 +26,20 @@ from snac_jax.tasks import MAX_INT32, TASKS
 MAX_UPDATES = MAX_INT32
 
 
-def option(default: Any, help: str, *, low: float | None = None, high: float | None = None,
-           low_open: bool = False, cli: bool = True) -> Any:
+def option(
+    default: Any,
+    help: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    cli: bool = True,
+) -> Any:
     """A config field with its bounds (`low` inclusive unless `low_open`, `high` inclusive) and
     help text; `cli=False` keeps it off the command line."""
-    return dataclasses.field(default=default, metadata={"help": help, "low": low, "high": high,
-                                                        "low_open": low_open, "cli": cli})
+    return dataclasses.field(
+        default=default, metadata={"help": help, "low": low, "high": high, "low_open": low_open, "cli": cli}
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,8 +103,15 @@ def field_specs(cls: type) -> dict[str, FieldSpec]:
         kind = next(a for a in args if a is not type(None)) if args else hint
         meta = field.metadata
         specs[field.name] = FieldSpec(
-            name=field.name, kind=kind, optional=optional, default=field.default, help=meta.get("help", ""),
-            low=meta.get("low"), high=meta.get("high"), low_open=meta.get("low_open", False), cli=meta.get("cli", True),
+            name=field.name,
+            kind=kind,
+            optional=optional,
+            default=field.default,
+            help=meta.get("help", ""),
+            low=meta.get("low"),
+            high=meta.get("high"),
+            low_open=meta.get("low_open", False),
+            cli=meta.get("cli", True),
         )
     return specs
 
@@ -123,12 +138,18 @@ class TrainConfig:
     max_steps: int = option(0, "episode step limit for training; 0 keeps the task's", low=0, high=2**31 - 1)
     rollout_steps: int = option(64, "steps per world between learning phases", low=1)
     previous_step: bool = option(True, "the network also reads the previous window and its last action")
-    switches: str = option("", "environment switches for training and evaluation, comma-separated key=value "
-                               "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=height|binary; "
-                               "SPEC §9), as in the paper's ablations; empty: the task as defined")
-    train_reward: str = option("", "the reward table training learns from (height or binary, SPEC §5); empty: the "
-                                   "task's own. Unlike a reward_scheme switch it leaves the task scored as defined: "
-                                   "a learner's choice of training signal, not another task")
+    switches: str = option(
+        "",
+        "environment switches for training and evaluation, comma-separated key=value "
+        "(gps=true, stride_probs=1/0/0, obstacles=true|false, landmarks=K, reward_scheme=height|binary; "
+        "SPEC §9), as in the paper's ablations; empty: the task as defined",
+    )
+    train_reward: str = option(
+        "",
+        "the reward table training learns from (height or binary, SPEC §5); empty: the "
+        "task's own. Unlike a reward_scheme switch it leaves the task scored as defined: "
+        "a learner's choice of training signal, not another task",
+    )
 
     @property
     def steps_per_update(self) -> int:
@@ -151,16 +172,22 @@ class TrainConfig:
         for name, spec in field_specs(type(self)).items():
             spec.check(getattr(self, name))
         if self.num_updates > MAX_UPDATES:
-            raise ValueError(f"total_steps {self.total_steps:,} makes {self.num_updates:,} updates of {self.steps_per_update:,} "
-                             f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)")
+            raise ValueError(
+                f"total_steps {self.total_steps:,} makes {self.num_updates:,} updates of {self.steps_per_update:,} "
+                f"env steps; at most {MAX_UPDATES:,} (updates are counted in int32)"
+            )
         if self.switches:
             self.env_config()  # every switch value checked by make, before anything is traced
         if self.train_reward not in ("", *REWARD_SCHEMES):
-            raise ValueError(f"train_reward must be one of {('', *REWARD_SCHEMES)} (empty: the task's own), "
-                             f"got {self.train_reward!r}")
+            raise ValueError(
+                f"train_reward must be one of {('', *REWARD_SCHEMES)} (empty: the task's own), "
+                f"got {self.train_reward!r}"
+            )
         if self.train_reward and "reward_scheme" in self.env_overrides:
-            raise ValueError("give the reward as the reward_scheme switch (another task, scored so) or as "
-                             "train_reward (training alone), not both")
+            raise ValueError(
+                "give the reward as the reward_scheme switch (another task, scored so) or as "
+                "train_reward (training alone), not both"
+            )
         self.check()
 
     def check(self) -> None:

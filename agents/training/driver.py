@@ -29,22 +29,23 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-from agents.training import checkpoint
+from agents.training import checkpoint, sweep, trackers
 from agents.training.chunk_programs import ChunkPrograms, compiles_ahead
 from agents.training.config import TrainConfig, save_config
-from agents.training import sweep, trackers
 from agents.training.registry import build_algorithm
-from agents.training.sweep import Sweep
 from agents.training.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
+from agents.training.sweep import Sweep
 from snac_jax.atomic import atomic_write_text
+
 
 def seed_keys(config: TrainConfig, arms: int = 1) -> jax.Array:
     """Every run's key: seed i uses fold_in(key(seed), i); with a sweep's `arms`, arm-major, run
@@ -75,7 +76,9 @@ def initial_state(algorithm, mesh=None, swept: Sweep | None = None) -> Any:
     arms = 1 if swept is None else swept.num_arms
 
     def init():  # the keys are made inside the jit: no process-local array enters it
-        return per_run(algorithm, swept, lambda learner, key: learner.init(key), (0,))(seed_keys(algorithm.config, arms))
+        return per_run(algorithm, swept, lambda learner, key: learner.init(key), (0,))(
+            seed_keys(algorithm.config, arms)
+        )
 
     return jax.jit(init, out_shardings=state_shardings(jax.eval_shape(init), mesh))()
 
@@ -151,8 +154,10 @@ def divergence_note(records: list[dict]) -> str | None:
     chunks = [chunk for chunk, _ in found]
     names = sorted({name for _, listed in found for name in listed})
     where = f"chunk {chunks[0]}" if len(chunks) == 1 else f"chunks {chunks[0]}-{chunks[-1]} ({len(chunks)} chunks)"
-    return (f"training diverged: {', '.join(names)} not finite in {where} of metrics.jsonl; the policy scored "
-            "is a diverged one")
+    return (
+        f"training diverged: {', '.join(names)} not finite in {where} of metrics.jsonl; the policy scored "
+        "is a diverged one"
+    )
 
 
 @contextlib.contextmanager
@@ -182,8 +187,11 @@ def interrupts_deferred():
 def arm_record(record: dict[str, Any], arm: int, seeds: int, arms: int) -> dict[str, Any]:
     """One arm's share of a sweep's chunk record: its seeds' entries of every per-run list, its
     share of the throughput, and its own divergence flag."""
-    share = {k: v[arm * seeds:(arm + 1) * seeds] if isinstance(v, list) and len(v) == seeds * arms else v
-             for k, v in record.items() if k != "diverged"}
+    share = {
+        k: v[arm * seeds : (arm + 1) * seeds] if isinstance(v, list) and len(v) == seeds * arms else v
+        for k, v in record.items()
+        if k != "diverged"
+    }
     share["steps_per_s"] = record["steps_per_s"] / arms
     summary = {k: v for k, v in share.items() if isinstance(v, list)}
     diverged = nonfinite_metrics(summary)
@@ -217,7 +225,9 @@ def _start_run(config: TrainConfig, out_dir: Path, run_options: dict | None, swe
     atomic_write_text(out_dir / checkpoint.METRICS_FILE, "")
 
 
-def _resume_point(out_dir: Path, state: Any, warn: Callable[[str], None], writer: bool = True) -> tuple[int, Any, list[dict]]:
+def _resume_point(
+    out_dir: Path, state: Any, warn: Callable[[str], None], writer: bool = True
+) -> tuple[int, Any, list[dict]]:
     """`(chunks done, state, metrics history)` of the run in `out_dir`: the newest checkpoint
     that restores (a damaged newest one falls back to the one before), the metrics up to it
     (lines past it, or cut short by a kill, are dropped and rewritten)."""
@@ -230,9 +240,11 @@ def _resume_point(out_dir: Path, state: Any, warn: Callable[[str], None], writer
     if last is None:
         recorded = checkpoint.read_metrics_lines(metrics_path)
         if recorded:
-            raise ValueError(f"{out_dir}: {checkpoint.METRICS_FILE} records {len(recorded)} chunk(s) but there is no "
-                             f"checkpoint to resume from ({checkpoint.CHECKPOINT_DIR}/ was removed?); start a new run "
-                             "in another directory")
+            raise ValueError(
+                f"{out_dir}: {checkpoint.METRICS_FILE} records {len(recorded)} chunk(s) but there is no "
+                f"checkpoint to resume from ({checkpoint.CHECKPOINT_DIR}/ was removed?); start a new run "
+                "in another directory"
+            )
         warn(f"{out_dir}: no chunk was checkpointed yet; starting the run from its beginning")
         if writer:
             atomic_write_text(metrics_path, "")
@@ -287,8 +299,17 @@ def train(
         return _train(config, out_dir, resume, progress, stop_after_chunks, mesh, writer, swept, log)
 
 
-def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, stop_after_chunks, mesh, writer: bool,
-           swept: Sweep | None = None, log: str | None = None):
+def _train(
+    config: TrainConfig,
+    out_dir: Path,
+    resume: bool,
+    progress: bool,
+    stop_after_chunks,
+    mesh,
+    writer: bool,
+    swept: Sweep | None = None,
+    log: str | None = None,
+):
     metrics_path = out_dir / checkpoint.METRICS_FILE
     algorithm = build_algorithm(config)
     mesh = training_mesh(num_envs=config.num_envs) if mesh is None else mesh
@@ -300,7 +321,9 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
     done_chunks, history = 0, []
     if resume:
         with interrupts_deferred():  # Ctrl-C inside orbax's asyncio restore strands its tasks, which print at exit
-            done_chunks, state, history = _resume_point(out_dir, state, lambda text: print(text, file=sys.stderr), writer)
+            done_chunks, state, history = _resume_point(
+                out_dir, state, lambda text: print(text, file=sys.stderr), writer
+            )
     if swept is not None and writer:
         _write_arm_metrics(out_dir, swept, config.seeds, history)
 
@@ -322,8 +345,14 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
     last = len(sizes) if stop_after_chunks is None else min(len(sizes), done_chunks + stop_after_chunks)
     programs = ChunkPrograms(lower_chunk, sizes[done_chunks:last], bar.write, background=compiles_ahead())
     warned = list(history[-1].get("diverged") or []) if history else []  # said once per change
-    tracker = trackers.open_tracker(log if writer else None, out_dir, config, config.seeds,
-                                    1 if swept is None else swept.num_arms, start_step=done_steps)
+    tracker = trackers.open_tracker(
+        log if writer else None,
+        out_dir,
+        config,
+        config.seeds,
+        1 if swept is None else swept.num_arms,
+        start_step=done_steps,
+    )
     try:
         for index in range(done_chunks, len(sizes)):
             if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
@@ -348,8 +377,11 @@ def _train(config: TrainConfig, out_dir: Path, resume: bool, progress: bool, sto
             if diverged:
                 record["diverged"] = diverged
                 if diverged != warned and writer:
-                    bar.write(f"warning: training diverged in chunk {index}: {', '.join(diverged)} not finite "
-                              f"(recorded as null in {metrics_path}, the chunk flagged)", file=sys.stderr)
+                    bar.write(
+                        f"warning: training diverged in chunk {index}: {', '.join(diverged)} not finite "
+                        f"(recorded as null in {metrics_path}, the chunk flagged)",
+                        file=sys.stderr,
+                    )
             warned = diverged
             # Metrics first, checkpoint second: a resume trims lines past the last checkpoint.
             with interrupts_deferred():
@@ -382,16 +414,22 @@ def _abstract(leaf):
     """An array's shape, dtype and sharding, for lowering without reading it."""
     if not isinstance(leaf, jax.Array):
         return leaf
-    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=leaf.sharding,
-                                weak_type=getattr(leaf, "weak_type", False))  # a key array has none
+    return jax.ShapeDtypeStruct(
+        leaf.shape, leaf.dtype, sharding=leaf.sharding, weak_type=getattr(leaf, "weak_type", False)
+    )  # a key array has none
 
 
 def _progress_bar(total: int, initial: int, config: TrainConfig, enabled: bool):
     from tqdm.auto import tqdm
 
     return tqdm(
-        total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
-        desc=f"{config.algorithm} {config.task}", dynamic_ncols=True,
+        total=total,
+        initial=initial,
+        disable=not enabled,
+        unit="step",
+        unit_scale=True,
+        desc=f"{config.algorithm} {config.task}",
+        dynamic_ncols=True,
     )
 
 

@@ -32,22 +32,64 @@ class Entry:
 
 ALGORITHMS: dict[str, Entry] = {
     "ppo": Entry("agents.learners.ppo", "PPOConfig", "PPO", "PPO, with or without a GRU core (--[no-]recurrent)"),
-    "dqn": Entry("agents.learners.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"),
-    "drqn": Entry("agents.learners.drqn", "DRQNConfig", "DRQN", "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in"),
-    "drqn-her": Entry("agents.learners.drqn_her", "DRQNHERConfig", "DRQNHER",
-                      "DRQN + hindsight relabelling with the episode's final grid as the design"),
-    "pqn": Entry("agents.learners.pqn", "PQNConfig", "PQN", "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
-                 "network (PQN-RNN or feed-forward: --[no-]recurrent)"),
-    "sac": Entry("agents.learners.sac", "SACConfig", "SAC", "SAC for discrete actions: categorical actor, twin critics, learned temperature"),
-    "rainbow": Entry("agents.learners.rainbow", "RainbowConfig", "Rainbow",
-                     "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device"),
-    "ppo-privileged": Entry("agents.research.ppo_privileged", "PrivilegedPPOConfig", "PrivilegedPPO",
-                            "PPO with a critic that reads the privileged state, + auxiliary localisation losses"),
-    "drqn-aux": Entry("agents.research.drqn_aux", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"),
-    "pqn-aux": Entry("agents.research.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"),
-    "pqn-belief": Entry("agents.research.pqn_belief", "PQNBeliefConfig", "PQNBelief",
-                        "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)"),
-    "ippo": Entry("agents.learners.ippo", "IPPOConfig", "IPPO", "IPPO: shared-parameter PPO for several robots (snac_jax.multi); --robots N"),
+    "dqn": Entry(
+        "agents.learners.dqn", "DQNConfig", "DQN", "DQN: double Q, dueling head, n-step returns; replay on device"
+    ),
+    "drqn": Entry(
+        "agents.learners.drqn",
+        "DRQNConfig",
+        "DRQN",
+        "DRQN: DQN with an LSTM, trained on replayed sequences with burn-in",
+    ),
+    "drqn-her": Entry(
+        "agents.learners.drqn_her",
+        "DRQNHERConfig",
+        "DRQNHER",
+        "DRQN + hindsight relabelling with the episode's final grid as the design",
+    ),
+    "pqn": Entry(
+        "agents.learners.pqn",
+        "PQNConfig",
+        "PQN",
+        "PQN: Q(lambda) over many worlds, LayerNorm, no replay or target "
+        "network (PQN-RNN or feed-forward: --[no-]recurrent)",
+    ),
+    "sac": Entry(
+        "agents.learners.sac",
+        "SACConfig",
+        "SAC",
+        "SAC for discrete actions: categorical actor, twin critics, learned temperature",
+    ),
+    "rainbow": Entry(
+        "agents.learners.rainbow",
+        "RainbowConfig",
+        "Rainbow",
+        "Rainbow: C51 dueling head, noisy layers, prioritised replay, n-step double-Q; replay on device",
+    ),
+    "ppo-privileged": Entry(
+        "agents.research.ppo_privileged",
+        "PrivilegedPPOConfig",
+        "PrivilegedPPO",
+        "PPO with a critic that reads the privileged state, + auxiliary localisation losses",
+    ),
+    "drqn-aux": Entry(
+        "agents.research.drqn_aux", "DRQNAuxConfig", "DRQNAux", "DRQN + auxiliary localisation and map losses"
+    ),
+    "pqn-aux": Entry(
+        "agents.research.pqn_aux", "PQNAuxConfig", "PQNAux", "PQN-RNN + auxiliary localisation and map losses"
+    ),
+    "pqn-belief": Entry(
+        "agents.research.pqn_belief",
+        "PQNBeliefConfig",
+        "PQNBelief",
+        "PQN-RNN whose Q head reads the design expected at its position belief (a histogram filter, or learned)",
+    ),
+    "ippo": Entry(
+        "agents.learners.ippo",
+        "IPPOConfig",
+        "IPPO",
+        "IPPO: shared-parameter PPO for several robots (snac_jax.multi); --robots N",
+    ),
 }
 
 
@@ -97,11 +139,15 @@ def tuned_table(algorithm: str) -> dict[str, dict[str, Any]]:
             if task not in TASKS:
                 raise ValueError(f"{path}: unknown task {task!r}; allowed: {', '.join(TASKS)}")
             if "result" not in entry:
-                raise ValueError(f"{path}: [{task}] must name the result it was tuned for (`result = \"bench/results/...\"`)")
+                raise ValueError(
+                    f'{path}: [{task}] must name the result it was tuned for (`result = "bench/results/..."`)'
+                )
             entry.pop("result")
             unknown = sorted(set(entry) - fields)
             if unknown:
-                raise ValueError(f"{path}: [{task}] has unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+                raise ValueError(
+                    f"{path}: [{task}] has unknown {algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}"
+                )
             table[task] = {**table.get(task, {}), **entry}
     return table
 
@@ -129,7 +175,9 @@ def config_from_json(data: dict[str, Any]) -> TrainConfig:
     fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - fields)
     if unknown:
-        raise ValueError(f"config.json has unknown {cls.algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}")
+        raise ValueError(
+            f"config.json has unknown {cls.algorithm} option(s) {unknown}; allowed: {', '.join(sorted(fields))}"
+        )
     config = cls(**data)
     config.validate()
     return config

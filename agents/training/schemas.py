@@ -20,8 +20,21 @@ from pathlib import Path
 from typing import Any
 
 from snac_jax.paper import PAPER_TASKS
-from snac_jax.schema import (Anything, Bool, Int, ListOf, MapOf, Mismatch, Nullable, Number, Object, Spec, Str,
-                             load_json, mismatch)
+from snac_jax.schema import (
+    Anything,
+    Bool,
+    Int,
+    ListOf,
+    MapOf,
+    Mismatch,
+    Nullable,
+    Number,
+    Object,
+    Spec,
+    Str,
+    load_json,
+    mismatch,
+)
 from snac_jax.tasks import MAX_SEED, TASKS
 
 
@@ -55,14 +68,16 @@ class _ConfigJson(Spec):
         from agents.training.registry import ALGORITHMS, config_class
 
         Object({"algorithm": Str(ALGORITHMS)}, {"task": Anything()}).check(
-            {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field)
+            {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field
+        )
         specs = field_specs(config_class(value["algorithm"]))
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
             where = f" in {field}" if field else ""
-            raise Mismatch(f"unknown {value['algorithm']} option(s) {unknown}{where}; "
-                           f"allowed: {', '.join(sorted(fields))}")
+            raise Mismatch(
+                f"unknown {value['algorithm']} option(s) {unknown}{where}; allowed: {', '.join(sorted(fields))}"
+            )
         Object({"algorithm": Str(ALGORITHMS)}, fields).check(value, field)
 
 
@@ -77,22 +92,44 @@ PROTOCOL = Object({"static_episodes": Int(1), "episodes_per_test_design": Int(1)
 
 CELL_JSON = Object(
     {
-        "preset": Str(), "algorithm": Str(), "column": Str(PAPER_TASKS), "task": Str(TASKS),
+        "preset": Str(),
+        "algorithm": Str(),
+        "column": Str(PAPER_TASKS),
+        "task": Str(TASKS),
         "budget": Object({"env_steps": Int(1), "requested": Int(1), "source": Str(), "capped": Bool()}),
-        "eval_seed": Int(0, MAX_SEED), "protocol": PROTOCOL,
+        "eval_seed": Int(0, MAX_SEED),
+        "protocol": PROTOCOL,
     },
-    {"variant": Str(), "paper_variant": Str(), "switches": Str(), "settings": MapOf(Anything()),
-     "evaluation": MapOf(Anything()), "adopted_from": Str(),
-     "adopted_record": Str()},
+    {
+        "variant": Str(),
+        "paper_variant": Str(),
+        "switches": Str(),
+        "settings": MapOf(Anything()),
+        "evaluation": MapOf(Anything()),
+        "adopted_from": Str(),
+        "adopted_record": Str(),
+    },
 )
 
 IOU = Number(0.0, 1.0)
 STRATUM = Object({"mean": IOU, "min": IOU, "std": Number(0.0), "episodes": Int(1)})
-EVAL_ROW = Object({
-    "task": Str(), "mean": IOU, "min": IOU, "std": Number(0.0), "ci95": ListOf(Number(), length=2),
-    "episodes": Int(1), "mean_length": Number(0.0), "mean_bricks_used": Number(0.0), "mean_return": Number(),
-    "per_design": MapOf(STRATUM), "seed": Int(0, MAX_SEED), "wall_s": Number(0.0),
-}, {"overrides": MapOf(Anything())})  # the `make` overrides it was scored with, where not the task's own
+EVAL_ROW = Object(
+    {
+        "task": Str(),
+        "mean": IOU,
+        "min": IOU,
+        "std": Number(0.0),
+        "ci95": ListOf(Number(), length=2),
+        "episodes": Int(1),
+        "mean_length": Number(0.0),
+        "mean_bricks_used": Number(0.0),
+        "mean_return": Number(),
+        "per_design": MapOf(STRATUM),
+        "seed": Int(0, MAX_SEED),
+        "wall_s": Number(0.0),
+    },
+    {"overrides": MapOf(Anything())},
+)  # the `make` overrides it was scored with, where not the task's own
 EVAL_JSON = MapOf(EVAL_ROW, min_items=1)
 
 

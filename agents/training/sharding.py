@@ -15,9 +15,9 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-from jax.sharding import NamedSharding, PartitionSpec as P
-
 import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from snac_jax.devices import ENV_AXIS, check_divisible, env_mesh
 

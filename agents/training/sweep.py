@@ -62,13 +62,13 @@ class Sweep:
         return {"names": list(self.names), "arms": [list(arm) for arm in self.arms]}
 
     @classmethod
-    def from_json(cls, data: Any, path: Path) -> "Sweep":
+    def from_json(cls, data: Any, path: Path) -> Sweep:
         try:
             names, arms = tuple(data["names"]), tuple(tuple(float(v) for v in arm) for arm in data["arms"])
             if not names or not arms or any(len(arm) != len(names) for arm in arms):
                 raise ValueError
         except (TypeError, KeyError, ValueError):
-            raise ValueError(f"{path}: not a sweep (expected {{\"names\": [...], \"arms\": [[...], ...]}})") from None
+            raise ValueError(f'{path}: not a sweep (expected {{"names": [...], "arms": [[...], ...]}})') from None
         return cls(names, arms)
 
 
@@ -92,8 +92,10 @@ def parse_sweep(specs: list[str], config: TrainConfig) -> Sweep:
             raise ValueError(f"--sweep: {config.algorithm} has no setting {name!r}; sweepable: {', '.join(allowed)}")
         if name not in allowed:
             why = "sets shapes or loop counts" if fields[name].kind is int else "changes the program's structure"
-            raise ValueError(f"--sweep: {name} cannot be swept in one program: it {why} (a {fields[name].kind.__name__}); "
-                             f"sweepable: {', '.join(allowed)}")
+            raise ValueError(
+                f"--sweep: {name} cannot be swept in one program: it {why} (a {fields[name].kind.__name__}); "
+                f"sweepable: {', '.join(allowed)}"
+            )
         if name in names:
             raise ValueError(f"--sweep: {name} is given twice; give its values in one --sweep {name}=V1,V2")
         try:
@@ -134,6 +136,7 @@ def check_traceable(config: TrainConfig, swept: Sweep) -> None:
     """Trace one run's initialisation and one update with the swept settings as tracers (no
     compilation, nothing runs): a setting the learner reads in Python (to size an array, count a
     loop or pick a branch) fails here, before any training, with a one-line `ValueError`."""
+
     def one_run(values, key):
         learner = learner_for(config, values)
         return learner.train_chunk(learner.init(key), learner.env_params, 1)
@@ -142,9 +145,11 @@ def check_traceable(config: TrainConfig, swept: Sweep) -> None:
     try:
         jax.eval_shape(one_run, values, jax.random.key(0))
     except TypeError as error:  # JAX's concretization errors (a tracer used as a Python value) are TypeErrors
-        raise ValueError(f"--sweep: {config.algorithm} reads {', '.join(swept.names)} outside the traced computation, "
-                         f"so it cannot be swept in one program ({type(error).__name__}); run one training per value "
-                         "instead") from None
+        raise ValueError(
+            f"--sweep: {config.algorithm} reads {', '.join(swept.names)} outside the traced computation, "
+            f"so it cannot be swept in one program ({type(error).__name__}); run one training per value "
+            "instead"
+        ) from None
 
 
 def save(sweep: Sweep, out_dir: Path) -> None:

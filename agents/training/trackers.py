@@ -49,8 +49,11 @@ def scalars(record: dict[str, Any], seeds: int, arms: int = 1) -> dict[str, floa
                 found[f"{name}/{run}"] = item
         else:
             found[name] = value
-    return {name: float(v) for name, v in found.items()
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+    return {
+        name: float(v)
+        for name, v in found.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    }
 
 
 class Tracker:
@@ -70,8 +73,14 @@ class Tracker:
 
             # One wandb run per run directory, continued on resume.
             run_id = hashlib.sha1(str(out_dir.resolve()).encode()).hexdigest()[:16]
-            self._run = wandb.init(project="snac-jax", name=out_dir.name, id=run_id, resume="allow",
-                                   dir=str(out_dir), config=config.to_json())
+            self._run = wandb.init(
+                project="snac-jax",
+                name=out_dir.name,
+                id=run_id,
+                resume="allow",
+                dir=str(out_dir),
+                config=config.to_json(),
+            )
 
     def log(self, record: dict[str, Any]) -> None:
         values, step = scalars(record, self.seeds, self.arms), int(record["env_steps"])

@@ -25,10 +25,14 @@ def load_trained(directory: str | Path):
     like = initial_state(algorithm, swept=sweep.load(Path(directory)))
     chunk, state, notes = restore_latest(directory, like)
     if chunk is None:
-        raise ValueError(f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ (the run was stopped before its first chunk ended?)")
+        raise ValueError(
+            f"{directory}: no checkpoint under {CHECKPOINT_DIR}/ (the run was stopped before its first chunk ended?)"
+        )
     if notes:
-        raise ValueError(f"{notes[0]}; checkpoint {chunk} is intact: `snac train {config.algorithm} --resume {directory}` "
-                         "recomputes the later chunk(s) from it")
+        raise ValueError(
+            f"{notes[0]}; checkpoint {chunk} is intact: `snac train {config.algorithm} --resume {directory}` "
+            "recomputes the later chunk(s) from it"
+        )
     return algorithm, state, chunk
 
 
@@ -46,18 +50,24 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     that and `seed_index` are checked before the checkpoint is read."""
     config = read_config(checkpoint)
     if env.config.task_id != config.task:
-        raise ValueError(f"checkpoint {checkpoint} was trained on {config.task!r}, cannot evaluate it on {env.config.task_id!r}")
+        raise ValueError(
+            f"checkpoint {checkpoint} was trained on {config.task!r}, cannot evaluate it on {env.config.task_id!r}"
+        )
     trained_env, trained_params = config.scored_world()
     # Other inputs fail deep inside JAX (gps); other rules and the stride noise act silently.
     if env.config != trained_env.config or not _same_stride_noise(env.default_params, trained_params):
-        raise ValueError(f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
-                         f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)")
+        raise ValueError(
+            f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
+            f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)"
+        )
     swept = sweep.load(Path(checkpoint))
     runs = config.seeds * (1 if swept is None else swept.num_arms)
     if not 0 <= seed_index < runs:
         what = "" if swept is None else f" (a sweep: arm a, seed s is index a * {config.seeds} + s)"
-        raise ValueError(f"the seed index (seed_index, --seed-index) must be in 0..{runs - 1} for {checkpoint}{what}, "
-                         f"got {seed_index}")
+        raise ValueError(
+            f"the seed index (seed_index, --seed-index) must be in 0..{runs - 1} for {checkpoint}{what}, "
+            f"got {seed_index}"
+        )
     algorithm, state, _ = load_trained(checkpoint)
     if swept is not None:
         algorithm = build_algorithm(swept.arm_config(config, seed_index // config.seeds))

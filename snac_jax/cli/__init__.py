@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_missing_extra_parser(subparsers, name: str, message: str) -> None:
     """`snac NAME ...` that only says, in one line, which extra it needs (exit status 2)."""
+
     def refuse(args) -> int:
         raise ValueError(message)
 
@@ -96,8 +97,9 @@ def join_processes_from(argv: list[str]) -> None:
     import jax
 
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(coordinator_address=known.coordinator, num_processes=known.num_processes,
-                               process_id=known.process_id)
+    jax.distributed.initialize(
+        coordinator_address=known.coordinator, num_processes=known.num_processes, process_id=known.process_id
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

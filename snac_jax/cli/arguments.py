@@ -52,7 +52,10 @@ def add_seed_index_argument(parser: argparse.ArgumentParser) -> None:
     """`--seed-index K`: which of a `snac train --seeds N` run's seeds a checkpoint command reads.
     A run trains its seeds side by side in one checkpoint, so the policy must be picked out."""
     parser.add_argument(
-        "--seed-index", type=bounded_number(int, 0), default=None, metavar="K",
+        "--seed-index",
+        type=bounded_number(int, 0),
+        default=None,
+        metavar="K",
         help="with --checkpoint: which of the run's training seeds to load, 0..seeds-1 (default 0)",
     )
 
@@ -76,8 +79,16 @@ def add_devices_argument(parser: argparse.ArgumentParser, cpu_default: str = "on
 def add_process_arguments(parser: argparse.ArgumentParser) -> None:
     """`--coordinator HOST:PORT --num-processes N --process-id I`: run as one of N processes
     (hosts) of one computation. `snac` joins them before JAX starts (`snac_jax.cli.join_processes_from`)."""
-    parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
-                        help="run across processes (hosts): the address of process 0, for jax.distributed")
+    parser.add_argument(
+        "--coordinator",
+        default=None,
+        metavar="HOST:PORT",
+        help="run across processes (hosts): the address of process 0, for jax.distributed",
+    )
     parser.add_argument("--num-processes", type=positive_int, default=None, help="with --coordinator: how many")
-    parser.add_argument("--process-id", type=bounded_number(int, 0), default=None,
-                        help="with --coordinator: this process's index, 0..N-1")
+    parser.add_argument(
+        "--process-id",
+        type=bounded_number(int, 0),
+        default=None,
+        help="with --coordinator: this process's index, 0..N-1",
+    )

@@ -50,27 +50,38 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--policy", type=_policy, default=None, help=f"one of: {', '.join(POLICIES)}")
     parser.add_argument(
-        "--checkpoint", type=Path, default=None, metavar="DIR",
+        "--checkpoint",
+        type=Path,
+        default=None,
+        metavar="DIR",
         help="a `snac train` run directory: evaluate its trained policy (on its task unless --task is given); "
-             "a team run (snac train ippo) is scored as its team, with its own robots and switches",
+        "a team run (snac train ippo) is scored as its team, with its own robots and switches",
     )
     add_seed_index_argument(parser)
     parser.add_argument(
-        "--human", type=Path, default=None, metavar="FILE",
+        "--human",
+        type=Path,
+        default=None,
+        metavar="FILE",
         help="summarise the episodes `snac play` recorded in FILE (each is replayed and checked first)",
     )
     parser.add_argument(
         "--task", type=_task, default=None, help="'all' (default: the paper's ten columns), a paper column or a task id"
     )
     parser.add_argument(
-        "--switches", default=None, metavar="KEY=VALUE,...",
+        "--switches",
+        default=None,
+        metavar="KEY=VALUE,...",
         help="with --policy: score on tasks built with these switches (SPEC §9), the syntax of "
-             "`snac train --switches`, e.g. gps=true,stride_probs=1/0/0 (a checkpoint keeps its run's own)",
+        "`snac train --switches`, e.g. gps=true,stride_probs=1/0/0 (a checkpoint keeps its run's own)",
     )
     parser.add_argument(
-        "--robots", type=positive_int, default=None, metavar="N",
+        "--robots",
+        type=positive_int,
+        default=None,
+        metavar="N",
         help=f"with --policy ({', '.join(TEAM_POLICIES)}): score a team of N robots in one world (snac_jax.multi, "
-             "SPEC §13); handcrafted splits the plan among them (snac_jax.policies.split)",
+        "SPEC §13); handcrafted splits the plan among them (snac_jax.policies.split)",
     )
     parser.add_argument(
         "--episodes",
@@ -79,12 +90,19 @@ def add_parser(subparsers) -> None:
         help=f"episodes per design: static tasks (each 1D shape) and each dynamic test design "
         f"(default: the paper's {STATIC_EPISODES} static, {EPISODES_PER_TEST_DESIGN} per test design)",
     )
-    parser.add_argument("--seed", type=seed, default=TUNING_EVAL_SEED,
-                        help=f"evaluation key (default {TUNING_EVAL_SEED}, the tuning one; reported results use "
-                             f"{REPORT_EVAL_SEED}, snac_jax.evaluation.REPORT_EVAL_SEED)")
+    parser.add_argument(
+        "--seed",
+        type=seed,
+        default=TUNING_EVAL_SEED,
+        help=f"evaluation key (default {TUNING_EVAL_SEED}, the tuning one; reported results use "
+        f"{REPORT_EVAL_SEED}, snac_jax.evaluation.REPORT_EVAL_SEED)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the results here (atomically)")
     parser.add_argument(
-        "--paper-results", type=Path, default=None, help="paper_results.json to compare with (default: the packaged copy)"
+        "--paper-results",
+        type=Path,
+        default=None,
+        help="paper_results.json to compare with (default: the packaged copy)",
     )
     add_devices_argument(parser)
     parser.set_defaults(func=run)
@@ -156,8 +174,10 @@ def run(args: argparse.Namespace) -> int:
         args.task = args.task or run_task
         others = [t for t in _environment_tasks(args.task) if t != run_task]
         if others:
-            raise ValueError(f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
-                             f"{', '.join(others)} (leave out --task to evaluate it on its own)")
+            raise ValueError(
+                f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
+                f"{', '.join(others)} (leave out --task to evaluate it on its own)"
+            )
         policy_name = f"checkpoint {args.checkpoint}, training seed index {args.seed_index or 0}"
     else:
         run_overrides = parse_switches(args.switches or "")
@@ -183,11 +203,16 @@ def run(args: argparse.Namespace) -> int:
         else:
             result = evaluate_team_task(task, builder, robots, seed=args.seed, **episodes, **run_overrides)
             rows.append(result.result)
-            print(f"{task}: {result.finished_fraction:.3f} of the episodes ended with the bricks spent or a robot "
-                  f"stuck rather than at the step limit ({result.max_steps})", file=sys.stderr)
+            print(
+                f"{task}: {result.finished_fraction:.3f} of the episodes ended with the bricks spent or a robot "
+                f"stuck rather than at the step limit ({result.max_steps})",
+                file=sys.stderr,
+            )
         results.append(result)
-        print(f"{task}: mean IoU {rows[-1].mean:.3f} over {rows[-1].episodes} episodes ({rows[-1].wall_s:.1f} s)",
-              file=sys.stderr)
+        print(
+            f"{task}: mean IoU {rows[-1].mean:.3f} over {rows[-1].episodes} episodes ({rows[-1].wall_s:.1f} s)",
+            file=sys.stderr,
+        )
     total_s = time.perf_counter() - start
 
     if robots is None and not run_overrides:
@@ -200,14 +225,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"policy {policy_name}, with {run_overrides} (no paper row), seed {args.seed}")
     else:
         cells = {}  # the paper has one robot
-        print(f"policy {policy_name}, a team of {robots} robot(s) in one world (SPEC §13; the paper has one robot: "
-              f"no paper row), seed {args.seed}")
+        print(
+            f"policy {policy_name}, a team of {robots} robot(s) in one world (SPEC §13; the paper has one robot: "
+            f"no paper row), seed {args.seed}"
+        )
     print()
     print(markdown_table(rows, cells))
     print()
     print(f"wall time {total_s:.1f} s (compile included)")
     if args.json is not None:
-        scored = {r.task: r.to_json() for r in rows} if robots is None else {r.result.task: r.to_json() for r in results}
+        scored = (
+            {r.task: r.to_json() for r in rows} if robots is None else {r.result.task: r.to_json() for r in results}
+        )
         if run_overrides:  # what the numbers were scored with travels with them
             scored = {task: {**entry, "overrides": run_overrides} for task, entry in scored.items()}
         atomic_write_json(args.json, scored)

@@ -10,7 +10,14 @@ from __future__ import annotations
 import argparse
 import time
 
-from snac_jax.cli.arguments import add_seed_index_argument, bounded_number, check_seed_index, positive_int, seed, task_id
+from snac_jax.cli.arguments import (
+    add_seed_index_argument,
+    bounded_number,
+    check_seed_index,
+    positive_int,
+    seed,
+    task_id,
+)
 from snac_jax.tasks import TASKS
 
 
@@ -35,8 +42,12 @@ def add_parser(subparsers) -> None:
         default=None,
         help="a registered policy (default: random; with --checkpoint, the trained agent)",
     )
-    parser.add_argument("--checkpoint", default=None, metavar="DIR",
-                        help="a trained agent's checkpoint directory (a team run, snac train ippo, draws its team)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        metavar="DIR",
+        help="a trained agent's checkpoint directory (a team run, snac train ippo, draws its team)",
+    )
     add_seed_index_argument(parser)
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the reset, the strides and the policy")
@@ -44,7 +55,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--every", type=positive_int, default=1, help="draw every k-th step (default 1: all)")
     parser.add_argument("--fps", type=positive_int, default=20)
     parser.add_argument("--hold", type=float, default=1.5, help="seconds the final frame is held")
-    parser.add_argument("--cell", type=bounded_number(int, 4), default=None, help="pixels per cell, >= 4 (default: per dimension)")
+    parser.add_argument(
+        "--cell", type=bounded_number(int, 4), default=None, help="pixels per cell, >= 4 (default: per dimension)"
+    )
     parser.set_defaults(func=run)
 
 
@@ -122,7 +135,9 @@ def run(args: argparse.Namespace) -> int:
     episode_s = time.perf_counter() - start
     num_frames = len(frame_indices(trajectory.length, args.every))
     # the frames, and the GIF encoder's copy of them
-    memory.require(f"{num_frames} frames at --cell {args.cell}", 2 * num_frames * one_frame, "lower --cell or raise --every")
+    memory.require(
+        f"{num_frames} frames at --cell {args.cell}", 2 * num_frames * one_frame, "lower --cell or raise --every"
+    )
 
     label = policy.name if args.seed_index is None else f"{policy.name} (training seed {args.seed_index})"
     start = time.perf_counter()
@@ -149,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
         f"{args.task}, policy {label}{'' if robots is None else f', {robots} robots'}, seed {args.seed}: "
         f"{trajectory.length} steps ({ending}), {int(last.bricks_used)} bricks, final IoU {trajectory.final_iou:.4f}"
     )
-    print(f"wrote {path} ({len(frames)} frames, {frames[0].shape[1]}x{frames[0].shape[0]} px, "
-          f"{path.stat().st_size / 1024:.0f} KiB); episode {episode_s:.1f} s, drawing {draw_s:.1f} s")
+    print(
+        f"wrote {path} ({len(frames)} frames, {frames[0].shape[1]}x{frames[0].shape[0]} px, "
+        f"{path.stat().st_size / 1024:.0f} KiB); episode {episode_s:.1f} s, drawing {draw_s:.1f} s"
+    )
     return 0

@@ -16,9 +16,13 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--num-envs", type=positive_int, default=4096)
     parser.add_argument("--steps", type=positive_int, default=1000)
     parser.add_argument("--seed", type=seed, default=0)
-    parser.add_argument("--reset", choices=RESET_STRATEGIES, default="auto",
-                        help="how ended worlds are reset: loop (one by one, fast on a CPU), select (every world's "
-                             "fresh state, selected: fast on a GPU), auto (loop on a CPU, select elsewhere; default)")
+    parser.add_argument(
+        "--reset",
+        choices=RESET_STRATEGIES,
+        default="auto",
+        help="how ended worlds are reset: loop (one by one, fast on a CPU), select (every world's "
+        "fresh state, selected: fast on a GPU), auto (loop on a CPU, select elsewhere; default)",
+    )
     add_devices_argument(parser)
     parser.set_defaults(func=run)
 

@@ -155,7 +155,9 @@ class GameSession:
         else:
             self.params = self._eval_params
         self.episode_seed = (self.seed + self.episode_index) % (MAX_SEED + 1)
-        self.obs, self.state, self._key_steps = start_episode(self.env, self.params, self.episode_seed, self.test_design)
+        self.obs, self.state, self._key_steps = start_episode(
+            self.env, self.params, self.episode_seed, self.test_design
+        )
         self._start_design = np.asarray(self.state.design).astype(int).tolist()
         self.actions: list[int] = []
         self.strides: list[int] = []
@@ -165,7 +167,7 @@ class GameSession:
         self.terminated = False
         self.final_iou: float | None = None
         self._started = self._clock()
-        self._started_at = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        self._started_at = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
     def press(self, key_name: str) -> bool:
         """Handle one key; True when it stepped the environment. Unbound keys do nothing."""

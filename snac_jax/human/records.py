@@ -14,8 +14,9 @@ import dataclasses
 import functools
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -59,7 +60,7 @@ class EpisodeRecord:
         return json.dumps(dataclasses.asdict(self), separators=(",", ":"))
 
     @classmethod
-    def from_dict(cls, data: Any) -> "EpisodeRecord":
+    def from_dict(cls, data: Any) -> EpisodeRecord:
         """A record from one parsed line, checked against `snac_jax.schema.HUMAN_RECORD` (the
         error names the field), then against the rules that tie its fields together."""
         check(data, HUMAN_RECORD, "")
@@ -80,10 +81,14 @@ class EpisodeRecord:
         spec = task_spec(self.task)
         plays_test_designs = spec.dynamic and self.mode == "eval"
         if plays_test_designs and self.test_design is None:
-            raise ValueError(f"test_design must be an int in 0..{NUM_TEST_DESIGNS - 1}: a dynamic task's eval-mode "
-                             "record plays a test design")
+            raise ValueError(
+                f"test_design must be an int in 0..{NUM_TEST_DESIGNS - 1}: a dynamic task's eval-mode "
+                "record plays a test design"
+            )
         if not plays_test_designs and self.test_design is not None:
-            raise ValueError(f"test_design must be null: only dynamic tasks in eval mode play test designs, got {self.test_design!r}")
+            raise ValueError(
+                f"test_design must be null: only dynamic tasks in eval mode play test designs, got {self.test_design!r}"
+            )
         shape = (1, PLAN_SIZE_1D) if spec.dim == 1 else (PLAN_SIZE_2D, PLAN_SIZE_2D)
         try:
             design = np.asarray(self.design)
@@ -220,8 +225,9 @@ def _replay_from(record: EpisodeRecord, env, params, obs0, state0) -> dict[str, 
     check_range("strides", np.asarray(record.strides), 1, MAX_STRIDE)
     padded = -(-steps // REPLAY_CHUNK) * REPLAY_CHUNK
     pad = lambda x: jnp.asarray(np.pad(np.asarray(x, np.int32), (0, padded - steps), constant_values=1))
-    rewards, terminated, truncated, ious, states = _replay_scan(env, params, obs0, state0, pad(record.actions),
-                                                                pad(record.strides))
+    rewards, terminated, truncated, ious, states = _replay_scan(
+        env, params, obs0, state0, pad(record.actions), pad(record.strides)
+    )
     final = jax.tree.map(lambda x: x[steps - 1], states)
     return {
         "rewards": np.asarray(rewards[:steps]),
@@ -261,7 +267,9 @@ def verify_record(record: EpisodeRecord, tolerance: float = 1e-6) -> None:
     done = out["terminated"] | out["truncated"]
     ended = np.flatnonzero(done)
     if ended.size and ended[0] < len(record.actions) - 1:
-        raise ValueError(f"{who}: the episode ends at step {ended[0] + 1}, but the record goes on to {len(record.actions)} actions")
+        raise ValueError(
+            f"{who}: the episode ends at step {ended[0] + 1}, but the record goes on to {len(record.actions)} actions"
+        )
     if not done[-1]:
         raise ValueError(f"{who}: the episode has not ended after its {len(record.actions)} actions")
     claims = {
@@ -316,7 +324,8 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
         arrays = {name: np.asarray(v, np.float64) for name, v in strata.items()}
         results.append(
             TaskResult.from_episodes(
-                task, arrays,
+                task,
+                arrays,
                 lengths=[r.steps for r in group],
                 bricks_used=[r.bricks_used for r in group],
                 returns=[r.total_reward for r in group],
@@ -327,12 +336,16 @@ def summarize_records(records: Iterable[EpisodeRecord], *, mode: str | None = No
     return results
 
 
-def human_report(path: str | os.PathLike, *, mode: str | None = None, paper_results: str | os.PathLike | None = None,
-                 verify: bool = True) -> str:
+def human_report(
+    path: str | os.PathLike,
+    *,
+    mode: str | None = None,
+    paper_results: str | os.PathLike | None = None,
+    verify: bool = True,
+) -> str:
     """What `snac eval --human FILE` prints: the summary of a record file as the evaluator's
     markdown table, beside the paper's human row. Every record is replayed first (`verify`)."""
-    from snac_jax.paper import markdown_table
-    from snac_jax.paper import load_paper_results, paper_row
+    from snac_jax.paper import load_paper_results, markdown_table, paper_row
 
     records = load_records(path)
     results = summarize_records(records, mode=mode, verify=verify)

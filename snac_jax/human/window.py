@@ -7,13 +7,14 @@ event queue (tests drive whole episodes this way).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from snac_jax.human.game import NEXT_EPISODE_KEYS, QUIT_KEYS, GameSession
 
 
-def run_window(session: GameSession, *, max_episodes: int | None = None, script: Sequence[str] | None = None,
-               fps: int = 30) -> int:
+def run_window(
+    session: GameSession, *, max_episodes: int | None = None, script: Sequence[str] | None = None, fps: int = 30
+) -> int:
     """Play until the window is closed, a quit key is pressed, or `max_episodes` episodes have
     ended and the player presses enter. Returns the number of episodes recorded.
 

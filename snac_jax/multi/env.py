@@ -11,8 +11,9 @@ transition it reuses; with one robot every output equals the single-robot env's.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import partial
-from typing import Any, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -56,7 +57,7 @@ def check_num_robots(task_id: str, num_robots: Any) -> int:
     return int(num_robots)
 
 
-def make(task_id: str, num_robots: int = 1, **switches: Any) -> "MultiSNACEnv":
+def make(task_id: str, num_robots: int = 1, **switches: Any) -> MultiSNACEnv:
     """`env = snac_jax.multi.make("2d-static-dense", num_robots=2, gps=True)`: the task's world
     with `num_robots` robots. `switches` are `snac_jax.make`'s overrides (SPEC §9), checked there;
     the default params are `env.default_params`."""
@@ -179,7 +180,9 @@ class MultiSNACEnv:
         self.single.check_params(params)
         self.single.check_state(state.world)
         if tuple(state.positions.shape) != (self.num_agents, 2):
-            raise ValueError(f"state holds {tuple(state.positions.shape)} positions, {self!r} needs ({self.num_agents}, 2)")
+            raise ValueError(
+                f"state holds {tuple(state.positions.shape)} positions, {self!r} needs ({self.num_agents}, 2)"
+            )
 
     def _outputs(self, state: MultiState, actions: jax.Array, strides: jax.Array, params: EnvParams):
         world, robot_rewards, terminated = rules.robot_turns(self.config, state.world, actions, strides)

@@ -10,8 +10,9 @@ so a recorded episode is the episode an evaluation scores from the same key and 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -80,7 +81,11 @@ def _team_step(env: MultiSNACEnv, policy: MultiPolicy, params: EnvParams, carry)
 
 
 def run_episode(
-    env: MultiSNACEnv, policy: MultiPolicy, key: jax.Array, design_index: jax.Array | int = 0, params: EnvParams | None = None
+    env: MultiSNACEnv,
+    policy: MultiPolicy,
+    key: jax.Array,
+    design_index: jax.Array | int = 0,
+    params: EnvParams | None = None,
 ) -> TeamEpisode:
     """One episode on `params.designs[design_index]` from its reset to its end (a `while_loop`,
     bounded by the step limit); jit and vmap it from the caller (over keys or design indices)."""
@@ -95,8 +100,9 @@ def run_episode(
     first = (start, jnp.zeros((), jnp.float32), jnp.asarray(False), jnp.asarray(False))
     (_, state, _, _), total, _, terminated = jax.lax.while_loop(lambda loop: ~loop[2], body, first)
     world = state.world
-    return TeamEpisode(iou=env.iou(state), length=world.time, bricks_used=world.bricks_used, team_return=total,
-                       terminated=terminated)
+    return TeamEpisode(
+        iou=env.iou(state), length=world.time, bricks_used=world.bricks_used, team_return=total, terminated=terminated
+    )
 
 
 @partial(jax.jit, static_argnames=("env", "init", "act", "num_steps"))
@@ -113,7 +119,8 @@ def _record_scan(key, env: MultiSNACEnv, params: EnvParams, init, act, policy_pa
         return (carry, ended | done), (carry[1], actions, infos["strides"], reward, infos["terminated"], ~ended)
 
     ((_, final, _, _), _), (states, actions, strides, rewards, terminated, live) = jax.lax.scan(
-        body, (start, jnp.asarray(False)), None, length=num_steps)
+        body, (start, jnp.asarray(False)), None, length=num_steps
+    )
     states = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), start[1], states)
     return states, actions, strides, rewards, terminated, live, env.iou(final)
 
@@ -124,12 +131,17 @@ def record_team_episode(env: MultiSNACEnv, params: EnvParams, policy: MultiPolic
     strides are (length, N). One scan over the whole step limit, jitted once per configuration
     (env, policy functions, step limit); an ended episode stays as it was."""
     states, actions, strides, rewards, terminated, live, final_iou = jax.device_get(
-        _record_scan(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode)))
+        _record_scan(key, env, params, policy.init, policy.act, policy.params, int(params.max_steps_in_episode))
+    )
     length = int(np.sum(live))  # the step limit ends every episode within the scan
-    return Trajectory(states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
-                      actions=np.asarray(actions[:length]), strides=np.asarray(strides[:length]),
-                      rewards=np.asarray(rewards[:length]), final_iou=float(final_iou),
-                      terminated=bool(terminated[length - 1]))
+    return Trajectory(
+        states=jax.tree.map(lambda x: np.asarray(x[: length + 1]), states),
+        actions=np.asarray(actions[:length]),
+        strides=np.asarray(strides[:length]),
+        rewards=np.asarray(rewards[:length]),
+        final_iou=float(final_iou),
+        terminated=bool(terminated[length - 1]),
+    )
 
 
 @partial(jax.jit, static_argnums=0)
@@ -143,15 +155,21 @@ def _replay_scan(env: MultiSNACEnv, params: EnvParams, design_index, actions: ja
         obs, stepped, rewards, dones, infos = env.step_with_strides(state, by(acts), by(strs), params)
         state = jax.tree.map(lambda old, new: jnp.where(ended, old, new), state, stepped)
         live = ~ended
-        record = (stack(env, env.get_obs(state)), jnp.where(live, rewards[env.agents[0]], 0.0),
-                  infos["terminated"] & live, infos["truncated"] & live)
+        record = (
+            stack(env, env.get_obs(state)),
+            jnp.where(live, rewards[env.agents[0]], 0.0),
+            infos["terminated"] & live,
+            infos["truncated"] & live,
+        )
         return (state, ended | dones["__all__"]), record
 
     (state, _), records = jax.lax.scan(body, (state, jnp.asarray(False)), (actions, strides))
     return stack(env, obs), state, records
 
 
-def replay(env: MultiSNACEnv, actions, strides, params: EnvParams | None = None, design_index: int = 0) -> dict[str, Any]:
+def replay(
+    env: MultiSNACEnv, actions, strides, params: EnvParams | None = None, design_index: int = 0
+) -> dict[str, Any]:
     """One episode from `reset_to_design` with the given actions and strides, both int (T, N).
 
     Returns the observations (T+1, N, obs_size), the team rewards, terminated and truncated flags
@@ -163,13 +181,17 @@ def replay(env: MultiSNACEnv, actions, strides, params: EnvParams | None = None,
     actions, strides = np.asarray(actions), np.asarray(strides)
     steps = len(actions)
     if not steps or actions.shape != (steps, env.num_agents) or strides.shape != actions.shape:
-        raise ValueError(f"replay needs actions and strides of shape (T, {env.num_agents}), T >= 1, got "
-                         f"{actions.shape} and {strides.shape}")
+        raise ValueError(
+            f"replay needs actions and strides of shape (T, {env.num_agents}), T >= 1, got "
+            f"{actions.shape} and {strides.shape}"
+        )
     check_range("actions", actions, 0, env.num_actions - 1)
     check_range("strides", strides, 1, MAX_STRIDE)
     padded = -(-steps // REPLAY_CHUNK) * REPLAY_CHUNK
     pad = lambda x: jnp.asarray(np.pad(np.asarray(x, np.int32), ((0, padded - steps), (0, 0)), constant_values=1))
-    obs0, state, (obs, rewards, terminated, truncated) = _replay_scan(env, params, design_index, pad(actions), pad(strides))
+    obs0, state, (obs, rewards, terminated, truncated) = _replay_scan(
+        env, params, design_index, pad(actions), pad(strides)
+    )
     (pr, pc), (h, w) = env.config.pad, env.config.plan_shape
     grid = np.asarray(state.world.grid)[pr : pr + h, pc : pc + w]
     return {

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from functools import partial
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -47,8 +48,12 @@ class TeamResult:
     finished_fraction: float  # episodes that ended terminated (on any step, the last one included), not truncated
 
     def to_json(self) -> dict[str, Any]:
-        return {**self.result.to_json(), "robots": self.robots, "max_steps": self.max_steps,
-                "finished_fraction": self.finished_fraction}
+        return {
+            **self.result.to_json(),
+            "robots": self.robots,
+            "max_steps": self.max_steps,
+            "finished_fraction": self.finished_fraction,
+        }
 
 
 @partial(jax.jit, static_argnames=("env", "init", "act"))
@@ -58,9 +63,16 @@ def _team_episodes(env, init, act, policy_params, env_params, keys, design_indic
     return jax.vmap(lambda key, index: run_episode(env, team, key, index, env_params))(keys, design_indices)
 
 
-def evaluate_team_task(task: str, team: TeamLike, num_robots: int, *, static_episodes: int = STATIC_EPISODES,
-                       episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN, seed: int = TUNING_EVAL_SEED,
-                       **overrides: Any) -> TeamResult:
+def evaluate_team_task(
+    task: str,
+    team: TeamLike,
+    num_robots: int,
+    *,
+    static_episodes: int = STATIC_EPISODES,
+    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN,
+    seed: int = TUNING_EVAL_SEED,
+    **overrides: Any,
+) -> TeamResult:
     """SPEC §8's protocol run by a team of `num_robots` in `snac_jax.multi.make(env_task,
     num_robots, **overrides)`: the same episodes per design, test designs and key per environment
     task (`fold_in(key(seed), crc32(env task))`) as `snac_jax.evaluation.evaluate_task`, so with
@@ -82,18 +94,28 @@ def evaluate_team_task(task: str, team: TeamLike, num_robots: int, *, static_epi
             return obs, state, policy.init(k, state.world.design)
 
         one = jax.eval_shape(one_episode, jax.random.key(0))
-        require(f"{setup.num_episodes:,} team episodes at once", 4 * setup.num_episodes * tree_bytes(one),
-                "evaluate fewer episodes")
+        require(
+            f"{setup.num_episodes:,} team episodes at once",
+            4 * setup.num_episodes * tree_bytes(one),
+            "evaluate fewer episodes",
+        )
         design_indices, keys = setup.design_indices, setup.keys
-        episodes = jax.device_get(_team_episodes(env, policy.init, policy.act, policy.params, params, keys,
-                                                 jnp.asarray(design_indices)))
+        episodes = jax.device_get(
+            _team_episodes(env, policy.init, policy.act, policy.params, params, keys, jnp.asarray(design_indices))
+        )
         outcomes.append(episodes)
         limits.append(int(params.max_steps_in_episode))
         for index, name in enumerate(names):
             strata[name] = np.asarray(episodes.iou[design_indices == index], np.float64)
     everything = jax.tree.map(lambda *xs: np.concatenate(xs), *outcomes)
-    result = TaskResult.from_episodes(task=task, strata=strata, lengths=everything.length,
-                                      bricks_used=everything.bricks_used, returns=everything.team_return,
-                                      seed=seed, wall_s=time.perf_counter() - start)
+    result = TaskResult.from_episodes(
+        task=task,
+        strata=strata,
+        lengths=everything.length,
+        bricks_used=everything.bricks_used,
+        returns=everything.team_return,
+        seed=seed,
+        wall_s=time.perf_counter() - start,
+    )
     finished = float(np.mean(np.asarray(everything.terminated)))
     return TeamResult(result=result, robots=num_robots, max_steps=max(limits), finished_fraction=finished)

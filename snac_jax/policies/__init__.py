@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from snac_jax.policy import Policy
 
@@ -40,7 +41,9 @@ POLICIES: dict[str, PolicyEntry] = {
         paper_method="handcrafted",
         help="the handcrafted baseline, 1D variant with its own brick map (2D/3D unchanged)",
     ),
-    "random": PolicyEntry(builder="snac_jax.policies.random:random_policy", paper_method=None, help="uniformly random actions"),
+    "random": PolicyEntry(
+        builder="snac_jax.policies.random:random_policy", paper_method=None, help="uniformly random actions"
+    ),
 }
 
 

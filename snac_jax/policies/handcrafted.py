@@ -137,9 +137,7 @@ def _localise_1d(config: EnvConfig, variant: str, state: HandcraftedState, windo
     if variant == "map":
         # Compare with the own brick record at each candidate cell (clipped to the plan).
         candidates = jnp.clip(col + strides * sign, 0, config.plan_shape[1] - 1)
-        matches = jax.vmap(
-            lambda c: jnp.all(_window_of(config, state.built, jnp.stack([0, c])) == window)
-        )(candidates)
+        matches = jax.vmap(lambda c: jnp.all(_window_of(config, state.built, jnp.stack([0, c])) == window))(candidates)
     else:
         matches = _shift_matches(config, state.last_window, window)[jnp.clip(state.last_action, 0, 1)]
     # The reference's end test: 2 cells onto an end where strides 2 and 3 coincide. Its right
@@ -188,9 +186,7 @@ def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array
     move_index = jnp.clip(state.last_action, 0, num_moves - 1)
     matches = _shift_matches(config, state.last_window, window)[move_index]
     unchanged = jnp.all(window == state.last_window)
-    stride = jnp.where(
-        unchanged | matches[0], 1, jnp.where(matches[1], 2, jnp.where(matches[2], 3, 0))
-    )
+    stride = jnp.where(unchanged | matches[0], 1, jnp.where(matches[1], 2, jnp.where(matches[2], 3, 0)))
     estimate = _clip_to_plan(config, state.estimate + stride * directions[move_index])
 
     # Absolute fix from a wall at an end of the middle column / middle row.
@@ -240,7 +236,9 @@ def _move_toward(d_row: jax.Array, d_col: jax.Array, vertical_first: jax.Array) 
     """The move toward a cell at (d_row, d_col); a diagonal one moves vertically when asked."""
     horizontal = jnp.where(d_col > 0, _MOVE_RIGHT, _MOVE_LEFT)
     vertical = jnp.where(d_row > 0, _MOVE_DOWN, _MOVE_UP)
-    return jnp.where(d_row == 0, horizontal, jnp.where(d_col == 0, vertical, jnp.where(vertical_first, vertical, horizontal)))
+    return jnp.where(
+        d_row == 0, horizontal, jnp.where(d_col == 0, vertical, jnp.where(vertical_first, vertical, horizontal))
+    )
 
 
 def _plan_own_cell_drop(config: EnvConfig, state: HandcraftedState, window: jax.Array, key: jax.Array):

@@ -31,8 +31,9 @@ from snac_jax.rendering.draw import (
 from snac_jax.transition import PADDING
 
 
-def render_observation(env, obs, *, cell: int = 44, design_cell: int | None = None,
-                       labels: dict[tuple[int, int], str] | None = None) -> np.ndarray:
+def render_observation(
+    env, obs, *, cell: int = 44, design_cell: int | None = None, labels: dict[tuple[int, int], str] | None = None
+) -> np.ndarray:
     """What the agent sees, drawn from its observation vector only (the human game's view).
 
     The window is drawn large (cell `cell`) with the robot at its centre: padding `PADDING`,
@@ -56,8 +57,10 @@ def render_observation(env, obs, *, cell: int = 44, design_cell: int | None = No
         view = _observation_cells(window, cell, numbers=config.dim == 3)
     if labels:
         centre = (wr // 2, wc // 2)
-        items = [((centre[1] + dc) * cell + cell - 14, (centre[0] + dr) * cell + cell - 18, text, WINDOW)
-                 for (dr, dc), text in labels.items()]
+        items = [
+            ((centre[1] + dc) * cell + cell - 14, (centre[0] + dr) * cell + cell - 18, text, WINDOW)
+            for (dr, dc), text in labels.items()
+        ]
         view = draw_text(view, items, size=14)
     if not config.dynamic:
         return view
@@ -125,5 +128,9 @@ def _design_thumbnail(config: EnvConfig, design: np.ndarray, cell: int | None) -
     else:  # deeper blue for taller design columns
         tallest = max(int(design.max()), 1)
         shade = (design / tallest)[..., None]
-        colours[:] = np.where(design[..., None] > 0, (1.15 - 0.4 * shade) * np.asarray(DESIGN), colours).clip(0, 255).astype(np.uint8)
+        colours[:] = (
+            np.where(design[..., None] > 0, (1.15 - 0.4 * shade) * np.asarray(DESIGN), colours)
+            .clip(0, 255)
+            .astype(np.uint8)
+        )
     return upscale(colours, cell)

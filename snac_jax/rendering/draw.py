@@ -7,8 +7,8 @@ needed to make a picture.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Sequence
 
 import numpy as np
 
@@ -58,7 +58,9 @@ def add_caption(frame: np.ndarray, lines: Sequence[str]) -> np.ndarray:
     return np.concatenate([band, frame], axis=0)
 
 
-def draw_text(image: np.ndarray, items: Sequence[tuple[int, int, str, tuple[int, int, int]]], size: int = 13) -> np.ndarray:
+def draw_text(
+    image: np.ndarray, items: Sequence[tuple[int, int, str, tuple[int, int, int]]], size: int = 13
+) -> np.ndarray:
     """A copy of `image` with each (x, y, text, colour) written at pixel (x, y) (top-left)."""
     from PIL import Image, ImageDraw
 

@@ -7,8 +7,8 @@ second process) never sees half a file, and an interrupted run leaves the previo
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -23,8 +23,12 @@ def save_png(path: str | os.PathLike, frame: np.ndarray) -> Path:
     return atomic_write(path, lambda f: Image.fromarray(frame).save(f, format="PNG"))
 
 
-def save_gif(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 10.0,
-             durations_ms: Sequence[float] | None = None) -> Path:
+def save_gif(
+    path: str | os.PathLike,
+    frames: Sequence[np.ndarray],
+    fps: float = 10.0,
+    durations_ms: Sequence[float] | None = None,
+) -> Path:
     """Write equally shaped frames as a looping GIF atomically (temporary file, then rename).
 
     Each frame lasts 1/fps seconds, or `durations_ms[i]` milliseconds when given. The GIF

@@ -9,7 +9,7 @@ robot 0's window on the floor, as `render` does; every robot's disc is painted o
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -24,8 +24,9 @@ ROBOT_COLOURS = ((24, 40, 150), (200, 30, 200), (0, 160, 170), (0, 0, 0))
 palette's cell colours."""
 
 
-def render_robots(env, state, params: EnvParams | None = None, *, cell: int | None = None,
-                  caption: bool | Sequence[str] = True) -> np.ndarray:
+def render_robots(
+    env, state, params: EnvParams | None = None, *, cell: int | None = None, caption: bool | Sequence[str] = True
+) -> np.ndarray:
     """One world of a `snac_jax.multi.MultiSNACEnv` as a uint8 RGB frame, each robot in its
     colour. `state` is one unbatched `MultiState`; `cell` and `caption` as `render` (the default
     caption adds the number of robots)."""
@@ -38,8 +39,10 @@ def render_robots(env, state, params: EnvParams | None = None, *, cell: int | No
     first = state.world.replace(position=state.positions[0])
     if caption is True:
         snap = Snapshot.of(config, first)
-        caption = [f"{config.task_id}  {len(positions)} robots  step {snap.time}  "
-                   f"bricks {snap.bricks_used}/{snap.max_bricks}  IoU {snap.iou:.3f}"]
+        caption = [
+            f"{config.task_id}  {len(positions)} robots  step {snap.time}  "
+            f"bricks {snap.bricks_used}/{snap.max_bricks}  IoU {snap.iou:.3f}"
+        ]
     frame = render(env.single, first, params, cell=cell, caption=caption).copy()
     layout = world_layout(env.single, params, cell=cell, caption_lines=0 if caption is False else len(caption))
     (pr, pc), (wr, wc) = config.pad, config.window_shape

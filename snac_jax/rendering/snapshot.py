@@ -30,7 +30,7 @@ class Snapshot:
     landmarks_left: int | None = None  # SPEC §14, with landmark_action only
 
     @classmethod
-    def of(cls, config: EnvConfig, state: EnvState) -> "Snapshot":
+    def of(cls, config: EnvConfig, state: EnvState) -> Snapshot:
         grid = np.asarray(state.grid)
         if grid.shape != config.grid_shape:
             raise ValueError(

@@ -9,7 +9,7 @@ for tests and for anyone drawing on top of a frame.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -81,8 +81,14 @@ class WorldLayout:
         return self.cell_center(self.levels, col)
 
 
-def render(env, state: EnvState, params: EnvParams | None = None, *, cell: int | None = None,
-           caption: bool | Sequence[str] = True) -> np.ndarray:
+def render(
+    env,
+    state: EnvState,
+    params: EnvParams | None = None,
+    *,
+    cell: int | None = None,
+    caption: bool | Sequence[str] = True,
+) -> np.ndarray:
     """One world as a uint8 RGB frame (H, W, 3); see the package docstring for the views.
 
     `env` is a `SNACEnv` (or its `EnvConfig`), `state` one unbatched `EnvState`, `params` the
@@ -108,7 +114,9 @@ def render(env, state: EnvState, params: EnvParams | None = None, *, cell: int |
     return add_caption(world, lines)
 
 
-def world_layout(env, params: EnvParams | None = None, *, cell: int | None = None, caption_lines: int = 1) -> WorldLayout:
+def world_layout(
+    env, params: EnvParams | None = None, *, cell: int | None = None, caption_lines: int = 1
+) -> WorldLayout:
     """Where `render` puts the cells (with `caption_lines` caption lines; 0 for `caption=False`)."""
     config = config_of(env)
     params = params if params is not None else env.default_params
