@@ -178,7 +178,7 @@ def test_a_same_as_that_names_no_budget_is_refused(tmp_path, entry, message):
 
 
 def test_the_learners_inputs_read_padding_and_landmark_values_from_the_library():
-    from agents.training import inputs
+    from agents.common import inputs
     from snac_jax.observation import LANDMARK_VALUE
     from snac_jax.transition import PADDING
 
