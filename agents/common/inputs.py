@@ -22,6 +22,17 @@ from snac_jax.transition import PADDING
 _LOWEST_CELL = int(min(LANDMARK_VALUE, PADDING))  # the lowest value a window cell holds
 
 
+def episode_min_steps(env: SNACEnv, params: EnvParams) -> int:
+    """A lower bound on the steps of any episode of `env` under `params` (SPEC §4-§5): the step
+    limit; the brick budget, since each counted drop takes a step; and with the obstacle rule 3,
+    since a robot starting in a corner is walled in after two drops and its next action ends the
+    episode."""
+    bound = min(int(params.max_steps_in_episode), int(np.min(np.asarray(params.design_max_bricks))))
+    if env.config.obstacles:
+        bound = min(bound, 3)
+    return max(bound, 1)
+
+
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
     """What a network reads: the environment's observation, laid out as `env` (the library's
@@ -35,6 +46,11 @@ class ObsLayout:
     # > 0: the learner appends the previous step to the environment's observation: the window
     # before the last action, and that action one-hot in `num_actions + 1` entries.
     num_actions: int = 0
+    # The fewest steps an episode lasts, and how many designs one episode shows (2 with a design
+    # change, SPEC §15): together they bound how often a dynamic task's design can change along
+    # a sequence (`max_design_runs`). 1 and 1 claim nothing, and the design is read at every step.
+    episode_min_steps: int = 1
+    designs_per_episode: int = 1
 
     @classmethod
     def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> ObsLayout:
@@ -44,7 +60,16 @@ class ObsLayout:
             brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
             step_scale=float(int(params.max_steps_in_episode)),
             num_actions=env.num_actions if previous_step else 0,
+            episode_min_steps=episode_min_steps(env, params),
+            designs_per_episode=2 if env.config.design_change else 1,
         )
+
+    def max_design_runs(self, steps: int) -> int:
+        """The most runs of one design a world's observations hold along `steps` consecutive
+        steps: episodes last at least `episode_min_steps`, so at most `1 + ceil((steps - 1) /
+        episode_min_steps)` of them meet `steps` steps, each showing `designs_per_episode`."""
+        episodes = 1 + -(-(steps - 1) // self.episode_min_steps)
+        return min(steps, episodes * self.designs_per_episode)
 
     @property
     def window_shape(self) -> tuple[int, int]:

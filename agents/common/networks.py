@@ -92,6 +92,30 @@ class DesignEncoder(nn.Module):
         return x.reshape(lead + (self.features,))
 
 
+def encode_design_runs(encode: Callable[[jax.Array], jax.Array], designs: jax.Array, max_runs: int) -> jax.Array:
+    """`encode` of time-major `designs (T, B, *plan)` -> `(T, B, F)`, calling `encode` on one
+    design per run of equal designs in each column (at most `max_runs` runs) instead of on all T.
+
+    Why: a dynamic task's design stays the same for a whole episode, and its encoder costs more
+    than the rest of the network; run once per episode, a sequence of T steps pays for the few
+    designs it holds. The gradient is the same sum over steps (float tolerance), gathered onto
+    each run's one encoding. A column with more runs than `max_runs` (a wrong bound) reads NaN,
+    so the loss, and the driver's divergence flag, say so rather than train on another design.
+    """
+    steps, columns = designs.shape[:2]
+    if max_runs >= steps:
+        return encode(designs)
+    flat = designs.reshape(steps, columns, -1)
+    changed = jnp.any(flat[1:] != flat[:-1], axis=-1)  # (T - 1, B)
+    starts = jnp.concatenate([jnp.ones((1, columns), bool), changed], axis=0)
+    run = jnp.cumsum(starts, axis=0) - 1  # (T, B): the run each step belongs to
+    first = jax.vmap(lambda s: jnp.nonzero(s, size=max_runs, fill_value=0)[0], in_axes=1, out_axes=1)(starts)
+    run_designs = jnp.take_along_axis(designs, first.reshape(first.shape + (1,) * (designs.ndim - 2)), axis=0)
+    features = encode(run_designs)  # (max_runs, B, F)
+    out = jnp.take_along_axis(features, jnp.minimum(run, max_runs - 1)[..., None], axis=0)
+    return jnp.where((run < max_runs)[..., None], out, jnp.nan)
+
+
 def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
     """A hidden layer's ReLU, after a LayerNorm where the network asks for one (inside a compact
     module: the LayerNorm is a submodule of the caller)."""
@@ -125,11 +149,24 @@ class ObservationEncoder(nn.Module):
                 parts["last_action"],
             ]
         if "design" in parts and self.read_design:
-            features.append(DesignEncoder(self.hidden_size)(parts["design"]))
+            features.append(self.design_features(parts["design"]))
         x = jnp.concatenate(features, axis=-1)
         for width in self.layers or (self.hidden_size,) * 2:
             x = hidden_activation(layer(width, np.sqrt(2))(x), self.layer_norm)
         return x
+
+    def design_features(self, design: jax.Array) -> jax.Array:
+        """`DesignEncoder` features of `design (*lead, *plan)`: once per run of one design along
+        the time axis where the inputs are a sequence `(T, B, *plan)` (`encode_design_runs`, its
+        bound from the layout); at every entry otherwise (stacked frames, whose zeroed history
+        changes more often than episodes do)."""
+        encoder = DesignEncoder(self.hidden_size)
+        lead = design.shape[:-2]
+        if len(lead) == 2 or (len(lead) == 3 and lead[2] == 1):
+            sequence = design.reshape((lead[0], -1) + design.shape[-2:])  # (T, B, *plan)
+            features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))
+            return features.reshape(lead + (self.hidden_size,))
+        return encoder(design)
 
 
 class ScannedRNN(nn.Module):

@@ -1,0 +1,187 @@
+"""A dynamic task's design read once per run of one design (`agents.common.networks.
+encode_design_runs`): by hand, against the per-step encoding inside every learner across episode
+boundaries, and the bound it relies on (`agents.common.inputs.episode_min_steps`) against the
+environment."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from agents.common import networks
+from agents.common.inputs import ObsLayout, episode_min_steps
+from agents.training.registry import ALGORITHMS, build_algorithm, config_class, make_config
+from snac_jax import make
+
+
+def _designs(runs_per_column: list[list[tuple[int, int]]]) -> np.ndarray:
+    """`(T, B, 1, 2)` designs from each column's runs `(value, length)`."""
+    columns = [np.concatenate([np.full(length, value) for value, length in runs]) for runs in runs_per_column]
+    values = np.stack(columns, axis=1).astype(np.float32)  # (T, B)
+    return np.stack([values, 2 * values], axis=-1)[:, :, None, :]
+
+
+def test_each_run_is_encoded_once_and_every_step_reads_its_runs_features():
+    designs = _designs([[(1, 2), (5, 3), (1, 1)], [(7, 6)]])  # column 0: three runs; column 1: one
+    seen = []
+
+    def encode(d):
+        seen.append(d.shape)
+        return jnp.stack([d.sum((-1, -2)), d.max((-1, -2))], axis=-1)
+
+    out = networks.encode_design_runs(encode, jnp.asarray(designs), max_runs=3)
+    assert seen == [(3, 2, 1, 2)]  # three designs a column, not six
+    expected = np.stack([designs.sum((-1, -2)), designs.max((-1, -2))], axis=-1)
+    np.testing.assert_array_equal(np.asarray(out), expected)
+    # By hand: column 0 reads runs 1, 5, 1 (sum 3 * value), column 1 its one design throughout.
+    assert np.asarray(out)[:, 0, 0].tolist() == [3, 3, 15, 15, 15, 3]
+    assert np.asarray(out)[:, 1, 0].tolist() == [21] * 6
+
+
+def test_a_bound_that_is_too_small_reads_nan_rather_than_another_runs_design():
+    designs = jnp.asarray(_designs([[(1, 2), (5, 3), (1, 1)], [(7, 6)]]))
+    out = np.asarray(networks.encode_design_runs(lambda d: d.sum((-1, -2))[..., None], designs, max_runs=2))
+    assert np.isnan(out[5, 0]).all() and np.isfinite(out[:5, 0]).all() and np.isfinite(out[:, 1]).all()
+
+
+def test_the_gradient_through_the_runs_equals_the_per_step_gradient():
+    designs = jnp.asarray(_designs([[(1, 2), (5, 3), (1, 1)], [(7, 4), (2, 2)]]))
+    weights = jnp.arange(1.0, 13.0).reshape(6, 2)
+
+    def loss(w, max_runs):
+        encode = lambda d: jnp.tanh(d.reshape(d.shape[:2] + (2,)) @ w[:2]) * w[2:4]
+        return (networks.encode_design_runs(encode, designs, max_runs) * weights[..., None]).sum()
+
+    w = jnp.array([[0.3, -0.2], [0.1, 0.4], [1.0, 2.0], [0.5, -1.0]])
+    np.testing.assert_allclose(jax.grad(loss)(w, 3), jax.grad(loss)(w, 6), rtol=1e-5)  # summed in another order
+
+
+@pytest.mark.parametrize(
+    "task,overrides,expected",
+    [
+        ("2d-dynamic-dense", {}, 51),  # the bank's smallest design has 51 cells: its budget is below 600 steps
+        ("1d-dynamic", {"max_steps": 7}, 7),  # the step limit
+        ("3d-dynamic-sparse", {}, 3),  # the obstacle rule: walled in after two drops
+        ("2d-dynamic-sparse", {"obstacles": True}, 3),
+    ],
+)
+def test_episode_min_steps_of_a_task(task, overrides, expected):
+    env, params = make(task, **overrides)
+    assert episode_min_steps(env, params) == expected
+
+
+def test_the_obstacle_bound_is_reached_by_a_robot_that_walls_itself_in():
+    """From the corner start, drops on c+1 and r+1 (actions 5 and 6) leave no free neighbour; the
+    third action ends the episode: 3 steps, the bound `episode_min_steps` gives in 3D."""
+    env, params = make("3d-dynamic-dense")
+    _, state = env.reset(jax.random.key(0), params)
+    ended = []
+    for action in (5, 6, 0):
+        _, state, _, terminated, truncated, _ = env.step(jax.random.key(1), state, action, params)
+        ended.append(bool(terminated | truncated))
+    assert ended == [False, False, True]
+    assert episode_min_steps(env, params) == 3
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    task=st.sampled_from(["1d-dynamic", "2d-dynamic-sparse", "3d-dynamic-dense"]),
+    max_steps=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_random_rollouts_never_hold_more_design_runs_than_the_bound(task, max_steps, seed):
+    env, params = make(task, max_steps=max_steps)
+    layout = ObsLayout.from_env(env, params)
+    worlds, steps = 16, 24
+    keys = jax.random.split(jax.random.key(seed), worlds)
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+
+    def step(carry, key):
+        obs, state = carry
+        action_key, step_key = jax.random.split(key)
+        actions = jax.random.randint(action_key, (worlds,), 0, env.num_actions)
+        obs2, state2, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(step_key, worlds), state, actions, params
+        )
+        return (obs2, state2), obs
+
+    _, observed = jax.lax.scan(step, (obs, state), jax.random.split(jax.random.key(seed + 1), steps))
+    design = np.asarray(observed[..., layout.env.design])
+    runs = 1 + (design[1:] != design[:-1]).any(-1).sum(0)
+    for window in (2, 5, steps):
+        starts = range(0, steps - window + 1)
+        most = max(1 + (design[s + 1 : s + window] != design[s : s + window - 1]).any(-1).sum(0).max() for s in starts)
+        assert most <= layout.max_design_runs(window)
+    assert runs.max() <= layout.max_design_runs(steps)
+
+
+# Every learner's tiny settings: the union of the keys the learners' tests pin; each takes those of
+# its config's fields.
+TINY = dict(
+    num_envs=4,
+    rollout_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    hidden_size=8,
+    rnn_size=8,
+    batch_size=8,
+    learning_starts=0,
+    gradient_steps=1,
+    lstm_size=8,
+    burn_in=2,
+    sequence_length=6,
+    max_steps=5,  # several episodes inside every rollout and sequence
+)
+
+
+def _tiny_config(algorithm: str, task: str):
+    fields = {f.name for f in dataclasses.fields(config_class(algorithm))}
+    return make_config(algorithm, task, **{k: v for k, v in TINY.items() if k in fields})
+
+
+def _chunk_params(algorithm_name: str, task: str):
+    agent = build_algorithm(_tiny_config(algorithm_name, task))
+    state = jax.jit(agent.init)(jax.random.key(3))
+    state, _ = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 2))(state)
+    return state.params
+
+
+def _reads_the_design(params) -> bool:
+    return any("DesignEncoder" in jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_leaves_with_path(params))
+
+
+# PPO in the default run; every learner in the slow one (each compiles two tiny trainings).
+LEARNERS = [pytest.param(a, marks=() if a == "ppo" else pytest.mark.slow) for a in sorted(ALGORITHMS)]
+
+
+@pytest.mark.parametrize("algorithm", LEARNERS)
+def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorithm, monkeypatch):
+    """Two updates on episodes of 5 steps (several inside each rollout or sequence) train the same
+    parameters, to float tolerance, as the design encoded at every step; the learners whose
+    sequences are longer than one step encode fewer designs than steps."""
+    task = "2d-dynamic-sparse"
+    calls = []
+    encode_runs = networks.encode_design_runs
+
+    def spy(encode, designs, max_runs):
+        calls.append((designs.shape[0], max_runs))
+        return encode_runs(encode, designs, max_runs)
+
+    monkeypatch.setattr(networks, "encode_design_runs", spy)
+    once = _chunk_params(algorithm, task)
+    engaged = any(max_runs < steps for steps, max_runs in calls)
+    monkeypatch.setattr(ObsLayout, "max_design_runs", lambda self, steps: steps)
+    every_step = _chunk_params(algorithm, task)
+    for a, b in zip(jax.tree.leaves(once), jax.tree.leaves(every_step)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+    if not calls:  # a network that reads the design otherwise (pqn-belief's expected window alone)
+        assert not _reads_the_design(once)
+        return
+    sequences = {"dqn", "rainbow", "sac"}  # one-step samples: nothing to share between steps
+    assert engaged == (algorithm not in sequences), calls
