@@ -237,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
         stored = checkpoint.read_run_options(out_dir)
         options = {name: given[name] if given[name] is not None else stored.get(name) for name in RUN_OPTIONS}
-        swept = sweep.load(out_dir)
+        swept = sweep.load(out_dir, config)
     else:
         config = build_config(args)
         swept = _parse_sweep(args, config)

@@ -22,7 +22,10 @@ def load_trained(directory: str | Path):
     older policy) that says how to repair the run."""
     config = read_config(directory)
     algorithm = build_algorithm(config)
-    like = initial_state(algorithm, swept=sweep.load(Path(directory)))
+    swept = sweep.load(Path(directory), config)
+    if swept is not None:
+        sweep.check_arms(Path(directory), config, swept)
+    like = initial_state(algorithm, swept=swept)
     chunk, state, notes = restore_latest(directory, like)
     if chunk is None:
         raise ValueError(
@@ -60,7 +63,7 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
             f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
             f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)"
         )
-    swept = sweep.load(Path(checkpoint))
+    swept = sweep.load(Path(checkpoint), config)
     runs = config.seeds * (1 if swept is None else swept.num_arms)
     if not 0 <= seed_index < runs:
         what = "" if swept is None else f" (a sweep: arm a, seed s is index a * {config.seeds} + s)"
