@@ -279,3 +279,14 @@ def test_an_arm_folder_linked_outside_the_run_is_refused_and_a_lost_arm_config_r
     _resume(run)
     assert (run / "arms" / "1" / "config.json").read_text() == written
     assert "arms/1/config.json was missing; rewritten from" in capsys.readouterr().err
+
+
+def test_snac_eval_of_a_sweep_names_the_arm_and_seed_of_a_run_index(sweep_run, capsys):
+    from snac_jax.cli import main
+
+    run = sweep_run[0] / "sweep"
+    code = main(["eval", "--checkpoint", str(run), "--seed-index", "3", "--episodes", "2", "--devices", "1"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert f"arm 1 (learning_rate={VALUES[1]:g}), training seed index 1 (run index 3)" in out
+    assert "training seed index 3" not in out

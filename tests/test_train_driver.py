@@ -399,7 +399,7 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
         ],
         capsys,
     )
-    assert code == 0 and loaded == [1] and "(training seed 1)" in out, err
+    assert code == 0 and loaded == [1] and "(training seed index 1)" in out, err
 
     code, _, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "2", "--episodes", "2"], capsys)
     assert code == 2 and "seed index (seed_index, --seed-index) must be in 0..1" in err
@@ -872,3 +872,14 @@ def test_run_files_are_readable_by_others(tmp_path):
         os.umask(old_umask)
     modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
     assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}
+
+
+def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tmp_path, capsys):
+    """The paper scored the task as defined: a run trained (and so scored) with max_steps 5 has
+    no paper row or delta beside it, as `snac eval` of its checkpoint says."""
+    argv = ["train", "ppo", *TINY_FLAGS, "--total-steps", "128", "--chunks", "1", "--max-steps", "5"]
+    code, out, err = _cli([*argv, "--eval-episodes", "2", "--out", str(tmp_path / "run")], capsys)
+    assert code == 0, err
+    assert "(no paper row)" in out and "paper row: ppo" not in out
+    row = next(line for line in out.splitlines() if line.startswith("| 1d-static-sin |"))
+    assert row.split("|")[7:10] == [" — ", " — ", " — "]  # paper mean, paper min, delta
