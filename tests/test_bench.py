@@ -250,9 +250,19 @@ def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
 
 def test_device_check_refuses_bad_arguments_before_measuring(tmp_path):
     script = ROOT / "bench" / "device_check.py"
-    for args in (["--repeats", "2"], ["--point-s", "0"], ["--skip", "everything"], ["--tasks", "4d-static"]):
+    (tmp_path / "file").write_text("")
+    for args in (
+        ["--repeats", "2"],
+        ["--point-s", "0"],
+        ["--skip", "everything"],
+        ["--tasks", "4d-static"],
+        ["--skip", "step", "learn", "readme", "gymnasium"],  # would say it wrote files and write none
+        ["--budget-s", "0"],  # was read as the default, 150 s
+        ["--budget-s", "-5"],
+        ["--out", str(tmp_path / "file")],
+    ):
         done = subprocess.run(
-            [sys.executable, str(script), *args, "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT
+            [sys.executable, str(script), "--out", str(tmp_path / "x"), *args], capture_output=True, text=True, cwd=ROOT
         )
         assert done.returncode == 2, (args, done.stderr)
         assert done.stderr.strip().splitlines()[-1].startswith(("usage", "device_check.py: error")), done.stderr
