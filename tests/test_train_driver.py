@@ -883,3 +883,32 @@ def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tm
     assert "(no paper row)" in out and "paper row: ppo" not in out
     row = next(line for line in out.splitlines() if line.startswith("| 1d-static-sin |"))
     assert row.split("|")[7:10] == [" — ", " — ", " — "]  # paper mean, paper min, delta
+
+
+def test_a_bit_flipped_checkpoint_is_one_line_of_damage_without_orbaxs_noise(tmp_path):
+    """Bytes flipped in a checkpoint's metadata store: the damage is named in one note and the one
+    before restores, without orbax's "Metadata file does not exist" warnings (printed on every
+    read) or the tracebacks of its abandoned callbacks ("Event loop is closed"), at exit included."""
+    script = textwrap.dedent(
+        """
+        import sys
+        from pathlib import Path
+        import jax, jax.numpy as jnp
+        from agents.training import checkpoint
+
+        run = Path(sys.argv[1])
+        for chunk in (0, 1):
+            checkpoint.save_state(run, chunk, {"w": jax.random.normal(jax.random.key(chunk), (64, 64))})
+        for path in (run / "checkpoints" / "1" / "default" / "d").iterdir():
+            data = bytearray(path.read_bytes())
+            for i in range(0, len(data), max(1, len(data) // 8)):
+                data[i] ^= 0x10
+            path.write_bytes(bytes(data))
+        chunk, _, notes = checkpoint.restore_latest(run, {"w": jnp.zeros((64, 64))})
+        print(chunk, notes, file=sys.stderr)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.strip().splitlines() == [done.stderr.strip()], done.stderr[-3000:]
+    assert done.stderr.startswith("0 [") and "checkpoint 1 cannot be read" in done.stderr
