@@ -62,6 +62,7 @@ LEARNERS = ("ppo", "pqn")
 LEARN_TASK = "1d-static-sin"
 STRATEGIES = ("loop", "select")
 CALIBRATION_STEPS = 16
+PARTS = ("step", "learn", "readme", "gymnasium")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -86,14 +87,23 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="start no measurement after this many seconds (default 450; --quick 150)",
     )
     parser.add_argument(
-        "--skip", nargs="+", default=[], choices=("step", "learn", "readme", "gymnasium"), help="parts to leave out"
+        "--skip", nargs="+", default=[], choices=PARTS, help="parts to leave out (at most three of the four)"
     )
     args = parser.parse_args(argv)
     if args.repeats < 3:
         parser.error("--repeats must be >= 3 (the median of at least three timed calls)")
     if args.point_s <= 0:
         parser.error(f"--point-s must be > 0, got {args.point_s}")
-    args.budget_s = args.budget_s or (150.0 if args.quick else 450.0)
+    if args.budget_s is None:
+        args.budget_s = 150.0 if args.quick else 450.0
+    elif not args.budget_s > 0:  # NaN fails too
+        parser.error(f"--budget-s must be > 0 seconds, got {args.budget_s:g}")
+    if set(args.skip) >= set(PARTS):
+        parser.error(
+            f"--skip {' '.join(args.skip)} leaves nothing to measure; skip at most three of {', '.join(PARTS)}"
+        )
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file; give a directory for device.json and device.md")
     return args
 
 
@@ -102,7 +112,7 @@ class Report:
 
     def __init__(self, out: Path, context: dict, start: float, budget_s: float):
         self.out, self.context, self.start, self.budget_s = out, context, start, budget_s
-        self.parts: dict[str, list[dict]] = {"step": [], "learn": [], "readme": [], "gymnasium": []}
+        self.parts: dict[str, list[dict]] = {part: [] for part in PARTS}
 
     def time_left(self) -> bool:
         return time.perf_counter() - self.start < self.budget_s

@@ -16,7 +16,9 @@ judged
 Writes only under `--out`: `robustness.json` (every case: command, exit status, the output's last
 lines, verdict) and `robustness.md` (the table). Scratch runs live in a temporary folder there,
 removed at the end. The cases are in `bench/robustness_cases.py` (command line) and
-`bench/robustness_api.py` (Python API).
+`bench/robustness_api.py` (Python API). `--only PHRASE` re-runs the command-line cases it names
+(a phrase of their description, or their group, e.g. `issue 69`) and merges them into the record
+under `--out`, noting the re-run; the record keeps the *before* rows it was written with.
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ from bench.robustness_cases import TINY, cli_cases, setup  # noqa: E402
 VERDICTS = ("good", "poor", "bad")
 
 
-def snac(work: Path, *argv: str, timeout: float = 600) -> dict:
-    """`python -m snac_jax.cli ARGV` in `work`: exit status, stdout, stderr, seconds."""
+def snac(work: Path, *argv: str, timeout: float = 600, script: str | None = None) -> dict:
+    """`python -m snac_jax.cli ARGV` (or `python SCRIPT ARGV`, a path under the repository) in
+    `work`: exit status, stdout, stderr, seconds."""
     env = {
         **os.environ,
         "JAX_PLATFORMS": "cpu",
@@ -53,7 +56,7 @@ def snac(work: Path, *argv: str, timeout: float = 600) -> dict:
     start = time.perf_counter()
     try:
         done = subprocess.run(
-            [sys.executable, "-m", "snac_jax.cli", *argv],
+            [sys.executable, *(["-m", "snac_jax.cli"] if script is None else [str(ROOT / script)]), *argv],
             cwd=work,
             env=env,
             capture_output=True,
@@ -131,13 +134,15 @@ def run_cli_case(work: Path, case: dict) -> dict:
         if "interrupt_when" in case:
             result = snac_interrupted(work, case["argv"], case["interrupt_when"])
         else:
-            result = snac(work, *case["argv"], timeout=case.get("timeout", 600))
+            result = snac(work, *case["argv"], timeout=case.get("timeout", 600), script=case.get("script"))
     finally:
         if holder is not None:
             holder.kill()
             holder.wait()
     if "refuse" in case:
         verdict, note = judge_refusal(result, case["refuse"])
+        if verdict == "good" and case.get("one_line") and len(result["err"].strip().splitlines()) > case["one_line"]:
+            verdict, note = "poor", f"{len(result['err'].strip().splitlines())} lines on stderr: {note}"
         if verdict == "good" and "also" in case and not case["also"]():
             verdict, note = "bad", "refused, but the files were changed"
         if "banner" in case and case["banner"] not in result["err"]:
@@ -155,11 +160,20 @@ def run_cli_case(work: Path, case: dict) -> dict:
         note = f"exit {result['code']}: {lines[-1] if lines else ''}"
     return {
         "what": case["what"],
-        "input": "snac " + " ".join(case["argv"]),
+        "input": command_line(case),
         "verdict": verdict,
         "note": note[:300],
         "seconds": result["seconds"],
     }
+
+
+def selected(case: dict, only: str) -> bool:
+    """Whether `--only ONLY` runs `case`: ONLY is in its description, or names its group."""
+    return only in case["what"] or only == case.get("group")
+
+
+def command_line(case: dict) -> str:
+    return ("snac" if case.get("script") is None else f"python {case['script']}") + " " + " ".join(case["argv"])
 
 
 def api_cases(work: Path, skip_memory: bool) -> list[dict]:
@@ -286,7 +300,7 @@ def sigkill_case(work: Path) -> dict:
     }
 
 
-def markdown(results: list[dict], seconds: float, before: dict | None = None) -> str:
+def markdown(results: list[dict], seconds: float, before: dict | None = None, reruns: list | None = None) -> str:
     def count(rows):
         return ", ".join(
             f"{sum(r['verdict'] == v for r in rows)} {v}"
@@ -304,6 +318,12 @@ def markdown(results: list[dict], seconds: float, before: dict | None = None) ->
         "**bad** = silently wrong (accepted when it should be refused, or a wrong or lost result). "
         "Paths are relative to a scratch folder holding a tiny trained run `run` (`--max-steps 40 --eval-episodes 2`) "
         "and damaged copies of it.",
+        "",
+        *(
+            f"Re-run since with `--only {r['only']!r}` (merged into this record, the rest kept): {r['cases']} "
+            f"case(s), {r['seconds'] / 60:.0f} min."
+            for r in reruns or []
+        ),
         "",
         f"**Now: {count(results)}.**"
         + ("" if before is None else f" Before the fixes: {count(list(before.values()))}."),
@@ -338,7 +358,12 @@ def markdown(results: list[dict], seconds: float, before: dict | None = None) ->
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="directory for robustness.json and robustness.md")
-    parser.add_argument("--only", default=None, help="run only the CLI cases whose description contains this")
+    parser.add_argument(
+        "--only",
+        default=None,
+        help="run only the CLI cases whose description contains this (or whose group it names, e.g. 'issue 69'), "
+        "merged into --out's record (the rest kept)",
+    )
     parser.add_argument(
         "--skip-memory",
         action="store_true",
@@ -359,10 +384,21 @@ def main(argv=None) -> int:
         help="run nothing: rebuild robustness.md from an earlier robustness.json (and --before)",
     )
     args = parser.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file; give a directory for robustness.json and robustness.md")
+    try:
+        before = None if args.before is None else {r["what"]: r for r in load_results(args.before, "--before")[0]}
+        if args.from_json is not None:
+            results, seconds = load_results(args.from_json, "--from-json")
+            kept = None
+        else:
+            kept = load_record(args.out / "robustness.json") if args.only else None
+    except ValueError as error:
+        parser.error(str(error))
+    if args.only and not any(selected(case, args.only) for case in cli_cases(Path("/nonexistent"))):
+        parser.error(f"--only {args.only!r} matches no case; the cases are listed in bench/robustness_cases.py")
     args.out.mkdir(parents=True, exist_ok=True)
-    before = None if args.before is None else {r["what"]: r for r in load_results(args.before)[0]}
     if args.from_json is not None:
-        results, seconds = load_results(args.from_json)
         return write(args.out, results, seconds, before)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.out, prefix=".robustness-") as scratch:
@@ -372,13 +408,13 @@ def main(argv=None) -> int:
             raise RuntimeError(made["run"]["err"][-3000:])
         results = []
         for case in cli_cases(work):
-            if args.only and args.only not in case["what"]:
+            if args.only and not selected(case, args.only):
                 continue
             if case.get("memory") and args.skip_memory:
                 results.append(
                     {
                         "what": case["what"],
-                        "input": "snac " + " ".join(case["argv"]),
+                        "input": command_line(case),
                         "verdict": "not run",
                         "note": "memory case skipped (--skip-memory)",
                         "seconds": 0,
@@ -390,20 +426,73 @@ def main(argv=None) -> int:
         if not args.only:
             results += api_cases(work, args.skip_memory)
             results += other_cases(work)
-    return write(args.out, results, time.perf_counter() - start, before)
+    seconds = time.perf_counter() - start
+    if kept is None:
+        return write(args.out, results, seconds, before)
+    return write_merged(args.out, kept, results, args.only, seconds, before)
 
 
-def load_results(path: Path) -> tuple[list[dict], float]:
-    """`(results, seconds)` of a robustness.json."""
+def load_record(path: Path) -> dict:
+    """The record at `path` (a robustness.json) as `{"seconds", "results", ...}`; an empty
+    record where there is none."""
+    if not path.exists():
+        return {"seconds": 0.0, "results": []}
+    results, seconds = load_results(path, "the record")
     data = json.loads(path.read_text())
-    return (data, 0.0) if isinstance(data, list) else (data["results"], data["seconds"])
+    return {**(data if isinstance(data, dict) else {}), "results": results, "seconds": seconds}
 
 
-def write(out: Path, results: list[dict], seconds: float, before: dict | None) -> int:
+def load_results(path: Path, what: str = "--from-json") -> tuple[list[dict], float]:
+    """`(results, seconds)` of a robustness.json; a one-line `ValueError` naming `what` and the
+    file when it is missing, not JSON, or not such a record."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as error:
+        raise ValueError(f"{what} {path} cannot be read: {error.strerror or error}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{what} {path} is not JSON: {error}") from None
+    results, seconds = (
+        (data, 0.0)
+        if isinstance(data, list)
+        else ((data.get("results"), data.get("seconds")) if isinstance(data, dict) else (None, None))
+    )
+    fields = ("what", "input", "verdict", "note")
+    if not (
+        isinstance(results, list)
+        and all(isinstance(r, dict) and all(isinstance(r.get(k), str) for k in fields) for r in results)
+        and isinstance(seconds, (int, float))
+        and not isinstance(seconds, bool)
+    ):
+        raise ValueError(
+            f"{what} {path} is not a robustness.json (an object with seconds and results, each result "
+            f"with {', '.join(fields)} as strings)"
+        )
+    return results, float(seconds)
+
+
+def write_merged(out: Path, kept: dict, rerun: list[dict], only: str, seconds: float, before: dict | None) -> int:
+    """The record at `out` with the cases `--only ONLY` re-ran replaced (new ones appended), and
+    that re-run noted: the rest of the record is the earlier whole run's, untouched."""
+    fresh = {r["what"]: r for r in rerun}
+    results = [fresh.pop(r["what"], r) for r in kept["results"]] + list(fresh.values())
+    reruns = [*kept.get("reruns", []), {"only": only, "cases": len(rerun), "seconds": round(seconds, 1)}]
+    return write(out, results, kept["seconds"], before, reruns)
+
+
+def write(out: Path, results: list[dict], seconds: float, before: dict | None, reruns: list | None = None) -> int:
+    """`robustness.json` and `robustness.md` under `out`. The *before* rows are kept in the
+    record, so that rebuilding or merging into it keeps that column."""
     from snac_jax.atomic import atomic_write_json, atomic_write_text
 
-    atomic_write_json(out / "robustness.json", {"seconds": round(seconds, 1), "results": results})
-    atomic_write_text(out / "robustness.md", markdown(results, seconds, before))
+    if before is None and (out / "robustness.json").is_file():
+        before = load_record(out / "robustness.json").get("before")
+    record = {"seconds": round(seconds, 1), "results": results}
+    if reruns:
+        record["reruns"] = reruns
+    if before is not None:
+        record["before"] = before
+    atomic_write_json(out / "robustness.json", record)
+    atomic_write_text(out / "robustness.md", markdown(results, seconds, before, reruns))
     counts = {v: sum(r["verdict"] == v for r in results) for v in VERDICTS}
     print(f"{counts}; wrote {out / 'robustness.md'}")
     return 0 if not counts["bad"] else 1

@@ -70,6 +70,58 @@ def setup(work: Path, snac) -> dict:
     (work / "empty_traces.json").write_text("[]")
     human_records(work)
     table_files(work)
+    made["sweep"] = sweep_files(work, snac)
+    return made
+
+
+SWEEP_VALUES = "0.001,0.03"
+
+
+def sweep_files(work: Path, snac) -> dict:
+    """A tiny finished sweep (2 arms x 2 seeds) and hand-edited copies of it; a run whose newest
+    checkpoint's metadata store has bytes flipped."""
+    made = snac(
+        work,
+        "train",
+        "ppo",
+        "--task",
+        "1d-static-sin",
+        *TINY,
+        "--total-steps",
+        "256",
+        "--chunks",
+        "2",
+        "--max-steps",
+        "40",
+        "--seeds",
+        "2",
+        "--no-eval",
+        "--sweep",
+        f"learning-rate={SWEEP_VALUES}",
+        "--out",
+        "sweep",
+    )
+    edits = {
+        "sweep-negative": {"names": ["learning_rate"], "arms": [[-1.0], [0.03]]},
+        "sweep-valid-edit": {"names": ["learning_rate"], "arms": [[0.001], [0.02]]},
+        "sweep-int": {"names": ["num_envs"], "arms": [[8], [16]]},
+        "sweep-unknown": {"names": ["lr"], "arms": [[0.001], [0.03]]},
+    }
+    for name, grid in edits.items():
+        shutil.copytree(work / "sweep", work / name)
+        (work / name / "sweep.json").write_text(json.dumps(grid))
+    shutil.copytree(work / "sweep", work / "sweep-link")
+    shutil.move(work / "sweep-link" / "arms" / "0", work / "outside-arm")
+    (work / "sweep-link" / "arms" / "0").symlink_to(work / "outside-arm")
+    shutil.copytree(work / "sweep", work / "sweep-lost-arm")
+    (work / "sweep-lost-arm" / "arms" / "1" / "config.json").unlink()
+    shutil.copytree(work / "run", work / "bitflip")
+    for path in (work / "bitflip" / "checkpoints" / "1" / "default" / "d").iterdir():
+        data = bytearray(path.read_bytes())
+        for i in range(0, len(data), max(1, len(data) // 8)):
+            data[i] ^= 0x10
+        path.write_bytes(bytes(data))
+    (work / "garbage.json").write_text("{not json")
     return made
 
 
@@ -170,12 +222,24 @@ def table_files(work: Path) -> None:
         (work / name / "run.json").write_text(options)
 
 
+def snapshot(*paths: Path):
+    """A check that `paths` still hold the bytes they hold now (a path absent now must stay
+    absent). Taken when the cases are built; with no scratch folder (`cli_cases` called only to
+    list the cases) every path is absent and nothing is read."""
+    before = {path: path.read_bytes() if path.exists() else None for path in paths}
+    return lambda: all((path.read_bytes() if path.exists() else None) == data for path, data in before.items())
+
+
+def files_in(folder: Path) -> list[Path]:
+    """The entries of `folder`; none where it does not exist (the cases only listed)."""
+    return list(folder.iterdir()) if folder.is_dir() else []
+
+
 def table_cases(work: Path) -> list[dict]:
     """`snac table`, its runs directory, `--report`, the lock and run.json (see `table_files`)."""
 
     def unchanged(*paths: Path):
-        before = {path: path.read_bytes() for path in paths}
-        return lambda: all(path.read_bytes() == data for path, data in before.items())
+        return snapshot(*paths)
 
     cell = ["--preset", "smoke", "--algorithms", "ppo", "--tasks", "1d-static-sin", "--no-progress"]
     report = ["table", "--preset", "smoke", "--report"]
@@ -201,7 +265,7 @@ def table_cases(work: Path) -> list[dict]:
             what="table --runs-dir holding another run's cell files (the report's layout)",
             argv=["table", *cell, "--runs-dir", "layout-runs"],
             refuse="the table deletes nothing it did not make",
-            also=unchanged(*(work / "layout-runs" / "smoke" / "ppo" / "1d-static-sin").iterdir()),
+            also=unchanged(*files_in(work / "layout-runs" / "smoke" / "ppo" / "1d-static-sin")),
         ),
         dict(
             what="train --out DIR whose .lock is a link to a file outside",
@@ -281,8 +345,7 @@ def cli_cases(work: Path) -> list[dict]:
     """(what, argv, phrase of the refusal) or (what, argv, check of a success) per case."""
 
     def file_unchanged(path: Path):
-        before = path.read_bytes()
-        return lambda: path.read_bytes() == before
+        return snapshot(path)
 
     def eval_json(name):
         return json.loads((work / name / "eval.json").read_text())["1d-static-sin"]
@@ -541,7 +604,135 @@ def cli_cases(work: Path) -> list[dict]:
         ),
         *training_cases(work),
         *table_cases(work),
+        *issue69_cases(work),
     ]
+
+
+def issue69_cases(work: Path) -> list[dict]:
+    """Sweep records edited by hand, the newest surfaces' rough edges (issue 69)."""
+
+    def sweep_config(name: str) -> dict:
+        return json.loads((work / name / "config.json").read_text())
+
+    lr = "--sweep learning-rate="
+    cases = [
+        dict(
+            what="train --resume SWEEP whose sweep.json sets learning_rate -1",
+            argv=["train", "ppo", "--resume", "sweep-negative", "--no-progress"],
+            refuse="sweep.json: learning_rate must be a number > 0, got -1.0",
+            also=snapshot(work / "sweep-negative" / "metrics.jsonl"),
+        ),
+        dict(
+            what="train --resume SWEEP whose sweep.json was validly edited (0.03 -> 0.02)",
+            argv=["train", "ppo", "--resume", "sweep-valid-edit", "--no-progress"],
+            refuse="arms/1/config.json disagrees with",
+        ),
+        dict(
+            what="train --resume SWEEP whose sweep.json names an int setting",
+            argv=["train", "ppo", "--resume", "sweep-int", "--no-progress"],
+            refuse="num_envs cannot be swept in one program",
+            one_line=1,
+        ),
+        dict(
+            what="train --resume SWEEP whose sweep.json names an unknown setting",
+            argv=["train", "ppo", "--resume", "sweep-unknown", "--no-progress"],
+            refuse="ppo has no setting 'lr'",
+            one_line=1,
+        ),
+        *(
+            dict(
+                what=f"train {lr}{values} ({why})",
+                argv=["train", "ppo", *SHORT, "--sweep", f"learning-rate={values}", "--out", f"sweep-{why[:4]}"],
+                refuse=phrase,
+                also=lambda why=why: not (work / f"sweep-{why[:4]}").exists(),
+            )
+            for values, why, phrase in (
+                ("1e39,0.1", "inf in float32", "is inf in float32"),
+                ("1e-50,0.1", "0 in float32", "is 0 in float32"),
+                ("0.1,0.1000000001", "two arms equal in float32", "are the same arm in float32"),
+            )
+        ),
+        dict(
+            what="a sweep's top-level config.json names its swept settings, not a default value",
+            argv=["train", "ppo", "--resume", "sweep", "--no-progress", "--no-eval"],
+            check=lambda: (
+                "learning_rate" not in sweep_config("sweep") and sweep_config("sweep")["swept"] == ["learning_rate"]
+            ),
+        ),
+        dict(
+            what="eval --checkpoint SWEEP --seed-index 3 names arm 1 and its seed",
+            argv=["eval", "--checkpoint", "sweep", "--seed-index", "3", "--episodes", "2", "--devices", "1"],
+            phrase_ok="arm 1 (learning_rate=0.03), training seed index 1 (run index 3)",
+        ),
+        dict(
+            what="train --resume SWEEP whose arms/0 is a link to a folder outside the run",
+            argv=["train", "ppo", "--resume", "sweep-link", "--no-progress", "--no-eval"],
+            refuse="is not the run's own folder",
+            also=snapshot(work / "outside-arm" / "metrics.jsonl"),
+        ),
+        dict(
+            what="train --resume SWEEP whose arms/1/config.json was deleted",
+            argv=["train", "ppo", "--resume", "sweep-lost-arm", "--no-progress", "--no-eval"],
+            phrase_ok="arms/1/config.json was missing; rewritten from",
+            check=lambda: (
+                json.loads((work / "sweep-lost-arm" / "arms" / "1" / "config.json").read_text())["learning_rate"]
+                == 0.03
+            ),
+        ),
+        dict(
+            what="train's final table of a run scored with --max-steps 40 has no paper row",
+            argv=["train", "ppo", "--resume", "run", "--no-progress"],
+            phrase_ok="with {'max_steps': 40} (no paper row)",
+        ),
+        dict(
+            what="eval --checkpoint RUN whose newest checkpoint has flipped bytes",
+            argv=["eval", "--checkpoint", "bitflip", "--episodes", "2", "--devices", "1"],
+            refuse="checkpoint 1 cannot be read",
+            one_line=2,  # the run's settings, then the error
+        ),
+        dict(what="rollout --steps 2**31", argv=["rollout", "--steps", "2147483648"], refuse="1..2147483647"),
+        *(
+            dict(
+                what=f"device_check.py {' '.join(args)}",
+                argv=["--out", "dc", *args],
+                script="bench/device_check.py",
+                refuse=phrase,
+                also=lambda: not (work / "dc").exists(),
+            )
+            for args, phrase in (
+                (["--skip", "step", "learn", "readme", "gymnasium"], "leaves nothing to measure"),
+                (["--budget-s", "0"], "--budget-s must be > 0 seconds, got 0"),
+                (["--budget-s", "-5"], "--budget-s must be > 0 seconds, got -5"),
+            )
+        ),
+        *(
+            dict(
+                what=f"robustness.py {' '.join(args)}",
+                argv=args,
+                script="bench/robustness.py",
+                refuse=phrase,
+                also=lambda: not (work / "probe").exists(),
+            )
+            for args, phrase in (
+                (["--out", "probe", "--from-json", "garbage.json"], "--from-json garbage.json is not JSON"),
+                (["--out", "probe", "--from-json", "missing.json"], "--from-json missing.json cannot be read"),
+                (["--out", "probe", "--from-json", "run/config.json"], "is not a robustness.json"),
+                (
+                    ["--out", "probe", "--before", "garbage.json", "--from-json", "x"],
+                    "--before garbage.json is not JSON",
+                ),
+                (["--out", "file"], "--out file is a file"),
+            )
+        ),
+        dict(  # described without its phrase: a description holding it would match it, and run every case
+            what="robustness.py --only with a phrase no case has",
+            argv=["--out", "probe", "--only", "zz-none"],
+            script="bench/robustness.py",
+            refuse="matches no case",
+            also=lambda: not (work / "probe").exists(),
+        ),
+    ]
+    return [{**case, "group": "issue 69"} for case in cases]
 
 
 def training_cases(work: Path) -> list[dict]:

@@ -207,7 +207,7 @@ class SNACGymEnv(gymnasium.Env):
             # The step itself would go on past the end (time, bricks and IoU growing): the end is
             # where the episode's numbers belong.
             raise gymnasium.error.ResetNeeded(f"the episode ended ({self._ended}): call reset() before step()")
-        if not self.action_space.contains(action):
+        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):  # True is no action
             raise ValueError(f"action must be an int in 0..{self.action_space.n - 1}, got {action!r}")
         self._key, self._state, packed = _step_one(
             self.jax_env, self._key, self._state, np.int32(action), self.env_params

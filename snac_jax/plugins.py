@@ -87,8 +87,13 @@ def checkpoint_loader() -> Callable:
 def load_checkpoint(directory, seed_index: int | None = None) -> tuple[Callable, str, str, dict[str, Any]]:
     """`(builder(env) -> Policy, the run's task, its paper row, its make overrides)` of run
     `directory`, through the installed loader (overrides `{}` where the loader gives none). With
-    `seed_index` the builder loads that training seed; without it, the loader's default."""
+    `seed_index` the builder loads that training seed; without it, the loader's default (index 0).
+    The builder's `label` names the policy loaded: the loader's `builder.describe(index)` where it
+    has one (a sweep's arm and seed), else the training seed index."""
     builder, task, paper_method, *rest = checkpoint_loader()(directory)
-    if seed_index is not None:
-        builder = functools.partial(builder, seed_index=seed_index)
+    describe = getattr(builder, "describe", None)
+    index = 0 if seed_index is None else seed_index
+    label = describe(index) if describe is not None else f"training seed index {index}"
+    builder = functools.partial(builder, **({} if seed_index is None else {"seed_index": seed_index}))
+    builder.label = label
     return builder, task, paper_method, (rest[0] if rest else {})

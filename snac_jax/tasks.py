@@ -178,8 +178,13 @@ def _require_bool(name: str, value: Any) -> bool:
     return bool(value)
 
 
+def _is_int(value: Any) -> bool:
+    """A Python or NumPy int, not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 def _require_int(name: str, value: Any, low: int, high: int | None = None) -> int:
-    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    ok = _is_int(value)
     if not ok or value < low or (high is not None and value > high):
         allowed = f"an int >= {low}" if high is None else f"an int in {low}..{high}"
         raise ValueError(f"{name} must be {allowed}, got {value!r}")
@@ -250,7 +255,7 @@ def make(task_id: str, **overrides: Any) -> tuple[SNACEnv, EnvParams]:
         overrides.get("design_change"),
         max_steps,
         "test_design" in overrides,
-        bank_size if isinstance(bank_size, int) else 2,
+        int(bank_size) if _is_int(bank_size) else 2,  # a bad size is refused below, by name
     )
 
     for name in ("test_design", "design_bank_size", "design_seed"):

@@ -250,10 +250,64 @@ def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
 
 def test_device_check_refuses_bad_arguments_before_measuring(tmp_path):
     script = ROOT / "bench" / "device_check.py"
-    for args in (["--repeats", "2"], ["--point-s", "0"], ["--skip", "everything"], ["--tasks", "4d-static"]):
+    (tmp_path / "file").write_text("")
+    for args in (
+        ["--repeats", "2"],
+        ["--point-s", "0"],
+        ["--skip", "everything"],
+        ["--tasks", "4d-static"],
+        ["--skip", "step", "learn", "readme", "gymnasium"],  # would say it wrote files and write none
+        ["--budget-s", "0"],  # was read as the default, 150 s
+        ["--budget-s", "-5"],
+        ["--out", str(tmp_path / "file")],
+    ):
         done = subprocess.run(
-            [sys.executable, str(script), *args, "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=ROOT
+            [sys.executable, str(script), "--out", str(tmp_path / "x"), *args], capture_output=True, text=True, cwd=ROOT
         )
         assert done.returncode == 2, (args, done.stderr)
         assert done.stderr.strip().splitlines()[-1].startswith(("usage", "device_check.py: error")), done.stderr
     assert not (tmp_path / "x" / "device.json").exists()
+
+
+def test_robustness_refuses_bad_inputs_in_one_line_and_writes_nothing(tmp_path):
+    script = ROOT / "bench" / "robustness.py"
+    (tmp_path / "garbage.json").write_text("{not json")
+    (tmp_path / "list.json").write_text('{"seconds": 1, "results": [1]}')
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "out"
+    for args, phrase in (
+        (["--out", str(out), "--from-json", str(tmp_path / "garbage.json")], "is not JSON"),
+        (["--out", str(out), "--from-json", str(tmp_path / "missing.json")], "cannot be read"),
+        (["--out", str(out), "--from-json", str(tmp_path / "list.json")], "is not a robustness.json"),
+        (["--out", str(out), "--before", str(tmp_path / "garbage.json"), "--from-json", "x"], "--before"),
+        (["--out", str(tmp_path / "file")], "is a file"),
+        (["--out", str(out), "--only", "no case has this"], "matches no case"),  # was: an empty record
+    ):
+        done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=ROOT)
+        last = done.stderr.strip().splitlines()[-1]
+        assert done.returncode == 2 and last.startswith("robustness.py: error:") and phrase in last, done.stderr
+        assert "Traceback" not in done.stderr
+    assert not out.exists()
+
+
+def test_robustness_only_merges_its_cases_into_the_record_and_keeps_the_before_column(tmp_path):
+    sys.path.insert(0, str(ROOT))
+    from bench import robustness
+
+    def row(what, verdict):
+        return {"what": what, "input": "snac x", "verdict": verdict, "note": "n", "seconds": 1}
+
+    before = {"a": row("a", "bad")}
+    robustness.write(tmp_path, [row("a", "good"), row("b", "poor")], 60.0, before)
+    robustness.write_merged(
+        tmp_path,
+        robustness.load_record(tmp_path / "robustness.json"),
+        [row("b", "good"), row("c", "good")],
+        "b",
+        5.0,
+        None,
+    )
+    record = json.loads((tmp_path / "robustness.json").read_text())
+    assert [(r["what"], r["verdict"]) for r in record["results"]] == [("a", "good"), ("b", "good"), ("c", "good")]
+    assert record["seconds"] == 60.0 and record["reruns"] == [{"only": "b", "cases": 2, "seconds": 5.0}]
+    assert record["before"] == before and "| 1 | a | `snac x` | bad |" in (tmp_path / "robustness.md").read_text()

@@ -31,6 +31,14 @@ def test_rollout_rejects_non_positive_sizes(capsys):
     assert "must be an int >= 1" in capsys.readouterr().err
 
 
+def test_rollout_refuses_steps_past_a_scans_int32_length(capsys):
+    with pytest.raises(SystemExit) as caught:
+        main(["rollout", "--steps", "2147483648"])
+    err = capsys.readouterr().err
+    assert caught.value.code == 2 and "--steps: must be an int in 1..2147483647, got '2147483648'" in err
+    assert "Traceback" not in err and "OverflowError" not in err
+
+
 def test_installed_entry_point_runs():
     snac = Path(sys.executable).parent / "snac"  # the console script pip installed
     result = subprocess.run(

@@ -215,3 +215,9 @@ def test_step_batch_equals_vmapped_step_with_both_extensions(reset):
         for a, b in zip(jax.tree.leaves(out_b), jax.tree.leaves(out_v)):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         batched, vmapped = out_b[1], out_v[1]
+
+
+def test_a_numpy_int_bank_of_one_is_refused_as_a_python_int_is():
+    for size in (1, np.int64(1)):
+        with pytest.raises(ValueError, match="design_change needs a design bank of at least 2 designs"):
+            make("2d-dynamic-dense", design_change=(10, 14), design_bank_size=size)

@@ -365,3 +365,12 @@ def test_the_single_env_refuses_to_step_an_ended_episode(max_steps):
     obs, _ = env.reset()
     assert obs[layout.time] == 0
     env.step(4)
+
+
+def test_the_single_env_refuses_a_bool_as_an_action():
+    env = gymnasium.make("SNAC/1d-static-sin-v0")
+    env.reset(seed=0)
+    for action in (True, np.bool_(False)):
+        with pytest.raises(ValueError, match="action must be an int in 0..2"):
+            env.step(action)
+    env.step(np.int64(1))  # a NumPy int is an action

@@ -180,3 +180,113 @@ def test_a_damaged_sweep_json_is_refused_naming_the_file_and_the_field(tmp_path)
     (tmp_path / "sweep.json").write_text('{"names": ["learning_rate"], "arms": [[0.001, 0.9]]}')
     with pytest.raises(ValueError, match="not a sweep"):
         sweep.load(tmp_path)
+
+
+def _copy_of_the_sweep(sweep_run, tmp_path):
+    import shutil
+
+    shutil.copytree(sweep_run[0] / "sweep", tmp_path / "run")
+    return tmp_path / "run"
+
+
+def _edit_json(path, change):
+    path.write_text(json.dumps(change(json.loads(path.read_text()))))
+
+
+def _resume(run):
+    driver.train(None, run, resume=True, progress=False)
+
+
+def test_a_sweep_json_out_of_bounds_is_refused_on_resume_naming_the_file(sweep_run, tmp_path):
+    run = _copy_of_the_sweep(sweep_run, tmp_path)
+    _edit_json(run / "sweep.json", lambda d: {**d, "arms": [[-1.0], [VALUES[1]]]})
+    with pytest.raises(ValueError, match=r"sweep\.json: learning_rate must be a number > 0, got -1\.0") as caught:
+        _resume(run)
+    assert "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    "names,arms,phrase",
+    [
+        (["num_envs"], [[8], [16]], "num_envs cannot be swept in one program: it sets shapes or loop counts"),
+        (["lr"], [[0.1], [0.2]], "ppo has no setting 'lr'; sweepable: "),
+        (["learning_rate"], [[1e39], [0.1]], "learning_rate=1e+39 is inf in float32"),
+        (["learning_rate"], [[0.1], [0.1000000001]], "arms 0 (learning_rate=0.1) and 1 (learning_rate=0.1)"),
+        (["learning_rate", "learning_rate"], [[0.1, 0.2]], "learning_rate is given twice"),
+    ],
+)
+def test_a_sweep_json_the_command_line_would_refuse_is_refused_in_one_line(sweep_run, tmp_path, names, arms, phrase):
+    from agents.training import sweep
+
+    run = _copy_of_the_sweep(sweep_run, tmp_path)
+    (run / "sweep.json").write_text(json.dumps({"names": names, "arms": arms}))
+    with pytest.raises(ValueError) as caught:
+        sweep.load(run)
+    assert phrase in str(caught.value) and "sweep.json" in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_a_valid_edit_of_sweep_json_disagreeing_with_an_arms_config_is_refused(sweep_run, tmp_path):
+    run = _copy_of_the_sweep(sweep_run, tmp_path)
+    _edit_json(run / "sweep.json", lambda d: {**d, "arms": [[VALUES[0]], [0.02]]})
+    with pytest.raises(ValueError, match=r"arms/1/config\.json disagrees with .*sweep\.json's arm 1: learning_rate="):
+        _resume(run)
+    _edit_json(run / "sweep.json", lambda d: {**d, "names": ["gamma"], "arms": [[0.9], [0.99]]})
+    with pytest.raises(ValueError, match=r"sweeps gamma but .*config\.json says the run sweeps learning_rate"):
+        _resume(run)
+
+
+def test_an_arms_config_edited_alone_is_refused(sweep_run, tmp_path):
+    run = _copy_of_the_sweep(sweep_run, tmp_path)
+    _edit_json(run / "arms" / "0" / "config.json", lambda d: {**d, "learning_rate": 0.5})
+    with pytest.raises(ValueError, match=r"arms/0/config\.json disagrees"):
+        _resume(run)
+
+
+def test_swept_values_float32_would_change_are_refused_on_the_command_line():
+    for spec, phrase in (
+        ("learning_rate=1e39,0.1", "learning_rate=1e+39 is inf in float32"),
+        ("learning_rate=1e-50,0.1", "learning_rate=1e-50 is 0 in float32"),
+        ("learning_rate=1e-40,0.1", "learning_rate=1e-40 is a subnormal in float32"),
+        ("learning_rate=0.1,0.1000000001", "are the same arm in float32"),
+    ):
+        with pytest.raises(ValueError) as caught:
+            parse_sweep([spec], _config())
+        assert phrase in str(caught.value) and "\n" not in str(caught.value), spec
+
+
+def test_a_sweeps_top_level_config_names_the_swept_settings_instead_of_one_value(sweep_run):
+    from agents.training.checkpoint import read_config
+
+    run = sweep_run[0] / "sweep"
+    recorded = json.loads((run / "config.json").read_text())
+    assert "learning_rate" not in recorded and recorded["swept"] == ["learning_rate"]
+    assert read_config(run).hidden_size == TINY["hidden_size"]
+
+
+def test_an_arm_folder_linked_outside_the_run_is_refused_and_a_lost_arm_config_restored(sweep_run, tmp_path, capsys):
+    import shutil
+
+    run = _copy_of_the_sweep(sweep_run, tmp_path)
+    outside = tmp_path / "outside"
+    shutil.move(run / "arms" / "0", outside)
+    (run / "arms" / "0").symlink_to(outside)
+    with pytest.raises(ValueError, match=r"arms/0 is not the run's own folder \(a link or a file\)"):
+        _resume(run)
+    (run / "arms" / "0").unlink()
+    shutil.move(outside, run / "arms" / "0")
+    written = (run / "arms" / "1" / "config.json").read_text()
+    (run / "arms" / "1" / "config.json").unlink()
+    _resume(run)
+    assert (run / "arms" / "1" / "config.json").read_text() == written
+    assert "arms/1/config.json was missing; rewritten from" in capsys.readouterr().err
+
+
+def test_snac_eval_of_a_sweep_names_the_arm_and_seed_of_a_run_index(sweep_run, capsys):
+    from snac_jax.cli import main
+
+    run = sweep_run[0] / "sweep"
+    code = main(["eval", "--checkpoint", str(run), "--seed-index", "3", "--episodes", "2", "--devices", "1"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert f"arm 1 (learning_rate={VALUES[1]:g}), training seed index 1 (run index 3)" in out
+    assert "training seed index 3" not in out

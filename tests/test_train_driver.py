@@ -399,7 +399,7 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
         ],
         capsys,
     )
-    assert code == 0 and loaded == [1] and "(training seed 1)" in out, err
+    assert code == 0 and loaded == [1] and "(training seed index 1)" in out, err
 
     code, _, err = _cli(["eval", "--checkpoint", str(run), "--seed-index", "2", "--episodes", "2"], capsys)
     assert code == 2 and "seed index (seed_index, --seed-index) must be in 0..1" in err
@@ -872,3 +872,43 @@ def test_run_files_are_readable_by_others(tmp_path):
         os.umask(old_umask)
     modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
     assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}
+
+
+def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tmp_path, capsys):
+    """The paper scored the task as defined: a run trained (and so scored) with max_steps 5 has
+    no paper row or delta beside it, as `snac eval` of its checkpoint says."""
+    argv = ["train", "ppo", *TINY_FLAGS, "--total-steps", "128", "--chunks", "1", "--max-steps", "5"]
+    code, out, err = _cli([*argv, "--eval-episodes", "2", "--out", str(tmp_path / "run")], capsys)
+    assert code == 0, err
+    assert "(no paper row)" in out and "paper row: ppo" not in out
+    row = next(line for line in out.splitlines() if line.startswith("| 1d-static-sin |"))
+    assert row.split("|")[7:10] == [" — ", " — ", " — "]  # paper mean, paper min, delta
+
+
+def test_a_bit_flipped_checkpoint_is_one_line_of_damage_without_orbaxs_noise(tmp_path):
+    """Bytes flipped in a checkpoint's metadata store: the damage is named in one note and the one
+    before restores, without orbax's "Metadata file does not exist" warnings (printed on every
+    read) or the tracebacks of its abandoned callbacks ("Event loop is closed"), at exit included."""
+    script = textwrap.dedent(
+        """
+        import sys
+        from pathlib import Path
+        import jax, jax.numpy as jnp
+        from agents.training import checkpoint
+
+        run = Path(sys.argv[1])
+        for chunk in (0, 1):
+            checkpoint.save_state(run, chunk, {"w": jax.random.normal(jax.random.key(chunk), (64, 64))})
+        for path in (run / "checkpoints" / "1" / "default" / "d").iterdir():
+            data = bytearray(path.read_bytes())
+            for i in range(0, len(data), max(1, len(data) // 8)):
+                data[i] ^= 0x10
+            path.write_bytes(bytes(data))
+        chunk, _, notes = checkpoint.restore_latest(run, {"w": jnp.zeros((64, 64))})
+        print(chunk, notes, file=sys.stderr)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.strip().splitlines() == [done.stderr.strip()], done.stderr[-3000:]
+    assert done.stderr.startswith("0 [") and "checkpoint 1 cannot be read" in done.stderr

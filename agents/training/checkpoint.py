@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -301,6 +303,11 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
     Restored by key path: the stored metadata is compared with `like` first (a mismatch is one
     clear error, before anything is read), and slots a checkpoint holds empty (fields that were
     None when it was written) are ignored, so checkpoints of older versions of a state load."""
+    with _orbax_read_quietly():
+        return _restore_state(directory, like, chunk)
+
+
+def _restore_state(directory: str | Path, like: Any, chunk: int | None) -> tuple[int, Any]:
     import orbax.checkpoint as ocp
 
     manager = _manager(Path(directory))
@@ -332,6 +339,69 @@ def restore_state(directory: str | Path, like: Any, chunk: int | None = None) ->
     by_path = _metadata_leaves(restored)
     leaves = [by_path[path] for path in _leaves_by_path(storable)]
     return chunk, from_storable(jax.tree_util.tree_unflatten(jax.tree.structure(storable), leaves), like)
+
+
+class _OrbaxReadNoise(logging.Filter):
+    """orbax's warnings on every read of a checkpoint this module writes: it looks for a step's
+    metadata inside the item's folder, which holds none; they read like damage and are not."""
+
+    MESSAGES = ("Metadata file does not exist", "Failed to get item metadata")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.MESSAGES)
+
+
+def _is_abandoned_orbax_work(unraisable) -> bool:
+    """Whether an unraisable error is one of a damaged checkpoint's aftermath: orbax's asyncio
+    callbacks, abandoned when its read failed, that tensorstore later calls on a closed event
+    loop, or its coroutines collected unfinished."""
+    if isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed":
+        return True
+    code = getattr(unraisable.object, "cr_code", None)
+    return code is not None and ("orbax" in code.co_filename or "tensorstore" in code.co_filename)
+
+
+def _drop_abandoned_orbax_work() -> None:
+    """From now on, leave out the errors of a damaged checkpoint's abandoned reads (dozens to
+    hundreds of tracebacks, some at exit) after the one line that names the damage; any other
+    unraisable error is passed on as before."""
+    previous = sys.unraisablehook
+    if getattr(previous, "drops_abandoned_orbax_work", False):
+        return
+
+    def hook(unraisable) -> None:
+        if not _is_abandoned_orbax_work(unraisable):
+            previous(unraisable)
+
+    hook.drops_abandoned_orbax_work = True
+    sys.unraisablehook = hook
+
+
+@contextlib.contextmanager
+def _orbax_read_quietly() -> Iterator[None]:
+    """A checkpoint read without orbax's noise: its warnings that a step's metadata is missing
+    (`_OrbaxReadNoise`), and, once a checkpoint proves damaged, the errors of its abandoned
+    reads (`_drop_abandoned_orbax_work`), those raised during the read included: they are held
+    until the read's outcome is known, then passed on unless they are that aftermath."""
+    absl = logging.getLogger("absl")
+    noise = _OrbaxReadNoise()
+    absl.addFilter(noise)
+    collected: list = []
+    previous = sys.unraisablehook
+    sys.unraisablehook = collected.append
+    damaged = False
+    try:
+        yield
+    except DamagedCheckpoint:
+        damaged = True
+        raise
+    finally:
+        sys.unraisablehook = previous
+        absl.removeFilter(noise)
+        if damaged:
+            _drop_abandoned_orbax_work()
+        for unraisable in collected:
+            sys.unraisablehook(unraisable)
 
 
 @contextlib.contextmanager

@@ -237,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{out_dir} holds a {config.algorithm} run, not {args.algorithm}")
         stored = checkpoint.read_run_options(out_dir)
         options = {name: given[name] if given[name] is not None else stored.get(name) for name in RUN_OPTIONS}
-        swept = sweep.load(out_dir)
+        swept = sweep.load(out_dir, config)
     else:
         config = build_config(args)
         swept = _parse_sweep(args, config)
@@ -400,12 +400,16 @@ def evaluate_run(
             result = dataclasses.replace(result, task=f"{config.task} (seed {index})")
         results.append(result)
     diverged = divergence_note(read_metrics(out_dir))
-    paper = paper_row(load_paper_results(), config.paper_method)
-    paper = {r.task: paper_cell(paper, config.task) for r in results}
-    print(
-        f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
-        f"(the paper's {paper_column(config.task)} column)"
-    )
+    if overrides:  # the paper scored the task as it is, not with these settings (as `snac eval` says)
+        paper = {}
+        print(f"{config.algorithm} on {config.task}, greedy policy, with {overrides} (no paper row)")
+    else:
+        row = paper_row(load_paper_results(), config.paper_method)
+        paper = {r.task: paper_cell(row, config.task) for r in results}
+        print(
+            f"{config.algorithm} on {config.task}, greedy policy; paper row: {config.paper_method} "
+            f"(the paper's {paper_column(config.task)} column)"
+        )
     print()
     print(markdown_table(results, paper))
     if diverged:

@@ -44,7 +44,7 @@ from agents.training.config import TrainConfig, save_config
 from agents.training.registry import build_algorithm
 from agents.training.sharding import check_divisible, host_value, replicate, state_shardings, training_mesh
 from agents.training.sweep import Sweep
-from snac_jax.atomic import atomic_write_text
+from snac_jax.atomic import atomic_write_json, atomic_write_text
 
 
 def seed_keys(config: TrainConfig, arms: int = 1) -> jax.Array:
@@ -210,11 +210,18 @@ def _read_metrics(path: Path, up_to_chunk: int) -> list[dict]:
     return [r for r in checkpoint.read_metrics_lines(path) if r["chunk"] <= up_to_chunk]
 
 
+def _warn(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
 def _start_run(config: TrainConfig, out_dir: Path, run_options: dict | None, swept: Sweep | None = None) -> None:
     """A new run in `out_dir` (checked empty by the caller, under the lock): its config, the
     caller's options, an empty metrics file, and for a sweep its grid and each arm's config."""
     checkpoint.check_new_run_directory(out_dir)  # again under the lock: another run may have begun
-    save_config(config, out_dir / checkpoint.CONFIG_FILE)
+    if swept is None:
+        save_config(config, out_dir / checkpoint.CONFIG_FILE)
+    else:
+        atomic_write_json(out_dir / checkpoint.CONFIG_FILE, sweep.base_config_json(config, swept))
     if run_options is not None:
         checkpoint.write_run_options(out_dir, run_options)
     if swept is not None:
@@ -293,7 +300,9 @@ def train(
     with checkpoint.lock_run(out_dir) if writer else contextlib.nullcontext():
         if resume:
             config = checkpoint.read_config(out_dir)
-            swept = sweep.load(out_dir)
+            swept = sweep.load(out_dir, config)
+            if swept is not None:
+                sweep.check_arms(out_dir, config, swept, restore=_warn if writer else None)
         elif writer:
             _start_run(config, out_dir, run_options, swept)
         return _train(config, out_dir, resume, progress, stop_after_chunks, mesh, writer, swept, log)
@@ -321,9 +330,7 @@ def _train(
     done_chunks, history = 0, []
     if resume:
         with interrupts_deferred():  # Ctrl-C inside orbax's asyncio restore strands its tasks, which print at exit
-            done_chunks, state, history = _resume_point(
-                out_dir, state, lambda text: print(text, file=sys.stderr), writer
-            )
+            done_chunks, state, history = _resume_point(out_dir, state, _warn, writer)
     if swept is not None and writer:
         _write_arm_metrics(out_dir, swept, config.seeds, history)
 

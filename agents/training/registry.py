@@ -169,8 +169,10 @@ def make_config(algorithm: str, task: str = TrainConfig.task, **overrides: Any) 
 
 
 def config_from_json(data: dict[str, Any]) -> TrainConfig:
-    """Inverse of `TrainConfig.to_json` (a run's `config.json`)."""
+    """Inverse of `TrainConfig.to_json` (a run's `config.json`; a sweep's leaves its swept
+    settings to the arms and names them under `swept`, and they take the class defaults here)."""
     data = dict(data)
+    data.pop("swept", None)
     cls = config_class(data.pop("algorithm", None))
     fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - fields)

@@ -56,9 +56,14 @@ class _Declared(Spec):
             raise mismatch(field, self.describe(), value) from None
 
 
+SWEPT = "swept"
+"""The key of a sweep's top-level config.json naming the settings its arms set (and it leaves out)."""
+
+
 class _ConfigJson(Spec):
     """config.json: `algorithm` names the config class, whose declared fields the rest must match
-    (a field left out takes the class default, as runs of older versions do)."""
+    (a field left out takes the class default, as runs of older versions do); a sweep's names
+    its swept settings under `swept` (`agents.training.sweep.base_config_json`)."""
 
     def describe(self) -> str:
         return "an object"
@@ -72,6 +77,7 @@ class _ConfigJson(Spec):
         )
         specs = field_specs(config_class(value["algorithm"]))
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
+        fields[SWEPT] = ListOf(Str(tuple(specs)))  # a sweep's: the settings its arms set (agents.training.sweep)
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
             where = f" in {field}" if field else ""

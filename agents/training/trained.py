@@ -22,7 +22,10 @@ def load_trained(directory: str | Path):
     older policy) that says how to repair the run."""
     config = read_config(directory)
     algorithm = build_algorithm(config)
-    like = initial_state(algorithm, swept=sweep.load(Path(directory)))
+    swept = sweep.load(Path(directory), config)
+    if swept is not None:
+        sweep.check_arms(Path(directory), config, swept)
+    like = initial_state(algorithm, swept=swept)
     chunk, state, notes = restore_latest(directory, like)
     if chunk is None:
         raise ValueError(
@@ -60,7 +63,7 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
             f"checkpoint {checkpoint} was trained with switches {config.switches!r}; build the env with "
             f"them (`snac_jax.make({config.task!r}, **snac_jax.tasks.parse_switches({config.switches!r}))`)"
         )
-    swept = sweep.load(Path(checkpoint))
+    swept = sweep.load(Path(checkpoint), config)
     runs = config.seeds * (1 if swept is None else swept.num_arms)
     if not 0 <= seed_index < runs:
         what = "" if swept is None else f" (a sweep: arm a, seed s is index a * {config.seeds} + s)"
@@ -75,16 +78,32 @@ def checkpoint_policy(env, checkpoint: str | Path, seed_index: int = 0):
     return algorithm.policy(params)
 
 
+def describe_run_index(directory: str | Path, index: int) -> str:
+    """Which policy run index `index` of `directory` is, in words: its training seed, and of a
+    sweep its arm and the arm's settings (run `a * seeds + s` is arm a, seed s)."""
+    config = read_config(directory)
+    swept = sweep.load(Path(directory), config)
+    if swept is None:
+        return f"training seed index {index}"
+    arm, seed = divmod(index, config.seeds)
+    if arm >= swept.num_arms:
+        return f"run index {index}"  # out of range: `checkpoint_policy` refuses it, naming the range
+    return f"arm {arm} ({swept.label(arm)}), training seed index {seed} (run index {index})"
+
+
 def checkpoint_builder(directory: str | Path):
     """For `snac eval --checkpoint DIR`: `(builder(env) -> Policy, the run's task, the paper row
     of its algorithm, the make overrides it trained with)`. The 1D static shapes are scored on the
     shape the run trained on; a run trained with switches or `max_steps` is scored with them. A
     team run's overrides are `snac_jax.multi.make`'s, `num_robots` among them, and its builder,
-    given that team's env, returns the team's `MultiPolicy`."""
+    given that team's env, returns the team's `MultiPolicy`. `builder.describe(seed_index)` names
+    the policy an index loads (`describe_run_index`)."""
     config = read_config(directory)
 
     def builder(env, **options):
         return checkpoint_policy(env, directory, **options)
+
+    builder.describe = lambda seed_index: describe_run_index(directory, seed_index)
 
     overrides = config.env_overrides
     if getattr(config, "robots", None) is not None:  # a team run (agents.learners.ippo): snac_jax.multi.make's count

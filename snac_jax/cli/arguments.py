@@ -5,17 +5,25 @@ from __future__ import annotations
 import argparse
 
 
-def bounded_number(kind: type, minimum: float, strict: bool = False):
-    """An argparse type: `kind` (int or float) >= `minimum` (> with `strict`), or a clear error."""
+def bounded_number(kind: type, minimum: float, strict: bool = False, maximum: float | None = None):
+    """An argparse type: `kind` (int or float) >= `minimum` (> with `strict`) and <= `maximum`
+    where given, or a clear error."""
     noun = "an int" if kind is int else "a number"
-    bound = f"{'>' if strict else '>='} {minimum}"
+    if maximum is not None and not strict:
+        bound = f"in {minimum}..{maximum}"
+    else:
+        bound = f"{'>' if strict else '>='} {minimum}" + ("" if maximum is None else f" and <= {maximum}")
 
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
             value = None
-        if value is None or not (value > minimum if strict else value >= minimum):
+        if (
+            value is None
+            or not (value > minimum if strict else value >= minimum)
+            or (maximum is not None and value > maximum)
+        ):
             raise argparse.ArgumentTypeError(f"must be {noun} {bound}, got {text!r}")
         return value
 

@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
                 f"checkpoint {args.checkpoint} was trained on {run_task!r}; it cannot be evaluated on "
                 f"{', '.join(others)} (leave out --task to evaluate it on its own)"
             )
-        policy_name = f"checkpoint {args.checkpoint}, training seed index {args.seed_index or 0}"
+        policy_name = f"checkpoint {args.checkpoint}, {builder.label}"
     else:
         run_overrides = parse_switches(args.switches or "")
         method, policy_name = POLICIES[args.policy].paper_method, args.policy

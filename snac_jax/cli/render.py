@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         f"{num_frames} frames at --cell {args.cell}", 2 * num_frames * one_frame, "lower --cell or raise --every"
     )
 
-    label = policy.name if args.seed_index is None else f"{policy.name} (training seed {args.seed_index})"
+    label = policy.name if args.seed_index is None else f"{policy.name} ({builder.label})"
     start = time.perf_counter()
     frames = []
     team = "" if robots is None else f"  {robots} robots"

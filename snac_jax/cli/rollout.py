@@ -6,15 +6,20 @@ import argparse
 import time
 
 from snac_jax.batched_step import RESET_STRATEGIES
-from snac_jax.cli.arguments import add_devices_argument, positive_int, seed, task_id
-from snac_jax.tasks import TASKS
+from snac_jax.cli.arguments import add_devices_argument, bounded_number, positive_int, seed, task_id
+from snac_jax.tasks import MAX_INT32, TASKS
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("rollout", help="jitted, vmapped uniform-random rollout; prints env-steps/s")
     parser.add_argument("--task", type=task_id, default="2d-static-dense", help=f"one of: {', '.join(TASKS)}")
     parser.add_argument("--num-envs", type=positive_int, default=4096)
-    parser.add_argument("--steps", type=positive_int, default=1000)
+    parser.add_argument(
+        "--steps",
+        type=bounded_number(int, 1, maximum=MAX_INT32),
+        default=1000,
+        help="steps per world (a scan's length: at most 2**31-1)",
+    )
     parser.add_argument("--seed", type=seed, default=0)
     parser.add_argument(
         "--reset",
