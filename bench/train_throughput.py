@@ -1,10 +1,9 @@
-"""Training throughput: env steps per second of an on-policy learner *including learning*
-(rollout, returns and the update epochs), per task and network, with its tuned defaults
-(`agents/tuned/<algorithm>.toml`, else its config class's): PPO, PQN or pqn-belief (issue 19's
-target for PQN-RNN is measured with the second command).
+"""Training throughput: env steps per second of a learner *including learning* (acting,
+returns, replay and updates), per task and network, with its tuned defaults
+(`agents/tuned/<algorithm>.toml`, else its config class's); every learner of
+`agents.training.registry.ALGORITHMS`.
 
-    python bench/train_throughput.py --tasks 1d-static-sin 2d-static-dense
-    python bench/train_throughput.py --algorithm pqn --tasks 1d-static-sin 1d-dynamic
+    python bench/train_throughput.py --algorithm ppo --tasks 2d-static-dense 2d-dynamic-dense
     python bench/train_throughput.py --algorithm pqn-belief --tasks 3d-dynamic-sparse \
         --variant view_radius=0,design_encoder=true
 
@@ -14,21 +13,22 @@ number.
 
 Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
 over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
-same rollouts without learning. The load average is printed because a shared CPU skews both.
+same acting without learning. The load average is printed because a shared CPU skews both. A
+replay learner starts learning at once (`learning_starts=0`), so every timed update learns.
 
-To tell a slow implementation from a busy processor, each row also converts its rate into the
-arithmetic the network does: a dense or recurrent layer does one multiply-add per weight per
-sample, so one env step costs about `2 * params * (1 + 3 * epochs)` FLOPs (the acting forward
-pass, then a forward and a twice-as-costly backward pass per epoch; PQN's Q(lambda) targets add
-one more forward pass, left out of the estimate). That is set beside the rate
-of a plain float32 matrix product as wide as the recurrent core (the hidden layers for a
-feed-forward network), one minibatch of rows, timed in the same run: when the two
-are close, the learner is compute-bound and only a smaller network or fewer epochs go faster.
+To tell a slow implementation from a busy processor, each row also gives the matrix arithmetic
+the learner does per env step, counted from the traced chunk (`bench/flops.py`: every matrix
+product and convolution, times the trips of the scans around it, so a design encoded once per
+episode counts once), as GFLOP/s at the measured rate. That is set beside the rate of a plain
+float32 matrix product as wide as the recurrent core (the hidden layers for a feed-forward
+network), one minibatch of rows, timed in the same run: when the two are close, the learner is
+compute-bound and only less arithmetic goes faster.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import os
 import statistics
@@ -39,9 +39,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--algorithm",
-        choices=("ppo", "pqn", "pqn-belief"),
         default="ppo",
-        help="the on-policy learner to time (each trains from rollouts of many worlds)",
+        help="the learner to time: an algorithm id of `snac train` (checked once JAX's devices are set)",
     )
     parser.add_argument(
         "--variant",
@@ -67,6 +66,10 @@ def main() -> None:
     from snac_jax import devices
 
     devices.use_cpu_devices(args.devices)  # before anything starts JAX's backend (the variants' imports do)
+    from agents.training.registry import ALGORITHMS
+
+    if args.algorithm not in ALGORITHMS:
+        parser.error(f"--algorithm: unknown {args.algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
     try:
         variants = [{}] + [_variant_settings(text, args.algorithm, set(vars(args))) for text in args.variant]
     except ValueError as error:
@@ -75,7 +78,8 @@ def main() -> None:
 
     from agents.common.networks import param_count
     from agents.training.driver import initial_state
-    from agents.training.registry import build_algorithm, make_config
+    from agents.training.registry import build_algorithm, config_class, make_config
+    from bench import flops
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
     print(
@@ -90,27 +94,23 @@ def main() -> None:
     )
     print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []  # every configuration made (and so checked) before the first is compiled
+    fields = {f.name for f in dataclasses.fields(config_class(args.algorithm))}
+    if "recurrent" not in fields:
+        networks = [None]  # a learner whose network is set by its own options (DRQN's LSTM, DQN's none)
     for task, recurrent, settings in itertools.product(args.tasks, networks, variants):
+        overrides = dict(
+            recurrent=recurrent,
+            num_envs=args.num_envs,
+            hidden_size=args.hidden_size,
+            rnn_size=args.rnn_size,
+            update_epochs=args.update_epochs,
+            num_minibatches=args.num_minibatches,
+            rollout_steps=args.rollout_steps,
+            learning_starts=0,
+        )
+        overrides = {name: value for name, value in overrides.items() if name in fields}
         try:
-            rows.append(
-                (
-                    task,
-                    recurrent,
-                    settings,
-                    make_config(
-                        args.algorithm,
-                        task,
-                        recurrent=recurrent,
-                        num_envs=args.num_envs,
-                        hidden_size=args.hidden_size,
-                        rnn_size=args.rnn_size,
-                        update_epochs=args.update_epochs,
-                        num_minibatches=args.num_minibatches,
-                        rollout_steps=args.rollout_steps,
-                        **settings,
-                    ),
-                )
-            )
+            rows.append((task, recurrent, settings, make_config(args.algorithm, task, **overrides, **settings)))
         except ValueError as error:
             parser.error(f"{task}: {error}")
     for task, recurrent, settings, config in rows:
@@ -119,8 +119,10 @@ def main() -> None:
         state = initial_state(algorithm, mesh)
         steps = args.updates * config.steps_per_update
 
-        def acting_only(s, p):  # the baseline: the same rollouts, no learning
-            return jax.lax.scan(lambda s, _: (algorithm.rollout(s, p)[0], None), s, None, length=args.updates)[0]
+        rollout = getattr(algorithm, "rollout", None) or algorithm._rollout  # the replay learners' acting
+
+        def acting_only(s, p):  # the baseline: the same acting, no learning
+            return jax.lax.scan(lambda s, _: (rollout(s, p)[0], None), s, None, length=args.updates)[0]
 
         train = jax.jit(jax.vmap(lambda s, p: algorithm.train_chunk(s, p, args.updates)[0], in_axes=(0, None)))
         act = jax.jit(jax.vmap(acting_only, in_axes=(0, None)))
@@ -136,11 +138,17 @@ def main() -> None:
                 rates[name].append(steps / _seconds(fn, state, algorithm.env_params))
         rate, acting = statistics.median(rates["train"]), statistics.median(rates["act"])
         params = param_count(jax.tree.map(lambda x: x[0], state.params))
-        network_gflops = rate * 2 * params * (1 + 3 * config.update_epochs) / 1e9
-        width = config.rnn_size if recurrent else config.hidden_size
+        chunk_flops = flops.count(
+            jax.vmap(lambda s, p: algorithm.train_chunk(s, p, 1)[0], in_axes=(0, None)), state, algorithm.env_params
+        )
+        network_gflops = rate * chunk_flops.total / (state.update.shape[0] * config.steps_per_update) / 1e9
+        width = _core_width(config)
         matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
-        kind = f"GRU {config.rnn_size}" if recurrent else "feed-forward"
-        kind += f", hidden {config.hidden_size}" + "".join(f"; {name}={value}" for name, value in settings.items())
+        kind = (
+            _network_text(config)
+            + f", hidden {config.hidden_size}"
+            + "".join(f"; {name}={value}" for name, value in settings.items())
+        )
         print(
             f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
             f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
@@ -148,6 +156,21 @@ def main() -> None:
             f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |",
             flush=True,
         )
+
+
+def _core_width(config) -> int:
+    """The recurrent core's width, else the hidden layers'."""
+    if getattr(config, "recurrent", False):
+        return config.rnn_size
+    return getattr(config, "lstm_size", 0) or config.hidden_size
+
+
+def _network_text(config) -> str:
+    if getattr(config, "recurrent", False):
+        return f"GRU {config.rnn_size}"
+    if getattr(config, "lstm_size", 0):
+        return f"LSTM {config.lstm_size}"
+    return "feed-forward"
 
 
 def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:
