@@ -58,7 +58,8 @@ class _Declared(Spec):
 
 class _ConfigJson(Spec):
     """config.json: `algorithm` names the config class, whose declared fields the rest must match
-    (a field left out takes the class default, as runs of older versions do)."""
+    (a field left out takes the class default, as runs of older versions do; a retired option
+    is read, its value refused by `config_from_json` unless off)."""
 
     def describe(self) -> str:
         return "an object"
@@ -70,8 +71,10 @@ class _ConfigJson(Spec):
         Object({"algorithm": Str(ALGORITHMS)}, {"task": Anything()}).check(
             {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field
         )
-        specs = field_specs(config_class(value["algorithm"]))
+        cls = config_class(value["algorithm"])
+        specs = field_specs(cls)
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
+        fields |= {name: Anything() for name in cls.retired_options}  # their values: `config_from_json`'s
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
             where = f" in {field}" if field else ""
