@@ -14,8 +14,8 @@ again step by step with the same keys, their beliefs kept, and each replay's fin
 the evaluator's, so the drawn episode is the scored one.
 
 At each step the belief is the one the Q head reads when the policy acts
-(`PQNBelief.held_belief`): the mapping filter's joint belief over plan positions (`brick_map`),
-else the product of its row and column marginals. The actions are the policy's own `act`.
+(`PQNBelief.held_belief`): the product of its row and column marginals. The actions are the
+policy's own `act`.
 
 Writes only under `--out`, per drawn episode `worst<rank>_episode<index>.gif` (every step) and
 `.png` (its last frame), and `belief_episodes.json`, which also counts how the played episodes
@@ -278,7 +278,6 @@ def analyse(args: argparse.Namespace) -> dict:
         raise ValueError(f"--worst must be in 1..{setup.num_episodes} (the episodes played), got {args.worst}")
     policy = trained.checkpoint_policy(env, args.run, index)
     algorithm = build_algorithm(config if swept is None else swept.arm_config(config, args.arm))
-    brick_map = bool(algorithm.config.brick_map)
 
     scored = jax.device_get(run_episodes(env, setup.params, policy, setup.key, setup.design_indices))
     chosen = worst_episodes(scored.iou, args.worst)
@@ -380,7 +379,7 @@ def analyse(args: argparse.Namespace) -> dict:
         "drops": drop_tally(drops),
         "drops_note": f"every counted drop of the played episodes; believed off: the belief that chose it gave "
         f"its target under {OFF_DESIGN} chance of being a design cell",
-        "belief": "joint over plan positions (brick_map)" if brick_map else "row marginal x column marginal",
+        "belief": "row marginal x column marginal",
         "steps": "entry t: after t steps; entries 0..length-1 chose the actions, entry length read the final "
         "observation",
         "argmax_distance": "|row difference| + |column difference| in cells, argmax to the true position",

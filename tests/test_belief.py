@@ -173,16 +173,14 @@ def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(ta
     network, layout, worlds = agent.network, agent.layout, 16
     run_filter = jax.jit(
         lambda belief, logits, net_obs, reset: network.apply(
-            {}, belief, logits, net_obs, reset, method=BeliefQNetwork._filter
+            {}, belief, logits, net_obs, reset, method=BeliefQNetwork.run_filter
         )
     )
     belief, ends = network.initial_carry(worlds)[:, network.rnn_size :], 0
     episode_steps = random_episode_steps(agent.env, agent.env_params, worlds, 70)
     for t, (obs, previous, reset, last_action, cells, position) in enumerate(episode_steps):
         net_obs = layout.with_previous_step(obs, previous, last_action, reset)
-        belief, (b_row, b_col), _ = run_filter(
-            belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None]
-        )
+        belief, (b_row, b_col) = run_filter(belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None])
         np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), position[:, 0], err_msg=f"row, step {t}")
         np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), position[:, 1], err_msg=f"column, step {t}")
         ends += int(reset.sum()) if t else 0

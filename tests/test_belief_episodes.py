@@ -1,6 +1,6 @@
 """`bench/belief_episodes.py`: the worst episodes by hand, the belief the Q head reads, a tiny
-trained run drawn (the evaluator's episodes and IoUs, beliefs that sum to 1), a mapping filter's
-joint belief on its own episodes, and the one-line refusals."""
+trained run drawn (the evaluator's episodes and IoUs, beliefs that sum to 1), and the one-line
+refusals."""
 
 from __future__ import annotations
 
@@ -114,12 +114,11 @@ def _untrained(**options):
     return agent, policy._replace(params=params)
 
 
-@pytest.mark.parametrize("brick_map", [False, True])
-def test_the_held_belief_is_the_one_the_q_head_reads(brick_map):
+def test_the_held_belief_is_the_one_the_q_head_reads():
     """Along an episode of the greedy policy: the filter's held belief is the product of the row
-    and column beliefs it carries after acting; the mapping filter's is the joint belief it carries,
-    whose row and column sums are the marginals the network sows for the Q head."""
-    agent, policy = _untrained(brick_map=brick_map)
+    and column beliefs it carries after acting, whose row and column sums are the marginals the
+    network sows for the Q head."""
+    agent, policy = _untrained()
     network, layout = agent.network, agent.layout
     rows, cols = layout.plan_shape
     env, env_params = agent.env, agent.env_params
@@ -149,10 +148,7 @@ def test_the_held_belief_is_the_one_the_q_head_reads(brick_map):
         np.testing.assert_allclose(held.sum(axis=1), p_row, atol=1e-6)
         np.testing.assert_allclose(held.sum(axis=0), p_col, atol=1e-6)
         carried = policy_state["carry"][network.rnn_size :]
-        if brick_map:  # the joint the filter carries on (then the map's mean and variance), not a product
-            np.testing.assert_array_equal(held, carried[: rows * cols].reshape(rows, cols))
-        else:
-            np.testing.assert_allclose(held, np.outer(carried[:rows], carried[rows:]), atol=1e-7)
+        np.testing.assert_allclose(held, np.outer(carried[:rows], carried[rows:]), atol=1e-7)
 
 
 RIGHT, DOWN, DROP = 1, 2, 4  # 2D action table: left, right, down, up, drop

@@ -72,10 +72,6 @@ TINY = {
     "pqn": PPO,
     "pqn-aux": PPO,
     "pqn-belief": PPO,
-    "pqn-belief --brick-map": dict(
-        PPO, brick_map=True
-    ),  # the filter that maps its own bricks (agents/research/belief_map.py)
-    "pqn-belief --todo-compass": dict(PPO, todo_compass=True),  # the Q head reads a map of its own drops
     "dqn": dict(REPLAY, frame_stack=2),  # the stacked frames are memory too
     "drqn": DRQN,
     "drqn-her": DRQN,
@@ -86,11 +82,7 @@ TINY = {
 }
 SINGLE = [name for name in ALGORITHMS if name != "ippo"]
 CASES = [(name, task) for name in SINGLE for task in ("2d-static-sparse", "2d-dynamic-sparse")]
-CASES += [
-    ("ppo", "3d-static-sparse"),
-    ("pqn-belief --brick-map", "2d-dynamic-sparse"),
-    ("pqn-belief --todo-compass", "2d-static-sparse"),
-]
+CASES += [("ppo", "3d-static-sparse")]
 
 
 # --- a world that lies about its state --------------------------------------------------------------

@@ -2,8 +2,8 @@
 checked by hand in tests/test_belief.py: the belief's moves, its correction by the window's
 padding, the design it expects around the robot and how well it knew the true position.
 
-Why a module of their own: the mapping filter (agents/research/belief_map.py) builds on the same moves
-and padding, and the network (agents/research/pqn_belief.py) reads both filters.
+Why a module of their own: they are the filter's arithmetic, free of the network that runs them
+(`BeliefQNetwork.run_filter`), so each is tested on its own and on real episodes.
 """
 
 from __future__ import annotations

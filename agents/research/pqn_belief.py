@@ -15,7 +15,7 @@ the window, an egocentric map of the design around the robot, which can stand in
 encoder's allocentric reading of a dynamic task's design (`design_encoder=False`), at a fraction
 of its cost.
 
-Three beliefs, one per run (`belief_filter`, `brick_map`):
+Two beliefs, one per run (`belief_filter`):
 
 - **filter** (the default): a histogram filter over rows and over columns, carried beside the
   GRU state. Each step moves the belief along the last action's axis by the cells the move
@@ -24,16 +24,16 @@ Three beliefs, one per run (`belief_filter`, `brick_map`):
   with where the window shows padding (`filter_step`). An episode starts at the plan's corner
   (SPEC §2). It is the handcrafted policy's dead reckoning with the window's shift read by a
   learned head; it ignores what the built cells could add (`agents.research.belief_filter`).
-- **mapping filter** (`brick_map`): the same moves and padding on a joint belief over rows and
-  columns, which also maps the bricks the robot laid under its belief and weighs each position
-  by how well the window's bricks match that map (`agents.research.belief_map`, `MappingBeliefQNetwork`):
-  SLAM with distributions.
 - **learned**: the position head of `agents.research.drqn_aux`, on the GRU state, trained by the
   position loss on the true position; a distribution over rows and one over columns.
 
-With `todo_compass` the Q head also reads where a map of the robot's drops under its belief leaves
-the design unbuilt, beyond the window (`remaining_compass`); the filter keeps that map without
-weighing it, the mapping filter reads its own.
+The recipe's ingredients, each one switch and one place: the belief (`belief_filter`; the filter's
+steps in `agents.research.belief_filter`, its move head `MoveHead`), the design expected under it
+(`expected_design_window`, its reach `view_radius`), the design encoder beside it or not
+(`design_encoder`), and the two losses that train the belief (`position_coef`, `move_coef`). What
+the table's ablations tried and the row did not keep (a map of the bricks laid, read as evidence
+of the position or as a compass to the unbuilt design) is on bench/results/beyond.md, with the
+commit that trained it.
 
 Honest acting: every belief is computed from the observations alone (the filter's only learned
 part reads the windows and the action), and the design it reads is the observation's (a dynamic
@@ -47,19 +47,18 @@ alone, so it stays a position estimate rather than whatever the TD error would b
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.common.networks import ObservationEncoder, RecurrentCoreNetwork, ScannedRNN, mlp_head, scaled_init
 from agents.learners.pqn import PQNConfig, td_loss
 from agents.research.belief_filter import belief_cross_entropy, expected_design_window, filter_step
-from agents.research.belief_map import drop_table, map_last_drop, mapping_filter_step, remaining_compass
 from agents.research.drqn_aux import AuxiliaryHeads, AuxiliaryOptions, add_rollout_losses, move_directions
-from agents.research.pqn_aux import AuxiliaryQNetwork, AuxiliaryTransition, PQNAux, require_recurrent
+from agents.research.pqn_aux import AuxiliaryTransition, PQNAux, require_recurrent
 from agents.training.config import option
 from snac_jax.config import MAX_STRIDE
 from snac_jax.transition import PADDING  # a window cell off the plan (SPEC §2)
@@ -87,24 +86,23 @@ class MoveHead(nn.Module):
         return mlp_head(seen, self.hidden_size, MAX_STRIDE + 1, 1.0)
 
 
-class BeliefQNetwork(AuxiliaryQNetwork):
-    """PQN-RNN's network whose Q head also reads the design expected around the believed
-    position and that minus the window, through one hidden LayerNorm layer.
+class BeliefQNetwork(RecurrentCoreNetwork):
+    """PQN-RNN's network (LayerNorm encoder, GRU) whose Q head also reads the design expected
+    around the believed position and that minus the window, through one hidden LayerNorm layer.
 
-    `auxiliary_heads` (on the GRU state) hold the position head where the belief is learned; their
-    outputs, and the filter's move head, are sown for the losses as in `AuxiliaryQNetwork`.
-    `moves` (per action its row and column direction, drops 0; `move_directions`) given turns the
-    filter on, None reads the belief off the position head; the filter's belief rides in the
-    carry after the GRU's state. `fixed_design` is a static task's design (nested
-    tuples, plan-shaped), None on a dynamic task, whose observation carries the design."""
+    `auxiliary_heads` (on the GRU state) hold the position head, and the move head where the
+    belief is learned; their outputs, and the filter's move head, are sown ("intermediates") for
+    the losses, which only the training loss keeps. `moves` (per action its row and column
+    direction, drops 0; `move_directions`) given turns the filter on, None reads the belief off
+    the position head; the filter's belief rides in the carry after the GRU's state.
+    `fixed_design` is a static task's design (nested tuples, plan-shaped), None on a dynamic
+    task, whose observation carries the design."""
 
+    auxiliary_heads: nn.Module | None = None
     fixed_design: tuple | None = None
     moves: tuple | None = None
     view_radius: int = 0  # half size of the expected design the Q head reads; 0: the window's
     design_encoder: bool = True  # also read a dynamic task's whole design through `DesignEncoder`
-    todo_compass: bool = False  # also read where the unbuilt design lies (`remaining_compass`), from a map of the drops
-    drops: tuple = ()  # per action (is_drop, d_row, d_col), the landmark placement (0, 0, 0): where the map's bricks go
-    capped: bool = True  # the map holds whether a cell has a brick: 2D's 0/1 grid (SPEC §5), 3D with brick_occupancy
 
     @property
     def view_shape(self) -> tuple[int, int]:
@@ -116,9 +114,7 @@ class BeliefQNetwork(AuxiliaryQNetwork):
     @property
     def carry_size(self) -> int:
         rows, cols = self.layout.plan_shape
-        return (
-            self.rnn_size + (rows + cols if self.moves is not None else 0) + (rows * cols if self.todo_compass else 0)
-        )
+        return self.rnn_size + (rows + cols if self.moves is not None else 0)
 
     @nn.compact
     def __call__(self, carry: jax.Array, obs: jax.Array, resets: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -131,10 +127,10 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         if self.moves is None:
             position = jax.lax.stop_gradient(heads["position"])
             p_row, p_col = jax.nn.softmax(position[..., :rows]), jax.nn.softmax(position[..., rows:])
-            carry, built = gru_carry, None
+            carry = gru_carry
         else:
             heads["move"] = MoveHead(self.hidden_size, name="move_head")(parts)
-            belief, (p_row, p_col), built = self._filter(carry[:, self.rnn_size :], heads["move"], obs, resets)
+            belief, (p_row, p_col) = self.run_filter(carry[:, self.rnn_size :], heads["move"], obs, resets)
             carry = jnp.concatenate([gru_carry, belief], axis=-1)
         self.sow("intermediates", "auxiliary", heads)
         self.sow("intermediates", "belief", (p_row, p_col))
@@ -148,90 +144,34 @@ class BeliefQNetwork(AuxiliaryQNetwork):
         (vr, vc), (wr, wc) = self.view_shape, layout.window_shape
         in_window = expected[..., (vr - wr) // 2 : (vr + wr) // 2, (vc - wc) // 2 : (vc + wc) // 2]
         lead = obs.shape[:-1]
-        local = [expected.reshape(lead + (-1,)), (in_window - parts["window"]).reshape(lead + (-1,))]
-        if self.todo_compass:
-            local.append(remaining_compass(p_row, p_col, design * layout.height_scale, built))
-        local = jnp.concatenate(local, axis=-1)
+        local = jnp.concatenate(
+            [expected.reshape(lead + (-1,)), (in_window - parts["window"]).reshape(lead + (-1,))], axis=-1
+        )
         h = nn.Dense(self.hidden_size, kernel_init=scaled_init(np.sqrt(2)))(jnp.concatenate([x, local], axis=-1))
         h = nn.relu(nn.LayerNorm()(h))
         return carry, nn.Dense(self.num_actions, kernel_init=scaled_init(1.0))(h)
 
-    def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
-        """Run `filter_step` along time `(T, B, ...)` from the carried belief `(B, rows + cols)`
-        (with `todo_compass`, then the map of the drops, `rows * cols`); returns the last of both
-        (for the carry), the belief after each step, `(T, B, rows)` and `(T, B, cols)`, and the
-        map after each step, `(T, B, rows, cols)` (None without `todo_compass`). The map is the
-        mapping filter's (`add_drop`) under the product of the row and column beliefs, which it
-        does not correct. It reads from `obs` the last action and where the window shows padding
-        (tests/test_belief.py runs it on real episodes, the move head's part given)."""
-        rows, cols = self.layout.plan_shape
-        p_cells, last_action, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
-        drops = tuple(self.drops)
-
-        def step(state, inputs):
-            (b_row, b_col), built = state
-            reset, p, s, action, padding = inputs
-            if self.todo_compass:  # the last action's brick, under the belief it was dropped with; the mean alone
-                built, _ = map_last_drop(
-                    built,
-                    jnp.zeros_like(built),
-                    b_row[:, :, None] * b_col[:, None, :],
-                    action,
-                    reset,
-                    drops,
-                    self.capped,
-                )
-            state = filter_step((b_row, b_col), reset, p, s, padding), built
-            return state, state
-
-        built = belief[:, rows + cols :].reshape(-1, rows, cols) if self.todo_compass else None
-        ((b_row, b_col), built), (beliefs, maps) = jax.lax.scan(
-            step,
-            ((belief[:, :rows], belief[:, rows : rows + cols]), built),
-            (resets, p_cells, sign, last_action, window == PADDING),
-        )
-        last = [b_row, b_col] + ([built.reshape(built.shape[0], -1)] if self.todo_compass else [])
-        return jnp.concatenate(last, axis=-1), beliefs, maps
-
-    def filter_inputs_from_move_logits(self, move_logits: jax.Array, obs: jax.Array):
-        """What a filter reads per step from `(T, B, ...)` inputs: the move head's distribution over
-        the cells moved (no gradient: the move loss alone trains it), the last action's one-hot
-        (its last entry "none", at an episode's start), that action's row and column direction,
-        and the window's raw values."""
+    def run_filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
+        """Run `filter_step` along time `(T, B, ...)` from the carried belief `(B, rows + cols)`;
+        returns the last belief (for the carry) and the belief after each step, `(T, B, rows)` and
+        `(T, B, cols)`. It reads from `obs` the last action's direction and where the window shows
+        padding, and from the move head's logits the cells moved, without their gradient: the move
+        loss alone trains that head (tests/test_belief.py runs it on real episodes, the move head's
+        part given)."""
+        rows, _ = self.layout.plan_shape
         p_cells = jax.nn.softmax(jax.lax.stop_gradient(move_logits), axis=-1)
-        last_action = self.layout.split(obs)["last_action"]
+        last_action = self.layout.split(obs)["last_action"]  # one-hot, its last entry "none" at a start
         sign = last_action @ jnp.asarray(np.asarray(self.moves + ((0, 0),), np.float32))
-        return p_cells, last_action, sign, self.layout.env.window_cells(obs[..., : self.layout.env_obs_size])
+        padding = self.layout.env.window_cells(obs[..., : self.layout.env_obs_size]) == PADDING
 
+        def step(belief, inputs):
+            belief = filter_step(belief, *inputs)
+            return belief, belief
 
-class MappingBeliefQNetwork(BeliefQNetwork):
-    """`BeliefQNetwork` whose filter is `mapping_filter_step`: the carry after the GRU's state holds
-    the joint belief and the map's mean and variance, each `rows x cols`. The Q head reads the
-    design expected under the belief's row and column marginals, as `BeliefQNetwork` does, so the
-    one change against it is the evidence the filter weighs; with `todo_compass` it also reads
-    where the map leaves the design unbuilt."""
-
-    evidence_weight: float = 1.0  # the bricks' log-likelihood's weight (`mapping_filter_step`)
-
-    @property
-    def carry_size(self) -> int:
-        rows, cols = self.layout.plan_shape
-        return self.rnn_size + 3 * rows * cols
-
-    def _filter(self, belief: jax.Array, move_logits: jax.Array, obs: jax.Array, resets: jax.Array):
-        rows, cols = self.layout.plan_shape
-        p_cells, last_action, sign, window = self.filter_inputs_from_move_logits(move_logits, obs)
-        drops = tuple(self.drops)
-
-        def step(state, inputs):
-            state = mapping_filter_step(
-                state, *inputs, drops=drops, capped=self.capped, evidence_weight=self.evidence_weight
-            )
-            return state, ((state[0].sum(axis=2), state[0].sum(axis=1)), state[1] if self.todo_compass else None)
-
-        state = tuple(part.reshape(-1, rows, cols) for part in jnp.split(belief, 3, axis=-1))
-        state, (marginals, built) = jax.lax.scan(step, state, (resets, p_cells, sign, last_action, window))
-        return jnp.concatenate([part.reshape(part.shape[0], -1) for part in state], axis=-1), marginals, built
+        (b_row, b_col), beliefs = jax.lax.scan(
+            step, (belief[:, :rows], belief[:, rows:]), (resets, p_cells, sign, padding)
+        )
+        return jnp.concatenate([b_row, b_col], axis=-1), beliefs
 
 
 # --- the learner ----------------------------------------------------------------------------------------
@@ -247,8 +187,14 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
-    # the filter has no params, so its options may change at evaluation
-    acting_options: ClassVar[tuple[str, ...]] = ("safe_drops", "brick_map", "brick_evidence", "brick_occupancy")
+    # the ingredients the table's ablations tried and the row did not keep (bench/results/beyond.md)
+    retired_options: ClassVar[dict[str, Any]] = {
+        "brick_map": False,
+        "brick_evidence": 1.0,
+        "brick_occupancy": False,
+        "todo_compass": False,
+    }
+    retired_where: ClassVar[str] = "removed after commit e438acd; its results are on bench/results/beyond.md"
 
     position_coef: float = option(
         5e-3,
@@ -276,32 +222,6 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
         "the belief is a histogram filter driven by a learned move head (trained by "
         "the move loss: move_coef > 0); off: the position head (position_coef > 0)",
     )
-    brick_map: bool = option(
-        False,
-        "the filter also maps the bricks it laid under its belief and weighs positions by "
-        "how well the window's bricks match the map, with a joint belief over rows and columns "
-        "(agents/research/belief_map.py)",
-    )
-    brick_evidence: float = option(
-        1.0,
-        "with brick_map, the weight of the window's bricks as evidence of the "
-        "position (1: Bayes' rule as if each step's window were new evidence; below 1 "
-        "tempers it, as the window shows the same bricks step after step)",
-        low=0,
-        high=1,
-    )
-    todo_compass: bool = option(
-        False,
-        "the Q head also reads where the design's unbuilt cells lie under a map of the "
-        "drops made under the belief: their expected share above, below, left and right of "
-        "the believed position, and in all (with brick_map, that filter's map)",
-    )
-    brick_occupancy: bool = option(
-        False,
-        "with brick_map in 3D, the map holds whether a cell has a brick, not how "
-        "many, and reads the window so: a stack's height never enters the evidence (2D's "
-        "map is so already)",
-    )
 
     def check(self) -> None:
         super().check()
@@ -315,17 +235,6 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
                 "pqn-belief with belief_filter needs previous_step=True: its move head reads the window "
                 "before the last action and the action"
             )
-        if self.brick_evidence != 1.0 and not self.brick_map:
-            raise ValueError(f"brick_evidence={self.brick_evidence} needs brick_map=True: it weighs the map's evidence")
-        if self.brick_occupancy and not (self.brick_map and self.env_config().dim == 3):
-            raise ValueError(
-                f"brick_occupancy needs brick_map=True on a 3D task, got brick_map={self.brick_map} on "
-                f"{self.task}: it changes the 3D map of heights (2D's map holds occupancy already)"
-            )
-        if self.todo_compass and not self.belief_filter:
-            raise ValueError("todo_compass needs belief_filter=True: it maps the drops under the filter's belief")
-        if self.brick_map and not self.belief_filter:
-            raise ValueError("pqn-belief with brick_map needs belief_filter=True: the map is the filter's")
         if self.view_radius:
             low, high = view_radius_range(self.env_config())
             if not low <= self.view_radius <= high:
@@ -377,7 +286,7 @@ class PQNBelief(PQNAux):
                 if others
                 else None
             )
-        fields = dict(
+        self.network = BeliefQNetwork(
             layout=base.layout,
             num_actions=base.num_actions,
             hidden_size=base.hidden_size,
@@ -387,14 +296,7 @@ class PQNBelief(PQNAux):
             moves=moves,
             view_radius=config.view_radius,
             design_encoder=config.design_encoder,
-            todo_compass=config.todo_compass,
-            drops=drop_table(self.env.config),
-            capped=self.env.config.dim == 2 or config.brick_occupancy,
         )
-        if config.brick_map:
-            self.network = MappingBeliefQNetwork(**fields, evidence_weight=config.brick_evidence)
-        else:
-            self.network = BeliefQNetwork(**fields)
 
     def _loss(self, params, carry0, batch: AuxiliaryTransition, targets):
         """PQN-aux's loss, and as a metric (no gradient) how well the belief the Q head read knew
@@ -411,42 +313,19 @@ class PQNBelief(PQNAux):
     def held_belief(self, params, policy_state: dict, obs: jax.Array) -> jax.Array:
         """The belief over plan positions, `(rows, cols)`, that the greedy policy (`policy`) reads
         when it acts on `obs` with `policy_state` (one world, unbatched, as its `act` takes them):
-        the mapping filter's joint belief (`brick_map`), else the product of the row and column
-        marginals the Q head reads. It applies the network to the inputs `act` gives it and reads
-        what the network sows and carries; the action stays `act`'s, so a caller that also wants
-        the action calls `act` beside it (bench/belief_episodes.py)."""
-        network, layout = self.network, self.layout
-        net_obs = layout.acting_inputs(obs, policy_state)
-        (carry, _), sown = network.apply(
+        the product of the row and column marginals the Q head reads. It applies the network to
+        the inputs `act` gives it and reads what the network sows; the action stays `act`'s, so a
+        caller that also wants the action calls `act` beside it (bench/belief_episodes.py)."""
+        net_obs = self.layout.acting_inputs(obs, policy_state)
+        _, sown = self.network.apply(
             params,
             policy_state["carry"][None],
             net_obs[None, None],
             policy_state["reset"][None, None],
             mutable="intermediates",
         )
-        rows, cols = layout.plan_shape
-        if isinstance(network, MappingBeliefQNetwork):  # the carry after the GRU's state: belief, map mean, variance
-            return carry[0, network.rnn_size : network.rnn_size + rows * cols].reshape(rows, cols)
         p_row, p_col = sown["intermediates"]["belief"][0]
         return p_row[0, 0][:, None] * p_col[0, 0][None, :]
-
-    def filter_inputs(self, params, policy_state: dict, obs: jax.Array) -> tuple:
-        """What the filter reads at this step when the greedy policy acts on `obs` with
-        `policy_state` (one world, unbatched): `(reset, p_cells, sign, last_action, window)` as
-        `mapping_filter_step` takes them for a batch of one (the move head's distribution over the
-        cells moved, the last action's one-hot and direction, the window's raw values). A filter
-        run beside the policy on these sees what the policy's own filter saw
-        (bench/filter_replay.py)."""
-        network = self.network
-        if network.moves is None:
-            raise ValueError("filter_inputs needs pqn-belief with belief_filter=True: the learned belief has no filter")
-        net_obs = self.layout.acting_inputs(obs, policy_state)[None, None]
-        _, sown = network.apply(
-            params, policy_state["carry"][None], net_obs, policy_state["reset"][None, None], mutable="intermediates"
-        )
-        move_logits = sown["intermediates"]["auxiliary"][0]["move"]
-        p_cells, last_action, sign, window = network.filter_inputs_from_move_logits(move_logits, net_obs)
-        return policy_state["reset"][None], p_cells[0], sign[0], last_action[0], window[0]
 
     def _fixed_design(self) -> tuple:
         """A static task's design as nested tuples (a hashable module field)."""

@@ -62,8 +62,9 @@ SWEPT = "swept"
 
 class _ConfigJson(Spec):
     """config.json: `algorithm` names the config class, whose declared fields the rest must match
-    (a field left out takes the class default, as runs of older versions do); a sweep's names
-    its swept settings under `swept` (`agents.training.sweep.base_config_json`)."""
+    (a field left out takes the class default, as runs of older versions do; a retired option
+    is read, its value refused by `config_from_json` unless off); a sweep's names its swept
+    settings under `swept` (`agents.training.sweep.base_config_json`)."""
 
     def describe(self) -> str:
         return "an object"
@@ -75,9 +76,11 @@ class _ConfigJson(Spec):
         Object({"algorithm": Str(ALGORITHMS)}, {"task": Anything()}).check(
             {k: v for k, v in value.items() if k in ("algorithm", "task")} if isinstance(value, dict) else value, field
         )
-        specs = field_specs(config_class(value["algorithm"]))
+        cls = config_class(value["algorithm"])
+        specs = field_specs(cls)
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
         fields[SWEPT] = ListOf(Str(tuple(specs)))  # a sweep's: the settings its arms set (agents.training.sweep)
+        fields |= {name: Anything() for name in cls.retired_options}  # their values: `config_from_json`'s
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
             where = f" in {field}" if field else ""
