@@ -113,7 +113,7 @@ def main() -> None:
             rows.append((task, recurrent, settings, make_config(args.algorithm, task, **overrides, **settings)))
         except ValueError as error:
             parser.error(f"{task}: {error}")
-    for task, recurrent, settings, config in rows:
+    for task, _recurrent, settings, config in rows:
         algorithm = build_algorithm(config)
         mesh = devices.env_mesh(args.devices, config.num_envs)
         state = initial_state(algorithm, mesh)
