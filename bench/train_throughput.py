@@ -57,13 +57,20 @@ def main() -> None:
     )
     parser.add_argument("--num-envs", type=int, default=None, help="default: the tuned value per task")
     parser.add_argument("--devices", type=int, default=1, help="CPU devices (default 1, as `snac train` uses)")
+    parser.add_argument("--out", default=None, help="also write the table to this Markdown file (replaced)")
     for option in ("hidden-size", "rnn-size", "update-epochs", "num-minibatches", "rollout-steps"):
         parser.add_argument("--" + option, type=int, default=None, help="default: the tuned value per task")
     args = parser.parse_args()
     for name in ("updates", "repeats", "devices"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
-    from snac_jax import devices
+    from snac_jax import atomic, devices
+
+    if args.out:
+        try:
+            atomic.check_writable(args.out, "--out")
+        except ValueError as error:
+            parser.error(str(error))
 
     devices.use_cpu_devices(args.devices)  # before anything starts JAX's backend (the variants' imports do)
     from agents.training.registry import ALGORITHMS
@@ -82,17 +89,26 @@ def main() -> None:
     from bench import flops
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
-    print(
+    lines = []
+
+    def emit(text: str) -> None:
+        """Print a line, and keep it for --out (written as each row finishes: a killed run keeps its rows)."""
+        print(text, flush=True)
+        lines.append(text)
+        if args.out:
+            atomic.atomic_write_text(args.out, "\n".join(lines) + "\n")
+
+    emit(
         f"{args.algorithm}; jax {jax.__version__}, {len(jax.devices())} {jax.devices()[0].platform} device(s) "
         f"({jax.devices()[0].device_kind}; {os.cpu_count()} CPU cores); "
         f"median of {args.repeats} repeats of {args.updates} updates"
     )
-    print(
+    emit(
         "| task | network | worlds | steps x epochs x minibatches | params | compile s | "
         "env-steps/s with learning | acting only (same run) | learning's share of the time | "
         "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |"
     )
-    print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
+    emit("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []  # every configuration made (and so checked) before the first is compiled
     fields = {f.name for f in dataclasses.fields(config_class(args.algorithm))}
     if "recurrent" not in fields:
@@ -149,12 +165,11 @@ def main() -> None:
             + f", hidden {config.hidden_size}"
             + "".join(f"; {name}={value}" for name, value in settings.items())
         )
-        print(
+        emit(
             f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
             f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
             f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
-            f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |",
-            flush=True,
+            f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |"
         )
 
 

@@ -98,7 +98,7 @@ def test_quick_run_covers_every_task(tmp_path):
 
 
 @pytest.mark.parametrize("algorithm", ["ppo", "pqn"])
-def test_training_throughput_bench_prints_median_and_baseline(algorithm):
+def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_path):
     script = ROOT / "bench" / "train_throughput.py"
     done = subprocess.run(
         [
@@ -122,6 +122,8 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm):
             "8",
             "--update-epochs",
             "2",
+            "--out",
+            str(tmp_path / "rates.md"),
         ],
         capture_output=True,
         text=True,
@@ -139,9 +141,13 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm):
     assert with_learning > 0 and acting_only > 0
     params = int(cells[4].replace(",", ""))
     network_gflops, matmul_gflops = float(cells[9]), float(cells[10])
-    # Two epochs: an acting forward pass plus two forward-and-backward passes.
-    assert network_gflops == pytest.approx(with_learning * 2 * params * (1 + 3 * 2) / 1e9, abs=0.051)
+    # The FLOPs counted from the traced chunk, per env step, are about what two epochs of a dense
+    # network of this size do: an acting forward pass plus two forward-and-backward passes
+    # (2 FLOPs a weight each; PQN's targets add a forward pass, the recurrent core its gates).
+    per_step = network_gflops * 1e9 / with_learning
+    assert 0.5 < per_step / (2 * params * (1 + 3 * 2)) < 2.5
     assert matmul_gflops > 0
+    assert (tmp_path / "rates.md").read_text().splitlines()[-1] == row
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
 
