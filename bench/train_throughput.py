@@ -32,7 +32,11 @@ import dataclasses
 import itertools
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench.flops` when run as a script
 
 
 def main() -> None:

@@ -334,7 +334,7 @@ def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_
     assert capsys.readouterr().err == (
         "belief_episodes.py: error: --worst must be in 1..10 (the episodes played), got 11\n"
     )
-    sweep.save(sweep.Sweep(("lr",), ((1e-3,), (1e-4,))), run)
+    sweep.save(sweep.Sweep(("learning_rate",), ((1e-3,), (1e-4,))), run)
     assert main(["--run", str(run), "--out", str(out)]) == 2
     assert capsys.readouterr().err == (
         f"belief_episodes.py: error: {run} is a sweep of 2 arms: --arm must be in 0..1 (none given)\n"

@@ -200,7 +200,7 @@ def _config_only_run(tmp_path, arms=None):
         make_config("ppo", "2d-static-sparse", switches="landmark_action=4", seeds=2, **TINY), run / "config.json"
     )
     if arms is not None:
-        sweep.save(sweep.Sweep(("lr",), tuple((1e-3 / (i + 1),) for i in range(arms))), run)
+        sweep.save(sweep.Sweep(("learning_rate",), tuple((1e-3 / (i + 1),) for i in range(arms))), run)
     return run
 
 
