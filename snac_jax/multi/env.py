@@ -2,10 +2,13 @@
 
 JaxMARL's `MultiAgentEnv` is the convention of multi-agent RL in JAX: `agents`, `reset(key) ->
 (obs, state)`, `step(key, state, actions) -> (obs, state, rewards, dones, infos)` with dicts keyed
-by agent and `dones["__all__"]`, auto-reset on `__all__`. This class follows it without
-importing JaxMARL (not a dependency), and adds an optional `params` argument everywhere, as
-gymnax does, so the designs, stride distribution and step limit can be swapped or vmapped
-without recompiling. The world is the single-robot env's (`SNACEnv`), whose reset, checks and
+by agent and `dones["__all__"]`, auto-reset on `__all__` (or to a given `reset_state`). This
+class follows it without importing JaxMARL (an optional extra), so JaxMARL's baselines run on it
+unchanged: the spaces can be built inside `jit`, and an agent's action may have shape `()` or
+`(1,)`. Their `LogWrapper` needs `replace_info=True`, since `infos` holds per-team values beside
+per-robot ones. It adds an optional `params` argument, as gymnax does (`step` takes it by
+keyword), so the designs, stride distribution and step limit can be swapped or vmapped without
+recompiling. The world is the single-robot env's (`SNACEnv`), whose reset, checks and
 transition it reuses; with one robot every output equals the single-robot env's.
 """
 
