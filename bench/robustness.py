@@ -40,6 +40,22 @@ sys.dont_write_bytecode = True  # nothing but the results is written
 from bench.robustness_cases import TINY, cli_cases, setup  # noqa: E402
 
 VERDICTS = ("good", "poor", "bad")
+# What the cases run beyond the environment: pytest (the golden-trace case), `snac train` (the
+# trained run every case starts from), `snac play` and `snac render`. The dev extra brings them all.
+NEEDED_MODULES = ("pytest", "optax", "distrax", "flashbax", "pygame", "imageio")
+
+
+def missing_modules() -> list[str]:
+    """The modules of `NEEDED_MODULES` that cannot be imported here."""
+    import importlib.util
+
+    def found(name: str) -> bool:
+        try:
+            return importlib.util.find_spec(name) is not None
+        except ValueError:  # a module set to None in sys.modules: blocked, as if not installed
+            return False
+
+    return [name for name in NEEDED_MODULES if not found(name)]
 
 
 def snac(work: Path, *argv: str, timeout: float = 600, script: str | None = None) -> dict:
@@ -384,6 +400,13 @@ def main(argv=None) -> int:
         help="run nothing: rebuild robustness.md from an earlier robustness.json (and --before)",
     )
     args = parser.parse_args(argv)
+    if args.from_json is None and (missing := missing_modules()):
+        # Refused before anything runs: without them the cases would fail minutes in, writing nothing.
+        parser.exit(
+            2,
+            f"{parser.prog}: error: this needs the dev extra (missing: {', '.join(missing)}): "
+            'pip install -e ".[dev]"\n',
+        )
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} is a file; give a directory for robustness.json and robustness.md")
     try:

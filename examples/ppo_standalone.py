@@ -3,16 +3,21 @@ pure `train(key)` that builds the network, steps every world, computes GAE and r
 updates inside one `jit`. It reads nothing from this repository's learners (`agents/`), only the
 environment library `snac_jax`, so it is the file to copy to start a learner of your own.
 
-    python examples/ppo_standalone.py          # 1d-static-sin: about a minute on two CPU cores
+    python examples/ppo_standalone.py          # 1d-static-sin, seed 0: one to two minutes on two CPU cores
+    python examples/ppo_standalone.py --seed 1
 
-It prints the greedy policy's mean IoU on 100 episodes, scored by `snac_jax.evaluation`. The
-policy is feed-forward: it reads the observation, the one before it and the last action (the
-window's shift shows how far the last move went), but keeps no memory beyond, so expect it well
-below the recurrent learners of `agents/` (the robot never sees where it stands, SPEC §6).
+It prints the greedy policy's mean IoU on 100 episodes, scored by `snac_jax.evaluation`: 0.666,
+0.602, 0.651, 0.454 and 0.545 for seeds 0 to 4 (`--seed N`, on a CPU), where a uniformly random
+policy scores 0.388 (`snac eval --policy random --task 1d-static-sin --episodes 100`). The policy is feed-forward: it
+reads the observation, the one before it and the last action (the window's shift shows how far
+the last move went), but keeps no memory beyond, so expect it well below the recurrent learners
+of `agents/` (the robot never sees where it stands, SPEC §6), and its greedy score varies from
+seed to seed more than theirs.
 """
 
 from __future__ import annotations
 
+import argparse
 import time
 from typing import NamedTuple
 
@@ -41,7 +46,11 @@ CONFIG = {
     "GAE_LAMBDA": 0.95,
     "CLIP_EPS": 0.2,
     "ENT_COEF": 0.01,
-    "ENT_COEF_END": 0.0,
+    # Below zero: late in training the bonus becomes a penalty on entropy, so the sampled policy
+    # turns nearly deterministic and its argmax (what `greedy_iou` scores) is the policy that was
+    # trained. Without it a memoryless policy leans on sampling to leave a spot it keeps returning
+    # to, and its argmax repeats one action there.
+    "ENT_COEF_END": -0.05,
     "VF_COEF": 0.5,
     "MAX_GRAD_NORM": 0.5,
     "REWARD_SCALE": 0.1,
@@ -65,10 +74,20 @@ class ActorCritic(nn.Module):
         return mlp(obs, self.num_actions, 0.01), mlp(obs, 1, 1.0)[..., 0]
 
 
-def inputs(obs, previous_obs, last_action, num_actions):
-    """What the network reads: the observation, the previous one and the last action one-hot
-    (its last slot "none" at an episode's first step, where the previous observation is `obs`)."""
-    return jnp.concatenate([obs, previous_obs, jax.nn.one_hot(last_action, num_actions + 1)], axis=-1)
+def make_inputs(env, env_params):
+    """`inputs(obs, previous_obs, last_action)`: what the network reads. The observation and the
+    previous one, each entry divided by its largest magnitude in the task's observation space (the
+    step and brick counters run to hundreds: unscaled, they saturate the tanh units), and the last
+    action one-hot (its last slot "none" at an episode's first step, where the previous
+    observation is `obs`)."""
+    space = env.observation_space(env_params)
+    scale = jnp.maximum(jnp.maximum(space.high, -space.low), 1.0)
+
+    def inputs(obs, previous_obs, last_action):
+        one_hot = jax.nn.one_hot(last_action, env.num_actions + 1)
+        return jnp.concatenate([obs / scale, previous_obs / scale, one_hot], axis=-1)
+
+    return inputs
 
 
 class Transition(NamedTuple):
@@ -86,6 +105,7 @@ def make_train(config):
     num_updates = config["TOTAL_TIMESTEPS"] // (config["NUM_ENVS"] * config["NUM_STEPS"])
     network, num_actions = ActorCritic(env.num_actions, config["HIDDEN"]), env.num_actions
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))  # SNAC's step resets an ended episode itself
+    inputs = make_inputs(env, env_params)
 
     def train(key):
         key, key_init, key_reset = jax.random.split(key, 3)
@@ -98,14 +118,14 @@ def make_train(config):
         )
         train_state = TrainState.create(
             apply_fn=network.apply,
-            params=network.init(key_init, inputs(obs, obs, none, num_actions)[0]),
+            params=network.init(key_init, inputs(obs, obs, none)[0]),
             tx=optax.chain(optax.clip_by_global_norm(config["MAX_GRAD_NORM"]), optax.adam(schedule, eps=1e-5)),
         )
 
         def env_step(runner, _):
             train_state, env_state, (obs, previous_obs, last_action), key = runner
             key, key_act, key_step = jax.random.split(key, 3)
-            net_obs = inputs(obs, previous_obs, last_action, num_actions)
+            net_obs = inputs(obs, previous_obs, last_action)
             logits, value = network.apply(train_state.params, net_obs)
             pi = distrax.Categorical(logits=logits)
             action = pi.sample(seed=key_act)
@@ -141,12 +161,11 @@ def make_train(config):
             return actor + config["VF_COEF"] * critic - ent_coef * pi.entropy().mean()
 
         def update(runner, progress):
-            # The entropy bonus anneals to ENT_COEF_END, so that the greedy policy scored at the end
-            # takes the actions the sampled one settled on.
+            # The entropy coefficient anneals linearly from ENT_COEF to ENT_COEF_END (see CONFIG).
             ent_coef = config["ENT_COEF"] + progress * (config["ENT_COEF_END"] - config["ENT_COEF"])
             runner, batch = jax.lax.scan(env_step, runner, None, config["NUM_STEPS"])
             train_state, env_state, seen, key = runner
-            advantages, targets = gae(batch, network.apply(train_state.params, inputs(*seen, num_actions))[1])
+            advantages, targets = gae(batch, network.apply(train_state.params, inputs(*seen))[1])
 
             def epoch(carry, _):
                 train_state, key = carry
@@ -183,6 +202,7 @@ def greedy_iou(config, params, episodes: int = 100, seed: int = 0) -> float:
     """The mean final IoU of the greedy (argmax) policy over `episodes` episodes."""
     env, env_params = snac_jax.make(config["TASK"], **config["ENV_KWARGS"])
     network = ActorCritic(env.num_actions, config["HIDDEN"])
+    inputs = make_inputs(env, env_params)
 
     def init(key, design):  # the previous observation (unused at the start) and "no last action"
         return jnp.zeros(env.observation_space(env_params).shape), jnp.int32(env.num_actions)
@@ -190,7 +210,7 @@ def greedy_iou(config, params, episodes: int = 100, seed: int = 0) -> float:
     def act(params, policy_state, obs, key):
         previous_obs, last_action = policy_state
         previous_obs = jnp.where(last_action == env.num_actions, obs, previous_obs)
-        logits, _ = network.apply(params, inputs(obs, previous_obs, last_action, env.num_actions))
+        logits, _ = network.apply(params, inputs(obs, previous_obs, last_action))
         action = jnp.argmax(logits).astype(jnp.int32)
         return action, (obs, action)
 
@@ -200,11 +220,15 @@ def greedy_iou(config, params, episodes: int = 100, seed: int = 0) -> float:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seed", type=int, default=0, help="the training key's seed (default 0)")
+    seed = parser.parse_args().seed
     start = time.perf_counter()
-    train_state, metrics = jax.jit(make_train(CONFIG))(jax.random.key(0))
+    train_state, metrics = jax.jit(make_train(CONFIG))(jax.random.key(seed))
     last = np.asarray(metrics["iou_sum"])[-10:].sum() / max(1, np.asarray(metrics["episodes"])[-10:].sum())
     print(
-        f"trained {CONFIG['TOTAL_TIMESTEPS']:,} steps on {CONFIG['TASK']} in {time.perf_counter() - start:.0f} s; "
+        f"trained {CONFIG['TOTAL_TIMESTEPS']:,} steps on {CONFIG['TASK']} (seed {seed}) in "
+        f"{time.perf_counter() - start:.0f} s; "
         f"mean IoU of the sampled episodes that ended in the last 10 updates: {last:.3f}"
     )
     print(f"greedy IoU over 100 episodes: {greedy_iou(CONFIG, train_state.params):.3f}")

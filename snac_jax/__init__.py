@@ -20,6 +20,10 @@ _EXPORTS = {
     "test_design_names": "snac_jax.tasks",
 }
 
+# Subpackages reachable as attributes (`snac_jax.multi.make(...)` after `import snac_jax`), imported on
+# first use like the names above.
+_SUBPACKAGES = ("multi",)
+
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
 
@@ -29,8 +33,10 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module(_EXPORTS[name]), name)
         globals()[name] = value
         return value
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"snac_jax.{name}")  # the import binds it in globals() too
     raise AttributeError(f"module 'snac_jax' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+    return sorted(set(globals()) | set(_EXPORTS) | set(_SUBPACKAGES))

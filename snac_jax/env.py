@@ -351,6 +351,19 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         """The `num_actions` discrete actions; static, so it works under `jit` and `vmap`."""
         return spaces.Discrete(self.config.num_actions)
 
+    def observation_low(self) -> np.ndarray:
+        """The observation's per-entry lower bounds (see `observation_space`) as a NumPy array: they
+        depend on the configuration only, never on `params`, so they stay concrete inside `jit`
+        where a caller (the multi-robot env's space) edits them with NumPy."""
+        config, layout = self.config, self.observation_layout
+        marks = config.num_landmarks or config.landmark_action
+        floor = observation.LANDMARK_VALUE if marks else float(PADDING)
+        window_low = np.full(layout.window_shape, floor, np.float32)
+        window_low[config.pad] = observation.LANDMARK_VALUE if marks else 0.0
+        low = np.zeros(layout.size, np.float32)
+        low[layout.window] = window_low.reshape(-1)
+        return low
+
     def observation_space(self, params: EnvParams | None = None) -> spaces.Box:
         """Per-entry bounds of the flat observation, laid out as `observation_layout` says.
 
@@ -366,13 +379,7 @@ class SNACEnv(environment.Environment[EnvState, EnvParams]):
         if params is None:
             params = self.default_params
         config, layout = self.config, self.observation_layout
-        marks = config.num_landmarks or config.landmark_action
-        floor = observation.LANDMARK_VALUE if marks else float(PADDING)
-        window_low = np.full(layout.window_shape, floor, np.float32)
-        window_low[config.pad] = observation.LANDMARK_VALUE if marks else 0.0
-        low = np.zeros(layout.size, np.float32)
-        low[layout.window] = window_low.reshape(-1)
-
+        low = self.observation_low()
         steps = jnp.asarray(params.max_steps_in_episode).astype(jnp.float32)
         bricks = jnp.minimum(jnp.max(params.design_max_bricks).astype(jnp.float32), steps)
         if config.design_change is not None:

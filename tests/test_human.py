@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -256,6 +257,31 @@ def test_play_checks_the_record_path_before_opening_the_window(tmp_path, monkeyp
         assert main(["play", "--task", "1d-static-sin", "--record", str(record)]) == 2
         err = capsys.readouterr().err
         assert err.startswith("snac play: error: record file ") and message in err
+
+
+def test_play_without_a_display_refuses_in_one_line(tmp_path, monkeypatch, capsys):
+    """On Linux with no DISPLAY, WAYLAND_DISPLAY or SDL_VIDEODRIVER, `snac play` says so in one
+    line before pygame opens anything (SDL would find no video device and the game would hang)."""
+    pytest.importorskip("pygame")
+    from snac_jax.cli import main
+
+    for name in window.DISPLAY_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")  # where the check applies (macOS and Windows have a display)
+    record = tmp_path / "h.jsonl"
+    assert main(["play", "--task", "1d-static-sin", "--record", str(record)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and err.startswith("snac play: error: no display to open the game window on")
+    assert "SDL_VIDEODRIVER=dummy" in err and not record.exists()
+
+
+@pytest.mark.parametrize(
+    ("environ", "platform"),
+    [({"DISPLAY": ":0"}, "linux"), ({"WAYLAND_DISPLAY": "wayland-0"}, "linux"), ({"SDL_VIDEODRIVER": "dummy"}, "linux")]
+    + [({}, platform) for platform in ("darwin", "win32")],
+)
+def test_a_display_variable_or_a_desktop_platform_lets_the_window_open(environ, platform):
+    window.check_display(environ, platform)  # no error
 
 
 def test_a_finished_episode_is_never_dropped(tmp_path, monkeypatch, capsys):

@@ -5,7 +5,10 @@ picture, and the refusal of a bad robot count."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from functools import partial
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +20,8 @@ from snac_jax import TASKS, make, multi, tasks
 from snac_jax.multi.episodes import stack
 from snac_jax.replay import env_for_trace
 from tests.conftest import golden_traces
+
+ROOT = Path(__file__).parents[1]
 
 SHORT = 40  # a step limit that ends (and auto-resets) several episodes in a short run
 
@@ -464,6 +469,76 @@ def test_step_compiles_once_per_configuration():
         _, _, _, dones, _ = env.step(jax.random.key(i), state, {"agent_0": i % 5, "agent_1": jnp.asarray(3)})
         assert bool(dones["__all__"]) == (env is second)
     assert multi.MultiSNACEnv._step._cache_size() - before == 1
+
+
+def test_spaces_are_built_inside_jit_with_several_robots():
+    """JaxMARL's baselines ask for the spaces inside their jitted `train`; the team's lower bounds
+    (other robots showing as ROBOT_VALUE) are the same there as outside."""
+    team = multi.make("2d-static-dense", num_robots=2)
+    outside = team.observation_space("agent_1")
+
+    @jax.jit
+    def spaces_inside():
+        space = team.observation_space("agent_1")
+        return space.low, space.high, jnp.zeros(space.shape), team.action_space("agent_0").n
+
+    low, high, zeros, n = spaces_inside()
+    np.testing.assert_array_equal(low, outside.low)
+    np.testing.assert_array_equal(high, outside.high)
+    assert zeros.shape == outside.shape and int(n) == team.num_actions
+    assert float(low.min()) == multi.ROBOT_VALUE
+
+
+def test_actions_of_shape_one_are_one_action():
+    """A baseline's per-agent action of shape (1,) steps as the same action of shape ()."""
+    team = multi.make("2d-static-dense", num_robots=2)
+    _, state = team.reset(jax.random.key(0))
+    key = jax.random.key(1)
+    scalar = team.step(key, state, {"agent_0": jnp.int32(4), "agent_1": jnp.int32(2)})
+    vector = team.step(key, state, {"agent_0": jnp.array([4], jnp.int32), "agent_1": jnp.array([2], jnp.int32)})
+    for got, expected in zip(jax.tree.leaves(vector), jax.tree.leaves(scalar)):
+        np.testing.assert_array_equal(got, expected)
+    with pytest.raises(ValueError, match=r"actions\['agent_0'\] must be one int in 0..4, got a traced int32\[2\]"):
+        team.step(key, state, {"agent_0": jnp.array([4, 4]), "agent_1": 2})
+
+
+def test_step_takes_jaxmarls_reset_state_and_params_by_keyword_or_position():
+    """JaxMARL's `step(key, state, actions, reset_state)`: an ended episode continues from
+    `reset_state`. Params go by keyword, or (gymnax's order) as the fourth argument."""
+    team = multi.make("2d-static-dense", num_robots=2, max_steps=1)
+    _, state = team.reset(jax.random.key(0))
+    _, chosen = team.reset(jax.random.key(7))
+    chosen = chosen.replace(world=chosen.world.replace(position=jnp.array([[3, 4], [5, 6]])))
+    acts = {"agent_0": 1, "agent_1": 0}
+    obs, reset, _, dones, _ = team.step(jax.random.key(1), state, acts, chosen)
+    assert bool(dones["__all__"]) and _positions(reset) == [[3, 4], [5, 6]]
+    for agent, expected in team.get_obs(chosen).items():
+        np.testing.assert_array_equal(obs[agent], expected)
+    longer = multi.make("2d-static-dense", num_robots=2, max_steps=5).default_params
+    by_keyword = team.step(jax.random.key(1), state, acts, params=longer)
+    by_position = team.step(jax.random.key(1), state, acts, longer)
+    assert not bool(by_keyword[3]["__all__"])
+    for got, expected in zip(jax.tree.leaves(by_position), jax.tree.leaves(by_keyword)):
+        np.testing.assert_array_equal(got, expected)
+    with pytest.raises(ValueError, match="step got params twice"):
+        team.step(jax.random.key(1), state, acts, longer, params=longer)
+    with pytest.raises(ValueError, match="reset_state must be a MultiState or None, got dict"):
+        team.step(jax.random.key(1), state, acts, {"agent_0": 0})
+
+
+def test_import_snac_jax_reaches_multi_without_importing_it_first():
+    """`snac_jax.multi.make` after a bare `import snac_jax`, which itself imports neither JAX nor
+    the multi-robot package (they load on first use)."""
+    code = (
+        "import sys, snac_jax\n"
+        "assert 'jax' not in sys.modules and 'snac_jax.multi' not in sys.modules\n"
+        "assert 'multi' in dir(snac_jax)\n"
+        "env = snac_jax.multi.make('2d-static-dense', num_robots=2)\n"
+        "print(type(env).__name__, env.agents)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "MultiSNACEnv ['agent_0', 'agent_1']"
 
 
 def test_vmap_over_worlds_equals_each_world_alone():

@@ -11,6 +11,27 @@ from collections.abc import Sequence
 
 from snac_jax.human.game import NEXT_EPISODE_KEYS, QUIT_KEYS, GameSession
 
+# What tells SDL (pygame's window layer) where to draw on Linux and the other X11/Wayland systems.
+DISPLAY_VARIABLES = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
+
+
+def check_display(environ=None, platform: str | None = None) -> None:
+    """A one-line `ValueError` where no window can be shown: on Linux and the BSDs, none of
+    `DISPLAY_VARIABLES` set (a shell over ssh, a container, CI). Why: there SDL finds no video
+    device and pygame waits for events that never come, so the command would hang silently.
+    macOS and Windows always have their own display."""
+    import os
+    import sys
+
+    environ = os.environ if environ is None else environ
+    platform = sys.platform if platform is None else platform
+    if platform.startswith(("darwin", "win32", "cygwin")) or any(environ.get(v) for v in DISPLAY_VARIABLES):
+        return
+    raise ValueError(
+        "no display to open the game window on: set DISPLAY or WAYLAND_DISPLAY (a desktop session, "
+        "ssh -X), or SDL_VIDEODRIVER=dummy to run it without a window"
+    )
+
 
 def run_window(
     session: GameSession, *, max_episodes: int | None = None, script: Sequence[str] | None = None, fps: int = 30
@@ -26,6 +47,7 @@ def run_window(
     os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     import pygame
 
+    check_display()
     pygame.display.init()  # display only: no audio device is needed (or wanted headless)
     try:
         frame = session.frame()

@@ -2,10 +2,13 @@
 
 JaxMARL's `MultiAgentEnv` is the convention of multi-agent RL in JAX: `agents`, `reset(key) ->
 (obs, state)`, `step(key, state, actions) -> (obs, state, rewards, dones, infos)` with dicts keyed
-by agent and `dones["__all__"]`, auto-reset on `__all__`. This class follows it without
-importing JaxMARL (not a dependency), and adds an optional `params` argument everywhere, as
-gymnax does, so the designs, stride distribution and step limit can be swapped or vmapped
-without recompiling. The world is the single-robot env's (`SNACEnv`), whose reset, checks and
+by agent and `dones["__all__"]`, auto-reset on `__all__` (or to a given `reset_state`). This
+class follows it without importing JaxMARL (an optional extra), so JaxMARL's baselines run on it
+unchanged: the spaces can be built inside `jit`, and an agent's action may have shape `()` or
+`(1,)`. Their `LogWrapper` needs `replace_info=True`, since `infos` holds per-team values beside
+per-robot ones. It adds an optional `params` argument, as gymnax does (`step` takes it by
+keyword), so the designs, stride distribution and step limit can be swapped or vmapped without
+recompiling. The world is the single-robot env's (`SNACEnv`), whose reset, checks and
 transition it reuses; with one robot every output equals the single-robot env's.
 """
 
@@ -115,13 +118,16 @@ class MultiSNACEnv:
     # --- dicts and arrays ----------------------------------------------------------------------
 
     def _stacked(self, name: str, values: Mapping[str, Any], low: int, high: int) -> jax.Array:
-        """int32 (N,) from a dict keyed by agent; the keys and each value checked while tracing."""
+        """int32 (N,) from a dict keyed by agent; the keys and each value checked while tracing.
+        A value may be one integer of shape `()` or `(1,)`: JaxMARL's baselines hand each agent
+        its sampled action as `(1,)` (their envs reshape it), so both are taken as one action."""
         if not isinstance(values, Mapping) or set(values) != set(self.agents):
             got = sorted(values) if isinstance(values, Mapping) else type(values).__name__
             raise ValueError(f"{name} must be a dict keyed by {self.agents}, got {got}")
+        one = {a: jnp.reshape(v, ()) if np.shape(v) == (1,) else v for a, v in values.items()}
         for agent in self.agents:
-            check_integer(f"{name}[{agent!r}]", values[agent], low, high)
-        return jnp.stack([jnp.asarray(values[a], jnp.int32) for a in self.agents])
+            check_integer(f"{name}[{agent!r}]", one[agent], low, high)
+        return jnp.stack([jnp.asarray(one[a], jnp.int32) for a in self.agents])
 
     def _by_agent(self, stacked: jax.Array) -> dict[str, jax.Array]:
         return {agent: stacked[i] for i, agent in enumerate(self.agents)}
@@ -207,10 +213,21 @@ class MultiSNACEnv:
         return {**{agent: done for agent in self.agents}, "__all__": done}
 
     def step(
-        self, key: jax.Array, state: MultiState, actions: Mapping[str, Any], params: EnvParams | None = None
+        self,
+        key: jax.Array,
+        state: MultiState,
+        actions: Mapping[str, Any],
+        reset_state: MultiState | EnvParams | None = None,
+        params: EnvParams | None = None,
     ) -> tuple[dict[str, jax.Array], MultiState, dict[str, jax.Array], dict[str, jax.Array], dict[str, Any]]:
         """JaxMARL's auto-resetting step: where `dones["__all__"]`, the returned observations and
-        state belong to a fresh episode (reset with this step's key, as the single-robot env).
+        state belong to a fresh episode (reset with this step's key, as the single-robot env), or
+        to `reset_state` when one is given, as in JaxMARL's `MultiAgentEnv.step(key, state,
+        actions, reset_state=None)`.
+
+        `params` by keyword, else the env's own. The fourth positional argument may also be an
+        `EnvParams` (gymnax's `step(key, state, action, params)`): the two types are told apart
+        while tracing, so both kinds of caller run unchanged.
 
         `infos`: `final_iou`, `strides` (N,), `robot_rewards` (N,, each robot's own drop rewards),
         `terminated`, `truncated`, and `final_observation` (the observations before any reset;
@@ -219,12 +236,25 @@ class MultiSNACEnv:
         clamps an index outside the action table). `step_env` and `step_with_strides` refuse a
         known value outside it.
         """
-        return self._step(key, state, actions, self.default_params if params is None else params)
+        if isinstance(reset_state, EnvParams):
+            if params is not None:
+                raise ValueError("step got params twice: as the fourth argument and as params=")
+            reset_state, params = None, reset_state
+        if reset_state is not None and not isinstance(reset_state, MultiState):
+            raise ValueError(f"reset_state must be a MultiState or None, got {type(reset_state).__name__}")
+        return self._step(key, state, actions, reset_state, self.default_params if params is None else params)
 
     @partial(jax.jit, static_argnames=("self",))
-    def _step(self, key: jax.Array, state: MultiState, actions: Mapping[str, Any], params: EnvParams):
+    def _step(
+        self,
+        key: jax.Array,
+        state: MultiState,
+        actions: Mapping[str, Any],
+        reset_state: MultiState | None,
+        params: EnvParams,
+    ):
         obs_stepped, stepped, rewards, dones, infos = self.step_env(key, state, actions, params)
-        fresh = self._reset_state(key, params)
+        fresh = self._reset_state(key, params) if reset_state is None else reset_state
         state = jax.tree.map(lambda r, s: jnp.where(dones["__all__"], r, s), fresh, stepped)
         return self.get_obs(state), state, rewards, dones, {**infos, "final_observation": obs_stepped}
 
@@ -273,7 +303,7 @@ class MultiSNACEnv:
             return space
         layout = self.observation_layout
         window_low = np.full(layout.window_shape, rules.ROBOT_VALUE, np.float32)
-        window_low[self.config.pad] = np.asarray(space.low)[layout.window].reshape(layout.window_shape)[self.config.pad]
-        low = np.asarray(space.low).copy()
+        low = self.single.observation_low()  # NumPy, concrete under jit (the space's `high` may be traced)
+        window_low[self.config.pad] = low[layout.window].reshape(layout.window_shape)[self.config.pad]
         low[layout.window] = window_low.reshape(-1)
         return spaces.Box(jnp.asarray(low), space.high, space.shape, space.dtype)
