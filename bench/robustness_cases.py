@@ -181,7 +181,7 @@ def table_files(work: Path) -> None:
                 "algorithm": "ppo",
                 "column": "1d-static",
                 "task": "1d-static-sin",
-                "budget": {"env_steps": 256, "requested": 256, "source": "robustness", "capped": False},
+                "budget": {"env_steps": 256, "requested": 256, "source": "robustness"},
                 "eval_seed": TUNING_EVAL_SEED,
                 "protocol": {"static_episodes": 2, "episodes_per_test_design": 1},
             }

@@ -84,6 +84,28 @@ def test_a_preset_without_counts_scores_with_the_protocols(tmp_path):
 # --- the paper's budgets -----------------------------------------------------------------------
 
 
+def test_the_paper_presets_budgets_are_the_paper_appendixs():
+    """The appendix of the paper (Baseline setup): "We train DQN on each task for 3,000 episodes",
+    DRQN "for 10,000 episodes", "this DRQN+Hindsight for 10,000 episodes", "PPO for 10 million time
+    steps"; it states none for Rainbow and SAC, which train their tuned total_steps."""
+    from agents.table.presets import load_presets
+
+    paper = load_presets()["paper"]
+    budgets = {
+        algorithm: {k: v for k, v in budget.items() if k != "source"} for algorithm, budget in paper.budgets.items()
+    }
+    assert budgets == {
+        "ppo": {"env_steps": 10_000_000},
+        "dqn": {"episodes": 3_000},
+        "drqn": {"episodes": 10_000},
+        "drqn-her": {"episodes": 10_000},
+        "rainbow": {},
+        "sac": {},
+        "ppo-privileged": {"env_steps": 10_000_000},  # PPO's, so that it differs from PPO in its signals alone
+    }
+    assert all(budget.get("source") for budget in paper.budgets.values())
+
+
 def test_a_budget_given_as_same_as_is_that_entrys():
     from agents.table.presets import load_presets
 
@@ -112,7 +134,7 @@ def test_a_budget_given_as_same_as_is_that_entrys():
     "entry, message",
     [
         ('same_as = "paper.nobody"', "same_as must name"),
-        ('same_as = "paper.ppo", env_steps = 5', "same_as must name"),
+        ('same_as = "paper.ppo", env_steps = 5', "same_as stands alone"),
         ('same_as = "q.ppo"', "same_as must name"),  # itself a same_as: one step only
     ],
 )

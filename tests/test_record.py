@@ -36,9 +36,9 @@ def test_the_tuned_settings_name_pages_that_exist():
 def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
     """A cell's raw copy holds the config.json that `snac table --preset P` trains for that cell
     today (the table's own rule for the same run, `plan._settings_differ`), so a changed tuned entry
-    cannot silently redefine an ablation whose arms were measured on the old one. The seed count
-    aside: a cheap column's count follows the measured rates (budgets.toml, `cheap_seeds`). Arms
-    that only score another arm's run again (`evaluation`) train nothing of their own."""
+    cannot silently redefine an ablation whose arms were measured on the old one; a smaller budget
+    is the rule's one exception (a run trained under the wall-time cap the table once had, kept as
+    it is). Arms that only score another arm's run again (`evaluation`) train nothing of their own."""
     import json
 
     from agents.table.plan import _settings_differ, make_plan
@@ -58,7 +58,7 @@ def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
                 continue
             checked += 1
             stored = config_from_json(json.loads(record.read_text())["config"])
-            differ = [k for k in _settings_differ(cell, stored) if k != "seeds"]
+            differ = _settings_differ(cell, stored)
             if differ:
                 drifted.append(f"{record.relative_to(ROOT)}: {', '.join(differ)}")
     assert checked > 100  # the paper, tuned, beyond and ablation presets' cells

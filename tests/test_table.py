@@ -8,6 +8,7 @@ import argparse
 import dataclasses
 import json
 import re
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ import pytest
 from agents.table import ablation, statistics
 from agents.table.plan import TRAIN_SEED, make_plan
 from agents.table.plan_format import format_plan
-from agents.table.presets import Variant, expand_tasks, load_presets
+from agents.table.presets import BUDGETS_FILE, Variant, expand_tasks, load_presets
 from agents.table.raw import READ_FROM_ADOPTED
 from agents.table.report import build, markdown
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
@@ -49,157 +50,102 @@ def test_paper_columns_expand_to_environment_tasks():
         expand_tasks(["4d-static"])
 
 
-def test_paper_budgets_estimates_and_caps(tmp_path):
-    rates = {
-        "ppo": {"1d-static-sin": {"steps_per_s": 30_000, "eval_s": 10.0}},
-        "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
-    }
-    cells = make_plan(PRESETS["paper"], ["ppo", "drqn", "dqn"], ["1d-static", "2d-static-dense"], 3, tmp_path, rates)
+def test_paper_budgets_and_estimates(tmp_path):
+    cells = make_plan(PRESETS["paper"], ["ppo", "drqn", "dqn"], ["1d-static", "2d-static-dense"], 3, tmp_path)
     by = {(c.algorithm, c.task): c for c in cells}
     assert len(cells) == 3 * 4 and {c.status for c in cells} == {"new"}
-    # PPO: 10M steps per seed, trained as 152 whole updates of 1024 worlds x 64 steps;
-    # 3 seeds x 9,961,472 / 30k/s + 3 x 10 s of evaluation; gauss borrows sin's rate.
+    # PPO: 10M steps per seed, trained as 152 whole updates of 1024 worlds x 64 steps.
     ppo = by["ppo", "1d-static-gauss"]
-    assert ppo.config.total_steps == 10_000_000 and not ppo.budget.capped and ppo.total_steps == 152 * 1024 * 64
-    assert ppo.estimate_s == pytest.approx(3 * 9_961_472 / 30_000 + 30)
+    assert ppo.config.total_steps == 10_000_000 and not ppo.budget.below and ppo.total_steps == 152 * 1024 * 64
     assert ppo.config.seeds == 3 and ppo.config.seed == TRAIN_SEED
-    # DRQN: 10,000 episodes x 750 steps = 7.5M asked; (1800 s - 3 x 10 s) x 3000/s / 3 seeds = 1.77M fits -> 1.7M.
+    # DRQN: 10,000 episodes x 750 steps, the whole of it: nothing caps a budget.
     drqn = by["drqn", "1d-static-sin"]
-    assert drqn.budget.requested == 7_500_000 and drqn.budget.capped and drqn.budget.env_steps == 1_700_000
-    assert drqn.config.total_steps == 1_700_000
-    # No rate for 2D at all: no cap, no estimate, and the plan says so.
-    assert by["ppo", "2d-static-dense"].estimate_s is None and not by["ppo", "2d-static-dense"].budget.capped
+    assert (drqn.budget.requested, drqn.budget.env_steps, drqn.config.total_steps) == (7_500_000,) * 3
     # DQN: 3,000 episodes x 600 steps on 2D.
     assert by["dqn", "2d-static-dense"].budget.requested == 1_800_000
+    # A cell that has not started has no time estimate: nothing measured it.
+    assert {(c.estimate_s, c.estimate_from) for c in cells} == {(None, "unknown: not started")}
     text = format_plan(cells, tmp_path)
-    assert "1.7M (capped from 7.5M)" in text and "rates.json: 30,000 steps/s (1d-static-sin)" in text
-    assert "no measured rate" in text and "without a measured rate not counted" in text
-    assert "x the step limit (1D: 750)" in text
+    assert "x the step limit (1D: 750)" in text and "12 cells of unknown time not counted" in text
+    assert "7.5M" in text and "below" not in text
 
 
-def test_an_algorithms_own_wall_limit_replaces_the_presets(tmp_path):
-    (tmp_path / "own.toml").write_text(
-        "[a]\nseeds = 3\nwall_limit_minutes = 30\n[a.budgets]\n"
-        'drqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\nppo = { env_steps = 10_000_000, source = "s" }\n'
-    )
-    preset = load_presets(tmp_path / "own.toml")["a"]
-    assert (preset.wall_limit("drqn"), preset.wall_limit("ppo"), preset.wall_limit("dqn")) == (3600.0, 1800.0, 1800.0)
-    rates = {
-        "drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
-        "ppo": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}},
-    }
-    drqn, ppo = make_plan(preset, ["drqn", "ppo"], ["1d-static-sin"], None, tmp_path, rates)
-    # (3600 s - 3 x 10 s) x 3000/s / 3 seeds = 3.57M -> 3.5M; PPO keeps the preset's 30 minutes: 1.7M.
-    assert (drqn.budget.env_steps, drqn.budget.capped, ppo.budget.env_steps) == (3_500_000, True, 1_700_000)
-    text = format_plan([drqn, ppo], tmp_path)
-    assert "capped to fit ~30 min per cell (drqn 60)" in text
-    assert "drqn capped: the largest budget (two significant figures) whose estimate fits 60 min" in text
-    assert "ppo capped: the largest budget (two significant figures) whose estimate fits 30 min" in text
-    _refused(
-        tmp_path / "bad.toml",
-        "[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_limit_minutes = 0 }\n",
-        "drqn's wall_limit_minutes must be a positive number of minutes, got 0",
-    )
-    _refused(
-        tmp_path / "odd.toml",
-        "[a]\nseeds = 1\n[a.budgets]\ndrqn = { wall_minutes = 5 }\n",
-        "may give its own wall_limit_minutes",
-    )
-
-
-def test_a_started_cell_keeps_its_capped_budget_when_the_rates_change(tmp_path, monkeypatch):
-    from agents.training import checkpoint
-    from agents.training.config import save_config
-
-    slow = {"drqn": {"1d-static-sin": {"steps_per_s": 3_000, "eval_s": 10.0}}}
-    [cell] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path, slow)
-    assert cell.budget.env_steps == 1_700_000 and cell.budget.capped
-    cell.directory.mkdir(parents=True)
-    save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
-    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0)  # as if a chunk were saved
-
-    # Re-measured twice as fast: a new cell would get 3.5M, the started one keeps its 1.7M.
-    faster = {"drqn": {"1d-static-sin": {"steps_per_s": 6_000, "eval_s": 10.0}}}
-    [resumed] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path, faster)
-    assert resumed.status == "partial" and resumed.config.total_steps == 1_700_000
-    assert resumed.budget.env_steps == 1_700_000 and resumed.budget.capped and resumed.budget.requested == 7_500_000
-    # Any other setting that differs still refuses the directory.
-    with pytest.raises(ValueError, match="holds a run made with other settings"):
-        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path, faster)
-
-
-def test_a_cheap_column_gets_five_seeds_and_keeps_them_once_started(tmp_path, monkeypatch):
-    from agents.training import checkpoint
-    from agents.training.config import save_config
-
-    paper = PRESETS["paper"]
-    assert (paper.seeds, paper.cheap_seeds, paper.cheap_minutes) == (3, 5, 5.0)
-    # PPO's 10M steps (9,961,472 trained) x 5 seeds: at 1M steps/s and 1 s of evaluation per seed,
-    # 49.8 s + 5 s < 300 s (cheap); at 100k steps/s, 498 s + 5 s is not.
-    rates = {
-        "ppo": {
-            "1d-static-sin": {"steps_per_s": 1_000_000, "eval_s": 1.0},
-            "2d-static-dense": {"steps_per_s": 100_000, "eval_s": 1.0},
-        }
-    }
-    seeds = lambda cells: {c.task: c.config.seeds for c in cells}
-    cells = make_plan(paper, ["ppo"], ["1d-static", "2d-static-dense"], None, tmp_path, rates)
-    assert seeds(cells) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5, "2d-static-dense": 3}
-    assert cells[0].estimate_s == pytest.approx(5 * 9_961_472 / 1_000_000 + 5)
-    assert "3 seeds each, 5 on cheap columns (each cell estimated under 5 min" in format_plan(cells, tmp_path)
-    # One shape asked alone is judged with its column: the gauss and step shapes decide too.
-    assert seeds(
-        make_plan(
-            paper,
-            ["ppo"],
-            ["1d-static-sin"],
-            None,
-            tmp_path,
-            {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}},
+def test_wall_time_and_cheap_seed_keys_are_refused_naming_the_allowed_ones(tmp_path):
+    for key in ("wall_limit_minutes = 30", "cheap_seeds = 5", "cheap_minutes = 5"):
+        _refused(
+            tmp_path / "preset.toml",
+            f"[a]\nseeds = 3\n{key}\n",
+            rf"\[a\] has unknown key\(s\) \['{key.split()[0]}'\]; allowed: .*budgets, description",
         )
-    ) == {"1d-static-sin": 3}
-    # One shape that is not cheap keeps the whole column at 3: the table averages shapes per seed index.
-    step_slow = {"ppo": {**rates["ppo"], "1d-static-step": {"steps_per_s": 100_000, "eval_s": 1.0}}}
-    assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)).values()) == {3}
-    # --seeds overrides the rule.
-    assert set(seeds(make_plan(paper, ["ppo"], ["1d-static"], 4, tmp_path, rates)).values()) == {4}
-
-    # A started column keeps its five seeds when re-measured rates make it expensive.
-    for cell in cells[:3]:
-        cell.directory.mkdir(parents=True)
-        save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
-    started = {c.directory for c in cells[:3]}
-    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0 if directory in started else None)
-    resumed = make_plan(paper, ["ppo"], ["1d-static"], None, tmp_path, step_slow)
-    assert seeds(resumed) == {"1d-static-sin": 5, "1d-static-gauss": 5, "1d-static-step": 5}
-    assert {c.status for c in resumed} == {"partial"}
-    # ... also where only one shape had started and another is asked for on its own.
-    started.clear()
-    started.add(cells[0].directory)
-    assert seeds(make_plan(paper, ["ppo"], ["1d-static-step"], None, tmp_path, step_slow)) == {"1d-static-step": 5}
-
-
-def test_cheap_seeds_below_seeds_is_refused(tmp_path):
     _refused(
-        tmp_path / "fewer.toml", "[a]\nseeds = 3\ncheap_seeds = 2\n", r"cheap_seeds \(2\) must be at least seeds \(3\)"
+        tmp_path / "budget.toml",
+        '[a]\nseeds = 1\n[a.budgets]\ndrqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\n',
+        r"drqn must give env_steps or episodes \(and a source\), or same_as; unknown key\(s\) \['wall_limit_minutes'\]",
     )
+    _refused(
+        tmp_path / "same.toml",
+        '[p.budgets]\nppo = { env_steps = 10, source = "s" }\n[a.budgets]\nppo = { same_as = "p.ppo", wall_limit_minutes = 60 }\n',
+        r"ppo gives same_as and \['wall_limit_minutes'\]; same_as stands alone",
+    )
+    for name, table in tomllib.loads(BUDGETS_FILE.read_text()).items():
+        keys = set(table) | {k for budget in table.get("budgets", {}).values() for k in budget}
+        assert not keys & {"wall_limit_minutes", "cheap_seeds", "cheap_minutes"}, name
 
 
-def test_evaluation_estimates_scale_with_the_episodes():
-    from agents.table.rates import eval_seconds
+def test_a_run_below_the_presets_budget_is_kept_as_it_is_and_marked(tmp_path, monkeypatch):
+    """A run trained when the table capped budgets to a wall time stays the cell's, at its own
+    budget: resumed to it, or finished; the plan says it is below the preset's and how to train
+    the preset's instead. Any other difference, a larger budget included, refuses the directory."""
+    from agents.training import checkpoint
+    from agents.training.config import save_config
 
-    rates = {"dqn": {"1d-static-sin": {"eval_s": 10.0}}}
-    # Another learner's figure for the nearest task; 10 x 200 episodes against the 500 it was timed on.
-    assert eval_seconds(rates, "ppo", "1d-dynamic", PRESETS["paper"]) == (40.0, "dqn's 1d-static-sin")
-    assert eval_seconds(rates, "ppo", "1d-static-gauss", PRESETS["smoke"]) == (10.0 * 2 / 500, "dqn's 1d-static-sin")
-    assert eval_seconds(rates, "dqn", "1d-static-gauss", PRESETS["paper"]) == (10.0, "1d-static-sin")
-    assert eval_seconds(rates, "ppo", "2d-static-dense", PRESETS["paper"]) is None
+    [cell] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
+    cell.directory.mkdir(parents=True)
+    save_config(
+        dataclasses.replace(cell.config, total_steps=1_700_000),
+        cell.directory / checkpoint.CONFIG_FILE,
+    )
+    monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0)  # as if a chunk were saved
+    [kept] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
+    assert kept.status == "partial" and kept.config.total_steps == 1_700_000
+    assert (kept.budget.env_steps, kept.budget.requested, kept.budget.below) == (1_700_000, 7_500_000, True)
+    assert kept.record()["budget"] == {"env_steps": 1_700_000, "requested": 7_500_000, "source": kept.budget.source}
+    text = format_plan([kept], tmp_path)
+    assert "1.7M (below 7.5M)" in text
+    assert "below the preset's budget, a run kept at its own: drqn/1d-static-sin (to train the preset's" in text
+    with pytest.raises(ValueError, match="holds a run made with other settings"):
+        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path)
+    save_config(
+        dataclasses.replace(cell.config, total_steps=8_000_000),
+        cell.directory / checkpoint.CONFIG_FILE,
+    )
+    with pytest.raises(ValueError, match="total_steps: 8000000 there, 7500000 now"):
+        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
+
+
+def test_a_twin_below_the_presets_budget_is_not_adopted(tmp_path):
+    """An ablation's base arm takes over the paper preset's cell only at the budget its other arms
+    train: the paper's DRQN cells kept at a smaller budget are not its base."""
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    [source] = make_plan(PRESETS["paper"], ["drqn"], ["2d-static-dense"], None, runs)
+    write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
+    [base] = make_plan(
+        PRESETS["ablation"], ["drqn"], ["2d-static-dense"], None, runs, arms=["base"], results_dir=results
+    )
+    assert base.adopts_from is not None and base.config.total_steps == 6_000_000
+    smaller = dataclasses.replace(source, config=dataclasses.replace(source.config, total_steps=4_000_000))
+    smaller.budget = dataclasses.replace(source.budget, env_steps=4_000_000)
+    write_record(results, smaller, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
+    [base] = make_plan(
+        PRESETS["ablation"], ["drqn"], ["2d-static-dense"], None, runs, arms=["base"], results_dir=results
+    )
+    assert (base.adopts_from, base.config.total_steps, base.budget.below) == (None, 6_000_000, False)
 
 
 def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
     from agents.training.registry import make_config
 
-    [cell] = make_plan(PRESETS["tuned"], ["ppo"], ["1d-static-step"], 2, tmp_path, rates={})
+    [cell] = make_plan(PRESETS["tuned"], ["ppo"], ["1d-static-step"], 2, tmp_path)
     tuned = make_config("ppo", "1d-static-step")
     assert cell.config.total_steps == tuned.total_steps and cell.config.rnn_size == tuned.rnn_size
     assert "agents/tuned/ppo.toml" in cell.budget.source
@@ -276,7 +222,7 @@ def test_aggregation_by_hand(tmp_path):
         "ppo": {
             "1d-static-sin": _files("ppo", "1d-static-sin", [0.9, 0.6], 1000, walls=(30.0, 60.0)),
             "1d-static-gauss": _files("ppo", "1d-static-gauss", [0.6, 0.6], 1000, walls=(120.0,)),
-            "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, capped=True, walls=(100.0, 180.0)),
+            "1d-static-step": _files("ppo", "1d-static-step", [0.3, 0.6], 2000, below=True, walls=(100.0, 180.0)),
             "2d-static-dense": _files("ppo", "2d-static-dense", [0.2, 0.4], 1000),  # its curve was not kept
             "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.5, 0.5], 1000),  # no column misses it
         },
@@ -289,10 +235,8 @@ def test_aggregation_by_hand(tmp_path):
     assert ppo["1d-static"]["seeds"] == [pytest.approx(0.6), pytest.approx(0.6)]
     assert ppo["1d-static"]["mean"] == pytest.approx(0.6) and ppo["1d-static"]["ci95"] == [pytest.approx(0.6)] * 2
     assert ppo["1d-static"]["paper"] == 0.776  # the paper's PPO, 1d-static
-    assert (
-        ppo["1d-static"]["budget"]["capped"]
-        and ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
-    )
+    assert ppo["1d-static"]["budget"]["env_steps_per_seed"]["1d-static-step"] == 2000
+    assert ppo["1d-static"]["budget"]["requested_per_seed"]["1d-static-step"] == 4000
     assert ppo["2d-static-dense"]["mean"] == pytest.approx(0.3) and ppo["2d-static-dense"]["ci95"] == [0.2, 0.4]
     # Training wall: the last cumulative wall_s of each shape, summed (60 + 120 + 180 s = 6 min).
     assert ppo["1d-static"]["budget"]["training_wall_s"] == 360.0
@@ -355,7 +299,7 @@ def test_ablation_preset_has_every_arm_of_the_papers_table():
     arms = {task: {v.paper for v in preset.variants if task in v.tasks} for task in preset.tasks}
     assert arms == {task: set(paper[task]) - {"source"} for task in paper if task != "source"}
     assert preset.algorithms == ("drqn",) and preset.seeds >= 3
-    cells = make_plan(preset, ["drqn"], ["2d-static-sparse"], None, Path("unused"), rates={})
+    cells = make_plan(preset, ["drqn"], ["2d-static-sparse"], None, Path("unused"))
     assert [c.directory.name for c in cells] == [
         "2d-static-sparse.base",
         "2d-static-sparse.gps",
@@ -441,7 +385,7 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
         r"\[a.variants.base\]: unknown switch 'gpss'",
     )
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
-        make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path, rates={})
+        make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path)
     _refused(
         tmp_path / "adopts.toml",
         base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'),
@@ -457,13 +401,13 @@ def test_a_budget_per_environment_task(tmp_path):
     )
     (tmp_path / "ok.toml").write_text(text)
     preset = load_presets(tmp_path / "ok.toml")["b"]
-    cells = make_plan(preset, ["pqn"], ["1d-dynamic", "2d-static-sparse"], None, tmp_path, rates={})
+    cells = make_plan(preset, ["pqn"], ["1d-dynamic", "2d-static-sparse"], None, tmp_path)
     assert [c.budget.requested for c in cells] == [3_000_000, 9_000_000] and cells[0].budget.source == "b: why"
     assert [c.config.total_steps for c in cells] == [3_000_000, 9_000_000]
     with pytest.raises(
         ValueError, match="the b preset gives pqn a budget on 1d-dynamic, 2d-static-sparse only, not on 2d-static-dense"
     ):
-        make_plan(preset, ["pqn"], ["2d-static-dense"], None, tmp_path, rates={})
+        make_plan(preset, ["pqn"], ["2d-static-dense"], None, tmp_path)
     _refused(
         tmp_path / "typo.toml",
         text.replace('"1d-dynamic"', '"1d-dynamo"'),
@@ -476,8 +420,7 @@ def test_an_arm_can_switch_a_learner_setting_off():
     arm's config differs from the base arm's in its settings alone, and the report prints them."""
     preset = PRESETS["privileged-ablation"]
     cells = {
-        c.variant.name: c
-        for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={})
+        c.variant.name: c for c in make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"))
     }
     assert list(cells) == ["base", "no-critic", "no-position", "curriculum"]
     base = cells["base"].config.to_json()
@@ -513,24 +456,23 @@ def test_arms_runs_only_the_named_arms_and_refuses_unknown_ones():
         ["2d-static-sparse"],
         None,
         Path("unused"),
-        rates={},
         arms=["no-position", "no-critic"],
     )
     assert [c.variant.name for c in cells] == ["no-critic", "no-position"]
     with pytest.raises(ValueError, match="no arm.*'no-gps'.*its arms: base, no-critic, no-position, curriculum"):
-        make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=["no-gps"])
+        make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), arms=["no-gps"])
     with pytest.raises(ValueError, match="not an ablation"):
-        make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), rates={}, arms=["base"])
+        make_plan(PRESETS["paper"], ["ppo"], ["1d-dynamic"], None, Path("unused"), arms=["base"])
     with pytest.raises(
         ValueError, match="needs at least one arm named; its arms: base, no-critic, no-position, curriculum"
     ):
-        make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), rates={}, arms=[])
+        make_plan(preset, ["ppo-privileged"], ["2d-static-sparse"], None, Path("unused"), arms=[])
     with pytest.raises(
         ValueError,
         match=r"no arm named in --arms of preset 'ablation' runs on 3d-static-dense; "
         r"their tasks: gps: 2d-static-dense, 2d-static-sparse$",
     ):
-        make_plan(PRESETS["ablation"], ["drqn"], ["3d-static-dense"], None, Path("unused"), rates={}, arms=["gps"])
+        make_plan(PRESETS["ablation"], ["drqn"], ["3d-static-dense"], None, Path("unused"), arms=["gps"])
 
 
 def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
@@ -548,7 +490,7 @@ def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
     (tmp_path / "option.toml").write_text(arm.replace("tasks =", "settings = { no_such_option = 1 }\ntasks ="))
     preset = load_presets(tmp_path / "option.toml")["a"]
     with pytest.raises(ValueError, match=r"unknown ppo option\(s\) \['no_such_option'\]"):
-        make_plan(preset, ["ppo"], ["1d-static-sin"], None, tmp_path, rates={})
+        make_plan(preset, ["ppo"], ["1d-static-sin"], None, tmp_path)
 
 
 # --- the smoke preset, end to end ----------------------------------------------------------------
@@ -625,14 +567,9 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
     # Its curve is drawn again under its own title (the ablation preset's name, not the twin's).
     assert (adopted.directory / "curve.png").read_bytes() != (cells[0].directory / "curve.png").read_bytes()
-    # A twin whose budget alone differs is adopted only as a wall-capped one (it takes the twin's budget).
+    # A twin whose budget alone differs is not adopted.
     longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})
     assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].adopts_from is None
-    capped = make_plan(
-        dataclasses.replace(longer, wall_limit_s=1e9), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"]
-    )[0]
-    assert capped.adopts_from == cells[0].directory
-    assert (capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (2048, 2048, True)
 
 
 @pytest.mark.slow  # three tiny trainings and six evaluations
@@ -701,12 +638,12 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
     from agents.training import checkpoint
 
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     path = write_record(results, source)
     record = json.loads(path.read_text())
-    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={})[0].adopts_from is None  # runs only
+    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)[0].adopts_from is None  # runs only
 
-    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, results_dir=results)
+    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, results_dir=results)
     assert (base.status, base.adopts_from, base.adopts_record, gps.adopts_from) == ("new", path, True, None)
     printed = format_plan([base, gps], runs)
     row = next(line for line in printed.splitlines() if "1d-static-sin.base" in line)
@@ -761,9 +698,7 @@ def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(
 
     # A later plan sees it done, with or without the record, and running it again touches nothing.
     for results_dir in (results, None):
-        [again] = make_plan(
-            _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results_dir
-        )
+        [again] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results_dir)
         assert (again.status, again.adopts_from, again.estimate_s) == ("done", None, 0.0)
     before = {p.name: p.stat().st_mtime_ns for p in made.iterdir()}
     assert table_run.run_cell(again, progress=False)
@@ -836,7 +771,7 @@ def test_a_record_an_ablation_reads_as_its_base_is_kept_as_its_own_before_it_is_
     from agents.table.raw import bases_to_keep, load_raw, with_adopted_bases
 
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     path = write_record(results, source, means=(0.5, 0.7))
     _gps_arm_copy(results, path)
     presets = {**load_presets(), "abl": _abl()}
@@ -872,31 +807,27 @@ def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused
     from agents.table import run as table_run
 
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     path = write_record(results, source)
-    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
     assert table_run.run_cell(base, progress=False)
     whole = {p.name: p.read_bytes() for p in base.directory.iterdir() if p.is_file()}
     # Killed after cell.json (moved first) and config.json, before the curve and eval.json (moved last).
     for name in ("eval.json", "curve.png", "metrics.jsonl"):
         (base.directory / name).unlink()
     with pytest.raises(ValueError, match=r"1d-static-sin.base holds a copy of .*1d-static-sin.json cut short"):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"])  # the record not read
-    [cut] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])  # the record not read
+    [cut] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
     assert (cut.status, cut.adopts_from) == ("new", path)
     assert table_run.run_cell(cut, progress=False)
     assert {p.name: p.read_bytes() for p in cut.directory.iterdir() if p.is_file()}.keys() == whole.keys()
     assert (cut.directory / "eval.json").read_bytes() == whole["eval.json"]
     # This cell's own training start, cut before its first checkpoint, is trained, as `adopt` does.
-    [start] = make_plan(
-        _abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"], results_dir=results
-    )
+    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", arms=["base"], results_dir=results)
     start.directory.mkdir(parents=True)
     (start.directory / "config.json").write_text(json.dumps(start.config.to_json()))
     (start.directory / "metrics.jsonl").write_text("")
-    [start] = make_plan(
-        _abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", rates={}, arms=["base"], results_dir=results
-    )
+    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", arms=["base"], results_dir=results)
     assert start.adopts_record
     with pytest.raises(AssertionError, match="trained or evaluated"):
         table_run.run_cell(start, progress=False)
@@ -905,46 +836,35 @@ def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused
     cell = json.loads((cut.directory / "cell.json").read_text())
     del cell["adopted_record"]
     (cut.directory / "cell.json").write_text(json.dumps(cell))
-    [back] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+    [back] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
     assert back.status == "done"
     (cut.directory / "eval.json").unlink()
     with pytest.raises(ValueError, match="holds this cell's files without checkpoints and no finished eval.json"):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
 
 
 def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
     runs, results = tmp_path / "runs", tmp_path / "results"
 
     def adopted(preset=None, **record):
-        [base] = make_plan(
-            preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results
-        )
+        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
         return base
 
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs)
     write_record(results, source, means=(0.5, 0.6, 0.7))
     assert adopted().adopts_from is None  # 3 seeds there, 2 here
     [source] = make_plan(
-        dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None, runs, rates={}
+        dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None, runs
     )
     write_record(results, source, episodes=3)
     assert adopted().adopts_from is None  # its protocol's 3 episodes, this cell's has 2
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     write_record(results, source, seed=TUNING_EVAL_SEED)
     assert adopted().adopts_from is None  # scored with the tuning key
     path = write_record(results, source)
     assert adopted().adopts_from == path
-    # A budget alone differing: adopted only as a wall-capped one, taking the record's budget.
-    longer = _abl(settings={**PRESETS["smoke"].settings, "total_steps": 4096})
-    assert adopted(longer).adopts_from is None
-    capped = adopted(dataclasses.replace(longer, wall_limit_s=1e9))
-    assert (capped.adopts_from, capped.config.total_steps, capped.budget.env_steps, capped.budget.capped) == (
-        path,
-        2048,
-        2048,
-        True,
-    )
-    assert capped.record()["budget"]["requested"] == 4096
+    # A budget alone differing (the record's smaller): not adopted.
+    assert adopted(_abl(settings={**PRESETS["smoke"].settings, "total_steps": 4096})).adopts_from is None
 
 
 @pytest.mark.parametrize(
@@ -956,11 +876,11 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
 )
 def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, damage, field):
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     path = write_record(results, source)
     path.write_text(damage(path.read_text()))
     with pytest.raises(ValueError, match=re.escape(str(path)) + ".*" + field):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, rates={}, arms=["base"], results_dir=results)
+        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
     assert not runs.exists()
 
 
@@ -968,7 +888,7 @@ def test_the_cli_finds_record_twins_under_results_dir(tmp_path, capsys):
     """landmark-action's pqn-belief base arm is the beyond preset's cell: planned as adopted from
     the record under --results-dir when --runs-dir keeps no run of it; its other arm trains."""
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs, rates={})
+    [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs)
     path = write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
     argv = [
         "--preset",

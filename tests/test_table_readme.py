@@ -19,7 +19,7 @@ def test_rows_by_hand():
     raw = {
         "ppo": {
             "2d-static-dense": _files("ppo", "2d-static-dense", [0.7, 0.8, 0.9], 1_000_000),
-            "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.1, 0.2, 0.3], 500_000, capped=True),
+            "2d-static-sparse": _files("ppo", "2d-static-sparse", [0.1, 0.2, 0.3], 500_000, below=True),
         }
     }
     hand = {"2d-static-dense": {"mean": 0.949, "seed": 0}}

@@ -94,7 +94,7 @@ def test_a_second_table_run_is_refused_before_it_touches_a_cell(tmp_path, no_tra
     from agents.training.config import save_config
 
     runs = tmp_path / "runs"
-    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     cell.directory.mkdir(parents=True)
     save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
     (cell.directory / checkpoint.METRICS_FILE).write_text("")
@@ -157,9 +157,7 @@ def test_a_cell_directory_holding_another_runs_files_is_refused_not_deleted(tmp_
         match=r"1d-static-sin holds files that no start of this cell left there \(config.json"
         r"\) and no checkpoint; the table deletes nothing it did not make: move",
     ):
-        table_run.run_cells(
-            make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={}), progress=False
-        )
+        table_run.run_cells(make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs), progress=False)
     with pytest.raises(ValueError, match="deletes nothing it did not make"):
         _run_cli([*ONE_CELL, "--runs-dir", str(runs)])
     assert _tree(runs) == before
@@ -180,7 +178,7 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
     cell_dir = runs / "paper" / "dqn" / "1d-dynamic"
     unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "dqn" / "1d-dynamic.json", cell_dir)
     before = _tree(runs)
-    [cell] = make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs, rates={})
+    [cell] = make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs)
     assert cell.status == "done"
     assert table_run.run_cells([cell], progress=False) == 1  # finished cells counted, none trained
     assert (
@@ -207,7 +205,7 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
         shutil.rmtree(cell_dir)
         unpack_raw(ROOT / "bench" / "results" / "table" / "paper" / "dqn" / "1d-dynamic.json", cell_dir)
         edit(cell_dir)
-        return make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs, rates={})
+        return make_plan(PRESETS["paper"], ["dqn"], ["1d-dynamic"], None, runs)
 
     def edit_json(name, change):
         return lambda d: (d / name).write_text(json.dumps(change(json.loads((d / name).read_text()))))
@@ -253,10 +251,10 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
     from agents.training.config import save_config
 
     runs = tmp_path / "runs"
-    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     cell.directory.mkdir(parents=True)
     (cell.directory / checkpoint.LOCK_FILE).write_text("process 999999\n")  # its holder is gone
-    assert make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})[0].status == "new"
+    assert make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)[0].status == "new"
     save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
     (cell.directory / checkpoint.METRICS_FILE).write_text("")
     calls = []
@@ -266,14 +264,14 @@ def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path
         raise KeyboardInterrupt  # stop there: what matters is how it was called
 
     monkeypatch.setattr(driver, "train", spy)
-    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+    [cell] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cells([cell], progress=False)
     assert calls == [True] and (cell.directory / checkpoint.CONFIG_FILE).is_file()
     # Cut after a chunk's metrics line but before its checkpoint: named, left for the user to remove.
     (cell.directory / checkpoint.METRICS_FILE).write_text('{"chunk": 0, "env_steps": 512, "wall_s": 1.0}\n')
     with pytest.raises(ValueError, match="records chunks that no checkpoint kept; the table deletes nothing"):
-        make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs, rates={})
+        make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
 
 
 def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained_again(
@@ -284,7 +282,7 @@ def test_a_cell_named_twice_is_planned_once_and_a_finished_cell_is_never_trained
     from agents.training.config import save_config
 
     runs = tmp_path / "runs"
-    cells = make_plan(PRESETS["smoke"], ["ppo", "ppo"], ["1d-static-sin"], None, runs, rates={})
+    cells = make_plan(PRESETS["smoke"], ["ppo", "ppo"], ["1d-static-sin"], None, runs)
     assert len(cells) == 1
     assert _run_cli([*ONE_CELL[:3], "ppo", *ONE_CELL[3:], "--runs-dir", str(runs), "--dry-run"]) == 0
     assert "1 cells," in capsys.readouterr().out

@@ -48,15 +48,15 @@ def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_m
     assert [v.name for v in preset.variants] == ["base", "safe", "at-evaluation"]
     arms = {v.name: v for v in preset.variants}
     (base, _), (acting, _) = (
-        cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, {}, arms[name]) for name in ("base", "at-evaluation")
+        cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, arms[name]) for name in ("base", "at-evaluation")
     )
     assert acting == base and not acting.safe_drops  # the same training
     assert arms["at-evaluation"].evaluation == {"safe_drops": True} and arms["safe"].evaluation == {}
     assert scoring_config(acting, arms["at-evaluation"].evaluation) == dataclasses.replace(acting, safe_drops=True)
     # Planned where the beyond run is not there, it is refused: it has no params to score.
     with pytest.raises(ValueError, match="train it first"):
-        make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, rates={})
-    cells = make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, rates={}, arms=["base", "safe"])
+        make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path)
+    cells = make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, arms=["base", "safe"])
     assert [c.evaluation for c in cells] == [{}, {}] and "evaluation" not in cells[0].record()
 
 
@@ -113,20 +113,16 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
     ]:
         (tmp_path / "learner.toml").write_text(head + base + arm + lines)
         with pytest.raises(ValueError, match=message):
-            make_plan(
-                load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path, rates={}
-            )
+            make_plan(load_presets(tmp_path / "learner.toml")["a"], ["pqn"], ["2d-static-dense"], None, tmp_path)
     with pytest.raises(ValueError, match=r"ppo cannot act with \['gamma'\] at evaluation: .* ppo's: none$"):
-        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path, rates={})
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path)
 
 
 def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
     runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
     path = write_record(results, source)
-    [base] = make_plan(
-        _abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results, arms=["base"]
-    )
+    [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results, arms=["base"])
     assert (base.adopts_from, base.adopts_record) == (path, True)
     with pytest.raises(
         ValueError,
@@ -134,14 +130,14 @@ def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path,
         r"again: .* train it first \(snac table --preset smoke --tasks 1d-static-sin\) "
         r"or leave the arm out \(--arms\)",
     ):
-        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, results_dir=results)
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results)
 
 
 def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_acts):
     """Its own files back without checkpoints; the branch of a run with its checkpoints is the
     slow test's."""
     runs, preset = tmp_path / "runs", _abl({"gamma": 0.5})
-    config, budget = cell_config(preset, "ppo", SMOKE_TASK, 2, {}, preset.variants[1])
+    config, budget = cell_config(preset, "ppo", SMOKE_TASK, 2, preset.variants[1])
     directory = runs / "abl" / "ppo" / f"{SMOKE_TASK}.acting"
     directory.mkdir(parents=True)
     row = {
@@ -182,9 +178,9 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
         match=r"abl/ppo/1d-static-sin.acting was scored acting with its training settings, "
         r"the arm now asks \{'gamma': 0.5\}; move that directory away",
     ):
-        make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+        make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
     (directory / "cell.json").write_text(json.dumps({**record, "evaluation": {"gamma": 0.5}}))
-    [again] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    [again] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
     assert again.status == "done"
 
 
@@ -221,9 +217,9 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     from agents.training.trained import load_trained
 
     runs = tmp_path / "runs"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
     assert table_run.run_cell(source, progress=False)
-    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={})
+    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs)
     assert base.adopts_from == acting.adopts_from == source.directory
     assert "scored again" in acting.estimate_from
 
@@ -245,7 +241,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cell(acting, progress=False)
     assert not (acting.directory / "eval.json").exists()  # the twin's scores were never copied
-    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
     assert (acting.status, acting.adopts_from) == ("partial", None)  # the twin's whole run, not yet scored
     assert table_run.run_cell(acting, progress=False)
     # Restored, never trained: the twin's chunks and metrics, the twin's params, scored with gamma 0.5.
@@ -262,7 +258,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     evals = json.loads((acting.directory / "eval.json").read_text())
     assert {r["seed"] for r in evals.values()} == {REPORT_EVAL_SEED}
     assert json.loads((acting.directory / "config.json").read_text()) == source.config.to_json()  # as it trained
-    [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+    [again] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
     assert again.status == "done"
     with pytest.raises(ValueError, match=r"was scored acting with \{'gamma': 0.5\}, the arm now asks \{'gamma': 0.9\}"):
-        make_plan(_abl({"gamma": 0.9}), ["ppo"], [SMOKE_TASK], None, runs, rates={}, arms=["acting"])
+        make_plan(_abl({"gamma": 0.9}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])

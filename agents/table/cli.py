@@ -1,14 +1,14 @@
 """`snac table`: the benchmark table, every learner on the paper's ten columns with several seeds,
 in one resumable command.
 
-    snac table --preset paper --dry-run          # the plan and its estimated wall time
+    snac table --preset paper --dry-run          # the plan: budgets, where each cell stands
     snac table --preset paper                    # run it (again: finished cells are skipped)
     snac table --preset paper --report           # bench/results/table.md, table.json, table-paper.png
     snac table --report --readme README.md       # ... and the README's learner table from them
     snac table --preset ablation                 # the paper's DRQN ablation: one switch at a time
 
 Plugged into the `snac` command through the `snac_jax.commands` entry point (pyproject.toml).
-Presets: `agents/table/budgets.toml`; measured rates for the estimates: `agents/table/rates.json`.
+Presets: `agents/table/budgets.toml`, budgets in env steps.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--dry-run",
         action="store_true",
-        help="print the plan with estimated wall times and stop; with --report, check every cell and "
+        help="print the plan (each cell's budget and status; a started cell's time left) and stop; with --report, check every cell and "
         "print what would be copied and written, writing nothing",
     )
     parser.add_argument(

@@ -3,18 +3,23 @@ long it should take, before anything starts.
 
 A cell is one (algorithm, environment task) run in `<runs-dir>/<preset>/<algorithm>/<task>/`: one
 `agents.training.driver.train` call with the preset's seeds vmapped, then the reporting protocol. The
-paper's `1d-static` column is three cells, one per shape. Budgets come from the presets of
-`budgets.toml` (`agents.table.presets`); wall-time estimates from measured rates (`rates.json`, written by
-`bench/table_rates.py`), or, for a cell that has started, from its own `metrics.jsonl`.
+paper's `1d-static` column is three cells, one per shape. Budgets are env steps, from the presets of
+`budgets.toml` (`agents.table.presets`); a cell that has started estimates its remaining training
+time from its own `metrics.jsonl`, and any other is "unknown": there is nothing else to measure by.
 
-A preset that `adopts` another takes over its finished cell with a new cell's settings (`find_twin`):
-its run, else its raw copy in the record, since runs directories stay where they were trained.
+A cell's directory holding its run at a smaller budget than the preset's (trained when the table
+capped budgets to a wall time) is kept as that run, finished or resumed at its own budget, and the
+plan says it is below the preset's: the table never trains over a run. To train the preset's
+budget, move that directory away or choose another runs directory.
+
+A preset that `adopts` another takes over its finished cell with a new cell's settings, budget
+included (`find_twin`): its run, else its raw copy in the record, since runs directories stay
+where they were trained.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +36,7 @@ from agents.table.files import (
     record_path,
 )
 from agents.table.presets import Preset, Variant, expand_tasks
-from agents.table.rates import eval_seconds, load_rates, measured
-from agents.table.scoring import check_scored_as, missing_run, scoring_config, scoring_estimate
+from agents.table.scoring import check_scored_as, missing_run, scoring_config
 from agents.training import checkpoint
 from agents.training.config import TrainConfig
 from agents.training.registry import ALGORITHMS, config_class, make_config, tuned_source
@@ -44,33 +48,29 @@ TRAIN_SEED = 1
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
 
 
-# --- rates and estimates -------------------------------------------------------------------------
+# --- budgets -------------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
 class Budget:
-    """A cell's env steps per seed, what the preset asked before the wall-time cap, and why."""
+    """A cell's env steps per seed, the preset's budget, and why the preset asks that."""
 
-    env_steps: int  # per seed, what the cell's config asks
-    requested: int  # per seed, before the wall-time cap
+    env_steps: int  # per seed, what the cell's config asks: the preset's, or its run's where smaller
+    requested: int  # per seed, the preset's
     source: str
-    capped: bool
+
+    @property
+    def below(self) -> bool:
+        """Whether the cell's run trains less than the preset asks (a run kept at its own budget)."""
+        return self.env_steps < self.requested
 
     def describe(self) -> str:
         text = _steps(self.env_steps)
-        return f"{text} (capped from {_steps(self.requested)})" if self.capped else text
+        return f"{text} (below {_steps(self.requested)})" if self.below else text
 
 
 def _steps(n: int) -> str:
     return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k" if n >= 1e3 else str(n)
-
-
-def _round_down(x: float) -> int:
-    """Two significant figures, rounded down."""
-    if x < 1:
-        return 0
-    scale = 10 ** max(0, int(math.floor(math.log10(x))) - 1)
-    return int(x // scale * scale)
 
 
 def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
@@ -101,24 +101,15 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
 
 
 def cell_config(
-    preset: Preset, algorithm: str, task: str, seeds: int, rates: dict, variant: Variant | None = None
+    preset: Preset, algorithm: str, task: str, seeds: int, variant: Variant | None = None
 ) -> tuple[TrainConfig, Budget]:
-    """The config a cell trains and its budget (capped to the preset's wall limit)."""
+    """The config a cell trains and its budget: the preset's."""
     arm = {} if variant is None else {**variant.settings, "switches": variant.switches}
     overrides = {**preset.overrides(algorithm), "seeds": seeds, "seed": TRAIN_SEED, "switches": "", **arm}
-    config = make_config(algorithm, task, **overrides)
-    requested, source = requested_budget(preset, config)
-    steps, capped = requested, False
-    rate, limit_s = measured(rates, algorithm, task, "steps_per_s"), preset.wall_limit(algorithm)
-    if limit_s is not None and rate is not None:
-        evaluation = eval_seconds(rates, algorithm, task, preset)
-        training_s = limit_s - seeds * (evaluation[0] if evaluation else 0.0)
-        fits = _round_down(max(training_s, 0.0) * rate[0] / seeds)
-        if fits < requested:
-            steps, capped = max(fits, config.steps_per_update), True
+    steps, source = requested_budget(preset, make_config(algorithm, task, **overrides))
     config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
     scoring_config(config, {} if variant is None else variant.evaluation)  # a refused option fails before training
-    return config, Budget(env_steps=steps, requested=requested, source=source, capped=capped)
+    return config, Budget(env_steps=steps, requested=steps, source=source)
 
 
 # --- cells -------------------------------------------------------------------------------------
@@ -186,29 +177,21 @@ class Cell:
 
 
 def _settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
-    """The settings in which a run already made with `config` differs from the cell's. A
-    wall-capped budget alone is no difference: a cap is an estimate from rates.json, so the cell
-    takes the run's budget (`_take_run_budget`), and re-measured rates never strand a started or
-    finished run."""
+    """The settings in which the cell's own run, made with `config`, differs from the cell's. A
+    smaller budget alone is no difference: the run trained when the table capped budgets to a
+    wall time, and it stays the cell's, at its own budget (`_take_run_budget`), so that no run
+    is stranded or trained over."""
     stored, wanted = config.to_json(), cell.config.to_json()
     differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
-    if (
-        differ == ["total_steps"]
-        and cell.preset.wall_limit(cell.algorithm) is not None
-        and config.total_steps <= cell.budget.requested
-    ):
-        return []
-    return differ
+    return [] if differ == ["total_steps"] and config.total_steps <= cell.budget.requested else differ
 
 
 def _take_run_budget(cell: Cell, config: TrainConfig) -> None:
-    """Give the cell the budget of the run it continues or adopts (one `_settings_differ` found
-    equal to the cell's but for a wall cap)."""
+    """Give the cell the budget of its own run (one `_settings_differ` found equal to the cell's
+    but for a smaller budget)."""
     if config.total_steps != cell.config.total_steps:
         cell.config = config
-        cell.budget = dataclasses.replace(
-            cell.budget, env_steps=config.total_steps, capped=config.total_steps < cell.budget.requested
-        )
+        cell.budget = dataclasses.replace(cell.budget, env_steps=config.total_steps)
 
 
 def _continues(cell: Cell, config: TrainConfig) -> bool:
@@ -221,7 +204,7 @@ def _continues(cell: Cell, config: TrainConfig) -> bool:
 
 
 def _check_same_config(cell: Cell) -> None:
-    """A started run must have the cell's settings, except a wall-capped budget (`_settings_differ`),
+    """A started run must have the cell's settings, except a smaller budget (`_settings_differ`),
     which the cell then takes over."""
     config = checkpoint.read_config(cell.directory)
     differ = _settings_differ(cell, config)
@@ -315,11 +298,18 @@ def find_twin(cell: Cell, runs_dir: str | Path, results_dir: str | Path | None =
     return twin
 
 
+def _same_settings(cell: Cell, config: TrainConfig) -> bool:
+    """Whether another preset's run made with `config` is the cell's twin: every setting the
+    same, budget included (a twin at a smaller budget would set the arms of an ablation against
+    a base that trained less than they do)."""
+    return config.to_json() == cell.config.to_json()
+
+
 def record_twin(cell: Cell, path: Path) -> tuple[TrainConfig, dict] | None:
     """The config and raw copy at `path` where it is the cell's twin (`files.read_record`: a
-    damaged one is a `ValueError` naming it); the cell takes its budget (`_continues`)."""
+    damaged one is a `ValueError` naming it)."""
     return read_record(
-        path, lambda config: _continues(cell, config), expected_episodes(cell.task, cell.preset.protocol)
+        path, lambda config: _same_settings(cell, config), expected_episodes(cell.task, cell.preset.protocol)
     )
 
 
@@ -332,15 +322,15 @@ def _run_twin(cell: Cell, runs_dir: str | Path) -> Path | None:
     except (OSError, ValueError):  # another preset's run this code no longer reads: train instead
         return None
     episodes = expected_episodes(cell.task, cell.preset.protocol)
-    if not eval_is_valid(source / EVAL_FILE, config.seeds, episodes) or _settings_differ(cell, config):
+    if not eval_is_valid(source / EVAL_FILE, config.seeds, episodes) or not _same_settings(cell, config):
         return None
-    _take_run_budget(cell, config)
     return source
 
 
-def estimate(cell: Cell, rates: dict) -> None:
-    """Seconds left for the cell (training the remaining steps of every seed, then evaluating
-    every seed) and where the figure comes from."""
+def estimate(cell: Cell) -> None:
+    """Seconds of training left for the cell, and where the figure comes from: a started run's
+    own rate (its metrics.jsonl); None for a cell that has not started, as nothing else measures
+    its rate. Evaluation is not counted."""
     if cell.status == "done":
         cell.estimate_s, cell.estimate_from = 0.0, "finished"
         return
@@ -348,27 +338,16 @@ def estimate(cell: Cell, rates: dict) -> None:
         twin = f"the record {cell.adopts_from}" if cell.adopts_record else cell.adopts_from
         cell.estimate_s, cell.estimate_from = 0.0, f"adopts {twin}, finished with the same settings"
         if cell.evaluation:  # the adopted policy is scored again, acting with the arm's settings
-            cell.estimate_s, cell.estimate_from = scoring_estimate(cell, rates)
+            cell.estimate_s, cell.estimate_from = None, cell.estimate_from + ", scored again: unknown"
+        return
+    records = cell.metrics
+    if not records or records[-1]["wall_s"] <= 0:
+        cell.estimate_s, cell.estimate_from = None, "unknown: not started"
         return
     seeds = cell.config.seeds
-    remaining = (cell.total_steps - cell.done_steps) * seeds
-    records = cell.metrics
-    if records and records[-1]["wall_s"] > 0:
-        rate = records[-1]["env_steps"] * seeds / records[-1]["wall_s"]
-        source = f"this run's metrics.jsonl: {rate:,.0f} steps/s over {len(records)} chunks"
-    elif (found := measured(rates, cell.algorithm, cell.task, "steps_per_s")) is not None:
-        rate = found[0]
-        source = f"rates.json: {rate:,.0f} steps/s ({found[1]})"
-        if set(cell.preset.overrides(cell.algorithm)) - {"total_steps", "chunks"}:
-            source += " for the tuned settings, which this preset changes"
-    else:
-        cell.estimate_s, cell.estimate_from = None, "no measured rate"
-        return
-    evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
-    cell.estimate_s = remaining / rate + seeds * (evaluation[0] if evaluation else 0.0)
-    cell.estimate_from = source + (
-        f", eval {evaluation[0]:.0f} s/seed ({evaluation[1]})" if evaluation else ", eval not measured"
-    )
+    rate = records[-1]["env_steps"] * seeds / records[-1]["wall_s"]
+    cell.estimate_s = (cell.total_steps - cell.done_steps) * seeds / rate
+    cell.estimate_from = f"this run's metrics.jsonl: {rate:,.0f} steps/s over {len(records)} chunks, training only"
 
 
 def make_plan(
@@ -377,14 +356,12 @@ def make_plan(
     tasks,
     seeds: int | None,
     runs_dir: str | Path,
-    rates: dict | None = None,
     arms=None,
     results_dir: str | Path | None = None,
 ) -> list[Cell]:
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
     its config, budget, status and estimate. `results_dir`: where the record's raw copies are,
     for twins no run of `runs_dir` holds (`find_twin`; None: runs only)."""
-    rates = load_rates() if rates is None else rates
     algorithms = list(dict.fromkeys(algorithms))  # a cell named twice is one cell, planned and run once
     variants = preset.variants
     if arms is not None:
@@ -402,8 +379,8 @@ def make_plan(
             raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
         config_class(algorithm)
 
-    def cell(algorithm, column, task, variant, count) -> Cell:
-        config, budget = cell_config(preset, algorithm, task, count, rates, variant)
+    def cell(algorithm, column, task, variant) -> Cell:
+        config, budget = cell_config(preset, algorithm, task, preset.seeds if seeds is None else seeds, variant)
         name = task if variant is None else f"{task}.{variant.name}"
         return Cell(
             algorithm=algorithm,
@@ -416,21 +393,12 @@ def make_plan(
             variant=variant,
         )
 
-    cells, column_seeds = [], {}
-    for algorithm in algorithms:
-        for column, task in expand_tasks(tasks):
-            for variant in [v for v in variants if task in v.tasks] if variants else [None]:
-                count = seeds if seeds is not None else preset.seeds
-                if seeds is None and preset.cheap_seeds is not None:
-                    # every shape of the column decides, requested or not, so that all get one count
-                    group = (algorithm, column, variant and variant.name)
-                    if group not in column_seeds:
-                        shapes = [t for _, t in expand_tasks([column]) if variant is None or t in variant.tasks]
-                        column_seeds[group] = _column_seeds(
-                            preset, [cell(algorithm, column, t, variant, preset.cheap_seeds) for t in shapes], rates
-                        )
-                    count = column_seeds[group]
-                cells.append(cell(algorithm, column, task, variant, count))
+    cells = [
+        cell(algorithm, column, task, variant)
+        for algorithm in algorithms
+        for column, task in expand_tasks(tasks)
+        for variant in ([v for v in variants if task in v.tasks] if variants else [None])
+    ]
     if variants and not cells:
         chosen = "arm" if arms is None else "arm named in --arms"
         listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in variants)
@@ -446,25 +414,5 @@ def make_plan(
                 )
             if cell.evaluation and cell.adopts_from is None:
                 raise ValueError(missing_run(cell, runs_dir))
-        estimate(cell, rates)
+        estimate(cell)
     return cells
-
-
-def _column_seeds(preset: Preset, cheap: list[Cell], rates: dict) -> int:
-    """Seeds of one paper column's cells (the three 1D shapes share theirs, as the table averages
-    them per seed index): `cheap_seeds` where every cell, at that count, is estimated to cost
-    under `cheap_minutes` (training and evaluation), else `seeds`. A started cell keeps the count
-    it started with, as a started cell keeps its capped budget: both come from estimates, and
-    re-measured rates must not strand a run."""
-    started = [
-        checkpoint.read_config(c.directory).seeds
-        for c in cheap
-        if checkpoint.latest_chunk(c.directory) is not None
-        or (own_copy(c) is not None and (c.directory / checkpoint.CONFIG_FILE).is_file())
-    ]
-    if started:
-        return started[0] if started[0] in (preset.seeds, preset.cheap_seeds) else preset.seeds
-    for c in cheap:
-        estimate(c, rates)
-    fits = all(c.estimate_s is not None and c.estimate_s < 60.0 * preset.cheap_minutes for c in cheap)
-    return preset.cheap_seeds if fits else preset.seeds

@@ -18,12 +18,10 @@ BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured a
 
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
 _PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
+_BUDGET_KEYS = ("env_steps", "episodes", "source")
 _PRESET_KEYS = {
     "description",
     "seeds",
-    "cheap_seeds",
-    "cheap_minutes",
-    "wall_limit_minutes",
     "budgets",
     "settings",
     "static_episodes",
@@ -69,7 +67,6 @@ class Preset:
     name: str
     description: str
     seeds: int
-    wall_limit_s: float | None
     budgets: dict[str, dict[str, Any]]
     settings: dict[str, Any]
     static_episodes: int = STATIC_EPISODES
@@ -77,8 +74,6 @@ class Preset:
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
-    cheap_seeds: int | None = None  # seeds of a cheap column (None: every column has `seeds`)
-    cheap_minutes: float = 5.0  # a column is cheap where each of its new cells, at cheap_seeds, fits this
     adopts: str | None = None  # a preset whose finished run with a cell's very settings the cell takes over
 
     def adopted_base(self) -> Variant | None:
@@ -91,12 +86,6 @@ class Preset:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
         shared = {k: v for k, v in self.settings.items() if not isinstance(v, dict)}
         return {**shared, **self.settings.get(algorithm, {})}
-
-    def wall_limit(self, algorithm: str) -> float | None:
-        """Seconds a cell of `algorithm` may take (None: no cap): its budget's own
-        `wall_limit_minutes` where it gives one, else the preset's."""
-        own = self.budgets.get(algorithm, {}).get("wall_limit_minutes")
-        return self.wall_limit_s if own is None else 60.0 * own
 
     @property
     def protocol(self) -> dict[str, int]:
@@ -112,7 +101,6 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(
                 f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}"
             )
-        limit = table.get("wall_limit_minutes")
         table = {
             **table,
             "budgets": {
@@ -121,20 +109,11 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             },
         }
         for algorithm, budget in table["budgets"].items():
-            if set(budget) - {"env_steps", "episodes", "source", "wall_limit_minutes"} or (
-                "env_steps" in budget and "episodes" in budget
-            ):
+            unknown = sorted(set(budget) - set(_BUDGET_KEYS))
+            if unknown or ("env_steps" in budget and "episodes" in budget):
                 raise ValueError(
-                    f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source) "
-                    "or same_as, and may give its own wall_limit_minutes"
-                )
-            own_limit = budget.get("wall_limit_minutes")
-            if own_limit is not None and (
-                isinstance(own_limit, bool) or not isinstance(own_limit, (int, float)) or own_limit <= 0
-            ):
-                raise ValueError(
-                    f"{path}: [{name}.budgets] {algorithm}'s wall_limit_minutes must be a positive number "
-                    f"of minutes, got {own_limit!r}"
+                    f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source), or "
+                    "same_as" + (f"; unknown key(s) {unknown}" if unknown else "")
                 )
             per_task = budget.get("env_steps")
             if isinstance(per_task, dict) and sorted(set(per_task) - set(TASKS)):
@@ -146,7 +125,6 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             name=name,
             description=table.get("description", ""),
             seeds=int(table.get("seeds", 1)),
-            wall_limit_s=None if limit is None else 60.0 * limit,
             budgets=table.get("budgets", {}),
             settings=table.get("settings", {}),
             static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
@@ -154,15 +132,8 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
             variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
-            cheap_seeds=int(table["cheap_seeds"]) if "cheap_seeds" in table else None,
-            cheap_minutes=float(table.get("cheap_minutes", 5.0)),
             adopts=table.get("adopts"),
         )
-        if presets[name].cheap_seeds is not None and presets[name].cheap_seeds < presets[name].seeds:
-            raise ValueError(
-                f"{path}: [{name}] cheap_seeds ({presets[name].cheap_seeds}) must be at least seeds "
-                f"({presets[name].seeds}): a cheap column gets more seeds, never fewer"
-            )
         arms = {v.name: v for v in presets[name].variants}
         if arms and BASE_ARM not in arms:
             raise ValueError(
@@ -192,26 +163,23 @@ def _same_as(path, tables: dict, preset: str, algorithm: str, budget: dict) -> d
     stated once, where it comes from."""
     if "same_as" not in budget:
         return budget
+    if set(budget) != {"same_as"}:
+        raise ValueError(
+            f"{path}: [{preset}.budgets] {algorithm} gives same_as and {sorted(set(budget) - {'same_as'})}; "
+            "same_as stands alone (or give env_steps or episodes, and a source)"
+        )
     reference = budget["same_as"]
     other, _, learner = str(reference).partition(".")
     target = tables.get(other, {}).get("budgets", {}).get(learner) if isinstance(tables.get(other), dict) else None
-    if (
-        set(budget) - {"same_as", "wall_limit_minutes"}
-        or not isinstance(target, dict)
-        or "same_as" in target
-        or not {"env_steps", "episodes"} & set(target)
-    ):
+    if not isinstance(target, dict) or "same_as" in target or not {"env_steps", "episodes"} & set(target):
         raise ValueError(
             f"{path}: [{preset}.budgets] {algorithm}'s same_as must name, as PRESET.ALGORITHM, another "
-            f"entry that gives env_steps or episodes itself (and may come with wall_limit_minutes alone), "
-            f"got {reference!r}"
+            f"entry that gives env_steps or episodes itself, got {reference!r}"
         )
     whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
-    own = {k: v for k, v in budget.items() if k == "wall_limit_minutes"}
     return {
         **{k: v for k, v in target.items() if k in ("env_steps", "episodes")},
         "source": f"{whose}, {target['source']}" if "source" in target else whose,
-        **own,
     }
 
 

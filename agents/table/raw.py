@@ -321,13 +321,13 @@ def training_wall_s(cells: list[dict]) -> float | None:
 
 def budget_record(cells: list[dict]) -> dict[str, Any]:
     """The training budget of one or more cells (a column's shapes): env steps per seed per task,
-    what was requested before the wall-time cap, whether any was capped, and why, and the
-    training wall time it took."""
+    the budget its preset asked when it was planned (more where the run trained under the
+    wall-time cap the table once had, and was kept as it is) and why, and the training wall time
+    it took."""
     budgets = [c["cell"]["budget"] for c in cells]
     return {
         "env_steps_per_seed": {c["config"]["task"]: c["config"]["total_steps"] for c in cells},
         "requested_per_seed": {c["config"]["task"]: b["requested"] for c, b in zip(cells, budgets)},
-        "capped": any(b["capped"] for b in budgets),
         "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
         "training_wall_s": training_wall_s(cells),
     }
@@ -338,7 +338,9 @@ def _steps(n: int) -> str:
 
 
 def budget_text(budget: dict) -> str:
-    """A budget record as the tables print it: env steps per seed, `*` where capped."""
+    """A budget record as the tables print it: env steps per seed, `*` where a task trained
+    below the budget requested for it."""
     steps = sorted(set(budget["env_steps_per_seed"].values()))
     text = _steps(steps[0]) if len(steps) == 1 else f"{_steps(steps[0])}–{_steps(steps[-1])}"
-    return text + ("*" if budget["capped"] else "")
+    below = any(n < budget["requested_per_seed"][task] for task, n in budget["env_steps_per_seed"].items())
+    return text + ("*" if below else "")

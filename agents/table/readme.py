@@ -35,7 +35,7 @@ def _cell(cell: dict | None, paper: float | None) -> str:
 
 
 def _budgets(cells: dict) -> str:
-    """The distinct budgets of a row's cells, in column order (`*`: capped to the wall limit)."""
+    """The distinct budgets of a row's cells, in column order (`*`: below the budget requested)."""
     return ", ".join(dict.fromkeys(budget_text(c["budget"]) for c in cells.values())) or "—"
 
 

@@ -158,9 +158,9 @@ def _header(table: dict) -> list[str]:
         f"scored with key {hand_keys}; it has no training seeds.",
         f"- **Training**: base seed {table['train_seed']} (seed i trains from `fold_in(key({table['train_seed']}), i)`; "
         "the tuning runs used base seed 0). The training design banks of dynamic tasks exclude every test design.",
-        "- **Budgets**: env steps per seed in each section's second table; `*` marks a cell whose budget was "
-        "capped to fit the preset's wall-time limit per cell on the 2-core CPU (requested budgets and their "
-        "sources are in table.json).",
+        "- **Budgets**: env steps per seed in each section's second table; `*` marks a cell trained below the "
+        "budget its preset requested, under the wall-time cap per cell on the 2-core CPU that the table once "
+        "applied (requested budgets and their sources are in table.json).",
         "- **Paper rows**: `snac_jax/data/paper_results.json` (the paper's appendix table; — where it reports "
         "none), on every column it reports. A learner's paper IQM is over the columns ours has (one number per "
         "column), so that it compares with ours; the human and handcrafted rows' IQM is over every column they have.",
@@ -237,7 +237,7 @@ def _section(table: dict, description: str) -> list[str]:
         return lines + [""]
     lines += [
         "",
-        "Env steps per seed (`*`: capped to the wall-time limit):",
+        "Env steps per seed (`*`: below the requested budget):",
         "",
         "| learner | seeds | " + " | ".join(columns) + " |",
         "|---|---:|" + "---:|" * len(columns),

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 from agents.table.files import CELL_FILE, RECORD_FIELD
-from agents.table.rates import eval_seconds
 from agents.training import schemas
 from agents.training.config import TrainConfig
 from agents.training.registry import make_config
@@ -69,14 +68,3 @@ def missing_run(cell, runs_dir) -> str:
         f"under {runs_dir}; train it first (snac table --preset {preset.adopts} --tasks {cell.task}) or leave the "
         "arm out (--arms)"
     )
-
-
-def scoring_estimate(cell, rates: dict) -> tuple[float | None, str]:
-    """Seconds left for an adopted arm scored acting otherwise (`plan.Cell`): its seeds' evaluation
-    alone (None where no evaluation was measured), and where the figure comes from."""
-    evaluation = eval_seconds(rates, cell.algorithm, cell.task, cell.preset)
-    if evaluation is None:
-        return None, cell.estimate_from + ", scored again: eval not measured"
-    return cell.config.seeds * evaluation[
-        0
-    ], cell.estimate_from + f", scored again: eval {evaluation[0]:.0f} s/seed ({evaluation[1]})"

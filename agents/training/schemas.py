@@ -105,7 +105,8 @@ CELL_JSON = Object(
         "algorithm": Str(),
         "column": Str(PAPER_TASKS),
         "task": Str(TASKS),
-        "budget": Object({"env_steps": Int(1), "requested": Int(1), "source": Str(), "capped": Bool()}),
+        # `capped`: records from when the table capped budgets to a wall time (requested > env_steps then)
+        "budget": Object({"env_steps": Int(1), "requested": Int(1), "source": Str()}, {"capped": Bool()}),
         "eval_seed": Int(0, MAX_SEED),
         "protocol": PROTOCOL,
     },
