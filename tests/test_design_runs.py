@@ -76,6 +76,52 @@ def test_episode_min_steps_of_a_task(task, overrides, expected):
     assert episode_min_steps(env, params) == expected
 
 
+def test_a_teams_bound_divides_the_budget_among_its_robots():
+    env, params = make("2d-dynamic-dense")
+    assert [episode_min_steps(env, params, robots) for robots in (1, 2, 4)] == [51, 26, 13]
+
+
+@pytest.mark.parametrize("robots", [1, 4])
+def test_robots_that_drop_at_every_step_end_no_episode_sooner_than_the_bound(robots):
+    """Every robot dropping on its own cell each step spends the team's budget fastest (2D: the
+    drop action, 4); the first episode lasts at least `episode_min_steps`, and with the bank's
+    smallest budget exactly that many steps."""
+    from snac_jax import multi
+
+    env = multi.make("2d-dynamic-sparse", num_robots=robots)
+    params = env.default_params
+    bound = episode_min_steps(env.single, params, robots)
+    budgets = np.asarray(params.design_max_bricks)
+    pick = lambda x: x[np.argmin(budgets)][None]  # the bank's design with the smallest budget, alone
+    smallest = params.replace(
+        designs=pick(params.designs),
+        design_max_bricks=pick(params.design_max_bricks),
+        design_volume=pick(params.design_volume),
+    )
+    for p in (params, smallest):
+        _, state = env.reset(jax.random.key(0), p)
+        actions = {agent: 4 for agent in env.agents}
+        for step in range(1, 2 * bound + 2):
+            _, state, _, dones, _ = env.step_env(jax.random.key(step), state, actions, p)
+            if bool(dones["__all__"]):
+                break
+        assert step >= bound
+    assert step == bound  # the smallest budget: the bound is reached
+
+
+def test_a_design_change_is_a_second_run_inside_the_bound():
+    env, params = make("2d-dynamic-sparse", design_change=(2, 3), max_steps=6)
+    layout = ObsLayout.from_env(env, params)
+    assert layout.designs_per_episode == 2 and layout.max_design_runs(12) == 2 * (1 + 2)
+    _, state = env.reset(jax.random.key(0), params)
+    obs, designs = None, []
+    for step in range(12):
+        obs, state, *_ = env.step(jax.random.key(step), state, 0, params)
+        designs.append(np.asarray(obs[layout.env.design]))
+    runs = 1 + sum(not np.array_equal(a, b) for a, b in zip(designs, designs[1:]))
+    assert 2 < runs <= layout.max_design_runs(12)
+
+
 def test_the_obstacle_bound_is_reached_by_a_robot_that_walls_itself_in():
     """From the corner start, drops on c+1 and r+1 (actions 5 and 6) leave no free neighbour; the
     third action ends the episode: 3 steps, the bound `episode_min_steps` gives in 3D."""
@@ -183,5 +229,4 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
     if not calls:  # a network that reads the design otherwise (pqn-belief's expected window alone)
         assert not _reads_the_design(once)
         return
-    sequences = {"dqn", "rainbow", "sac"}  # one-step samples: nothing to share between steps
-    assert engaged == (algorithm not in sequences), calls
+    assert engaged, calls  # every learner trains on sequences (replayed windows too) longer than the bound

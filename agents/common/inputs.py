@@ -22,12 +22,14 @@ from snac_jax.transition import PADDING
 _LOWEST_CELL = int(min(LANDMARK_VALUE, PADDING))  # the lowest value a window cell holds
 
 
-def episode_min_steps(env: SNACEnv, params: EnvParams) -> int:
-    """A lower bound on the steps of any episode of `env` under `params` (SPEC §4-§5): the step
-    limit; the brick budget, since each counted drop takes a step; and with the obstacle rule 3,
-    since a robot starting in a corner is walled in after two drops and its next action ends the
-    episode."""
-    bound = min(int(params.max_steps_in_episode), int(np.min(np.asarray(params.design_max_bricks))))
+def episode_min_steps(env: SNACEnv, params: EnvParams, robots: int = 1) -> int:
+    """A lower bound on the steps of any episode of `env` under `params` (SPEC §4-§5), for one
+    robot or a team of `robots` sharing one world (SPEC §13): the step limit; the brick budget,
+    since each robot lays at most one counted brick a step; and with the obstacle rule 3, since a
+    robot starting in a corner is walled in after two drops and its next action ends the episode
+    (a team's other robots start too far away to wall it in sooner)."""
+    budget = int(np.min(np.asarray(params.design_max_bricks)))
+    bound = min(int(params.max_steps_in_episode), -(-budget // robots))
     if env.config.obstacles:
         bound = min(bound, 3)
     return max(bound, 1)
@@ -53,14 +55,14 @@ class ObsLayout:
     designs_per_episode: int = 1
 
     @classmethod
-    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False) -> ObsLayout:
+    def from_env(cls, env: SNACEnv, params: EnvParams, previous_step: bool = False, robots: int = 1) -> ObsLayout:
         return cls(
             env=env.observation_layout,
             height_scale=float(max(1, int(np.max(np.asarray(params.designs))))),
             brick_scale=float(max(1, int(np.max(np.asarray(params.design_max_bricks))))),
             step_scale=float(int(params.max_steps_in_episode)),
             num_actions=env.num_actions if previous_step else 0,
-            episode_min_steps=episode_min_steps(env, params),
+            episode_min_steps=episode_min_steps(env, params, robots),
             designs_per_episode=2 if env.config.design_change else 1,
         )
 

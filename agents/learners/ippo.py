@@ -196,7 +196,9 @@ class IPPO:
         # single-robot evaluator) cannot run a team.
         self.team_env, self.env_params = config.make_env()
         self.robots = config.robots
-        self.layout = ObsLayout.from_env(self.team_env.single, self.env_params, previous_step=config.previous_step)
+        self.layout = ObsLayout.from_env(
+            self.team_env.single, self.env_params, previous_step=config.previous_step, robots=self.robots
+        )
         self.network = TeamActorCritic(
             layout=self.layout,
             num_actions=self.team_env.num_actions,
