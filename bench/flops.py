@@ -5,8 +5,8 @@ Why from the jaxpr rather than from a parameter count: a count of weights says n
 convolution's reuse of its kernel, of a design encoded once per episode rather than per step, or
 of a replayed batch's size; the traced program holds all of it. XLA's own cost analysis counts a
 loop's body once, whatever its trip count, so it undercounts every learner (each is a scan of
-scans). A `while_loop`'s trips are unknown before it runs: its body counts once and the result
-says so.
+scans). A `while_loop`'s trips are unknown before it runs: its body counts once; a `cond`
+counts its costliest branch; either way the result says it is not exact.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ def _jaxpr_flops(jaxpr) -> Flops:
             total += _conv_flops(eqn)
         elif name == "cond":
             branches = [_jaxpr_flops(b.jaxpr) for b in eqn.params["branches"]]
-            total += max(b.total for b in branches)
-            exact &= all(b.exact for b in branches)
+            total += max(b.total for b in branches)  # which runs is known only at run time: an upper bound
+            exact &= all(b.exact for b in branches) and len({b.total for b in branches}) == 1
         else:
             inner = [_jaxpr_flops(j) for j in _sub_jaxprs(eqn.params)]
             trips = eqn.params["length"] if name == "scan" else 1

@@ -108,9 +108,9 @@ def main() -> None:
         f"median of {args.repeats} repeats of {args.updates} updates"
     )
     emit(
-        "| task | network | worlds | steps x epochs x minibatches | params | compile s | "
+        "| task | network | worlds | learning per update | params | compile s | "
         "env-steps/s with learning | acting only (same run) | learning's share of the time | "
-        "network GFLOP/s (estimate) | matmul GFLOP/s (core width, same run) | load avg |"
+        "network GFLOP/s (counted; ≤: a rare branch counted as taken) | matmul GFLOP/s (core width, same run) | load avg |"
     )
     emit("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []  # every configuration made (and so checked) before the first is compiled
@@ -162,34 +162,49 @@ def main() -> None:
             jax.vmap(lambda s, p: algorithm.train_chunk(s, p, 1)[0], in_axes=(0, None)), state, algorithm.env_params
         )
         network_gflops = rate * chunk_flops.total / (state.update.shape[0] * config.steps_per_update) / 1e9
-        width = _core_width(config)
-        matmul_gflops = _matmul_gflops(config.steps_per_update // config.num_minibatches, width, args.repeats)
-        kind = (
-            _network_text(config)
-            + f", hidden {config.hidden_size}"
-            + "".join(f"; {name}={value}" for name, value in settings.items())
-        )
+        matmul_gflops = _matmul_gflops(_minibatch_rows(config), _core_width(config), args.repeats)
+        kind = _network_text(config) + "".join(f"; {name}={value}" for name, value in settings.items())
+        bound = "" if chunk_flops.exact else "≤ "  # a rare branch (e.g. the truncation bootstrap) counted as taken
         emit(
-            f"| {task} | {kind} | {config.num_envs} | {config.rollout_steps} x "
-            f"{config.update_epochs} x {config.num_minibatches} | {params:,} | {compile_s:.1f} | {rate:,.0f} | "
-            f"{acting:,.0f} | {1 - rate / acting:.0%} | {_gflops_text(network_gflops)} | {_gflops_text(matmul_gflops)} | "
-            f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |"
+            f"| {task} | {kind} | {config.num_envs} | {_learning_text(config)} | {params:,} | {compile_s:.1f} | "
+            f"{rate:,.0f} | {acting:,.0f} | {1 - rate / acting:.0%} | {bound}{_gflops_text(network_gflops)} | "
+            f"{_gflops_text(matmul_gflops)} | {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} |"
         )
+
+
+def _hidden_width(config) -> int:
+    return config.layers[0] if hasattr(config, "layers") else config.hidden_size  # SAC: its layers' widths
 
 
 def _core_width(config) -> int:
-    """The recurrent core's width, else the hidden layers'."""
+    """The recurrent core's width, else the first hidden layer's."""
     if getattr(config, "recurrent", False):
         return config.rnn_size
-    return getattr(config, "lstm_size", 0) or config.hidden_size
+    return getattr(config, "lstm_size", 0) or _hidden_width(config)
 
 
 def _network_text(config) -> str:
+    hidden = f"hidden {config.hidden_sizes}" if hasattr(config, "hidden_sizes") else f"hidden {config.hidden_size}"
     if getattr(config, "recurrent", False):
-        return f"GRU {config.rnn_size}"
+        return f"GRU {config.rnn_size}, {hidden}"
     if getattr(config, "lstm_size", 0):
-        return f"LSTM {config.lstm_size}"
-    return "feed-forward"
+        return f"LSTM {config.lstm_size}, {hidden}"
+    return f"feed-forward, {hidden}"
+
+
+def _learning_text(config) -> str:
+    """What one update learns from: rollout steps x epochs x minibatches (on-policy), or rollout
+    steps x gradient steps x sampled batch (replay)."""
+    if hasattr(config, "update_epochs"):
+        return f"{config.rollout_steps} x {config.update_epochs} epochs x {config.num_minibatches} minibatches"
+    return f"{config.rollout_steps} x {config.gradient_steps} gradient steps x {config.batch_size} samples"
+
+
+def _minibatch_rows(config) -> int:
+    """The rows one gradient step's matrix products take: a minibatch of the rollout, or a batch."""
+    if hasattr(config, "num_minibatches"):
+        return config.steps_per_update // config.num_minibatches
+    return config.batch_size * getattr(config, "sample_length", 1)
 
 
 def _variant_settings(text: str, algorithm: str, own_flags: set[str]) -> dict:

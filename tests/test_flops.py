@@ -34,3 +34,11 @@ def test_a_convolution_counts_each_output_times_its_kernel_and_a_while_loop_is_m
         jnp.ones((4, 8)),
     )
     assert looped.total == 2 * 4 * 8 * 8 and not looped.exact
+
+
+def test_a_cond_counts_its_costliest_branch_and_says_it_is_an_upper_bound():
+    w, x = jnp.ones((8, 8)), jnp.ones((4, 8))
+    flops = count(lambda x: jax.lax.cond(x[0, 0] > 0, lambda y: y @ w @ w, lambda y: y, x), x)
+    assert flops.total == 2 * (2 * 4 * 8 * 8) and not flops.exact
+    same = count(lambda x: jax.lax.cond(x[0, 0] > 0, lambda y: y @ w, lambda y: -y @ w, x), x)
+    assert same.total == 2 * 4 * 8 * 8 and same.exact
