@@ -155,6 +155,7 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_pat
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
 
 
+@pytest.mark.slow  # compiles pqn-belief's training twice
 def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
     """A setting's cost is read off two rows of one run: the tuned row and the variant's, whose
     network cell names the settings it changed (and whose parameter count they change)."""
