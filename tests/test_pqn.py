@@ -150,7 +150,7 @@ def test_with_time_limit_ends_a_truncation_ends_the_return_as_a_termination_does
     np.testing.assert_allclose(loss, 5.25, rtol=1e-6)
 
 
-@pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
+@pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds, more (two a world at most)
 def test_truncation_values_score_exactly_the_truncated_steps(truncations):
     t, n = 5, 4
     rng = np.random.default_rng(truncations)
@@ -162,9 +162,18 @@ def test_truncation_values_score_exactly_the_truncated_steps(truncations):
     def score(c, o):
         return o.sum(-1) * c[:, 0]
 
-    got = jax.jit(truncation_values, static_argnums=0)(score, jnp.asarray(truncated.reshape(t, n)), final_obs, carry)
+    values = jax.jit(truncation_values, static_argnums=(0, 4))
+    got = values(score, jnp.asarray(truncated.reshape(t, n)), final_obs, carry, 2)
     expected = np.where(truncated.reshape(t, n), final_obs.sum(-1) * carry[..., 0], 0.0)
     np.testing.assert_allclose(got, expected, rtol=1e-6)
+    # A bound too small for the batch (one a world, 4 in all) reads NaN rather than dropping values.
+    assert np.isnan(values(score, jnp.asarray(truncated.reshape(t, n)), final_obs, carry, 1)).all() == (truncations > 4)
+
+
+def test_a_world_truncates_at_most_once_per_step_limit():
+    env, params = make("1d-static-step", max_steps=5)
+    layout = ObsLayout.from_env(env, params)
+    assert [layout.max_truncations(steps) for steps in (1, 5, 6, 64)] == [1, 1, 2, 13]
 
 
 def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():

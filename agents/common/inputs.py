@@ -66,6 +66,11 @@ class ObsLayout:
             designs_per_episode=2 if env.config.design_change else 1,
         )
 
+    def max_truncations(self, steps: int) -> int:
+        """The most step-limit truncations one world's `steps` consecutive steps hold: the limit,
+        `step_scale`, ends an episode at most once every `step_scale` steps."""
+        return -(-steps // int(self.step_scale))
+
     def max_design_runs(self, steps: int) -> int:
         """The most runs of one design a world's observations hold along `steps` consecutive
         steps: episodes last at least `episode_min_steps`, so at most `1 + ceil((steps - 1) /

@@ -126,29 +126,28 @@ def truncation_values(
     truncated: jax.Array,
     final_obs: Any,
     carry_after: jax.Array,
+    per_world: int,
 ) -> jax.Array:
     """`(T, B)` values `score(carry (N, C), obs (N, O)) -> (N,)` of the final observations where
     `truncated (T, B)`, 0 elsewhere; `final_obs (T, B, O)` and `carry_after (T, B, C)` (the
     recurrent state that saw the episode) per step. `final_obs` may be a pytree of `(T, B, ...)`
     arrays (a critic's other inputs beside the observation); `score` then receives it per step.
+    `per_world`: the most truncations one world can have in T steps (`ObsLayout.max_truncations`).
 
     Why not score every step: truncations are rare (one per step limit per world), and a
     forward pass over all `T * B` final observations costs as much as the rollout's own. The
-    first `B` truncations are gathered and scored; a batch with more (a step limit shorter
-    than the rollout) takes the all-steps path, so the result is exact either way.
+    truncations are gathered, `per_world * B` at most, and scored. The bound is static, so no
+    branch picks a path at run time (under `vmap` over seeds both branches of a `cond` run); a
+    batch past it (a step limit shorter than the one the bound was made for) reads NaN, loudly.
     """
     t, n = truncated.shape
+    size = min(per_world * n, t * n)
     truncated = truncated.reshape(-1)
     final_obs = jax.tree.map(lambda x: x.reshape((t * n,) + x.shape[2:]), final_obs)
     carry_after = carry_after.reshape(t * n, -1)
-
-    def gathered():
-        (index,) = jnp.nonzero(truncated, size=n, fill_value=0)
-        chosen = jax.tree.map(lambda x: x[index], final_obs)
-        values = jnp.where(jnp.arange(n) < truncated.sum(), score(carry_after[index], chosen), 0.0)
-        return jnp.zeros((t * n,), values.dtype).at[index].add(values)
-
-    def every_step():
-        return jnp.where(truncated, score(carry_after, final_obs), 0.0)
-
-    return jax.lax.cond(truncated.sum() <= n, gathered, every_step).reshape(t, n)
+    (index,) = jnp.nonzero(truncated, size=size, fill_value=0)
+    chosen = jax.tree.map(lambda x: x[index], final_obs)
+    count = truncated.sum()
+    values = jnp.where(jnp.arange(size) < count, score(carry_after[index], chosen), 0.0)
+    values = jnp.zeros((t * n,), values.dtype).at[index].add(values)
+    return jnp.where(count > size, jnp.nan, values).reshape(t, n)

@@ -343,7 +343,13 @@ class IPPO:
         following = jnp.concatenate([flat(batch.value)[1:], last_value.reshape(1, w * n)], axis=0)
         next_values = jnp.where(
             done,
-            truncation_values(score, done & ~terminated, flat(batch.final_inputs), flat(batch.carry_after)),
+            truncation_values(
+                score,
+                done & ~terminated,
+                flat(batch.final_inputs),
+                flat(batch.carry_after),
+                self.layout.max_truncations(t),
+            ),
             following,
         )
         advantages, targets = gae(

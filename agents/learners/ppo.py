@@ -264,7 +264,13 @@ class PPO:
             _, _, value = self.network.apply(params, carry, obs[None], jnp.zeros((1, obs.shape[0]), bool))
             return value[0]
 
-        return truncation_values(score, batch.done & ~batch.terminated, batch.final_obs, batch.carry_after)
+        return truncation_values(
+            score,
+            batch.done & ~batch.terminated,
+            batch.final_obs,
+            batch.carry_after,
+            self.layout.max_truncations(batch.done.shape[0]),
+        )
 
     def _loss(self, params, carry0, batch: Transition, advantages, targets, ent_coef):
         _, logits, value = self.network.apply(params, carry0, batch.obs, batch.reset)

@@ -315,7 +315,9 @@ class PQN:
             final_values = jnp.zeros_like(batch.reward)
         else:
             terminated, truncated = batch.terminated, batch.truncated & ~batch.terminated
-            final_values = truncation_values(score, truncated, batch.final_obs, batch.carry_after)
+            final_values = truncation_values(
+                score, truncated, batch.final_obs, batch.carry_after, self.layout.max_truncations(truncated.shape[0])
+            )
         return q_lambda(
             batch.reward * cfg.reward_scale, next_values, final_values, terminated, truncated, cfg.gamma, cfg.q_lambda
         )

@@ -257,7 +257,13 @@ class PrivilegedPPO(StrideCurriculum, PPO):
             _, _, value = self.network.apply(params, carry, obs[None], resets, _one_step(privileged))
             return value[0]
 
-        return truncation_values(score, batch.done & ~batch.terminated, batch.final_obs, batch.carry_after)
+        return truncation_values(
+            score,
+            batch.done & ~batch.terminated,
+            batch.final_obs,
+            batch.carry_after,
+            self.layout.max_truncations(batch.done.shape[0]),
+        )
 
     def _loss(self, params, carry0, batch: PrivilegedTransition, advantages, targets, ent_coef):
         """PPO's loss, the critic reading the privileged state, plus the auxiliary heads' losses."""
