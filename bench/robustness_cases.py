@@ -206,6 +206,16 @@ def table_files(work: Path) -> None:
     damaged("bad-task", "cell.json", edit_json(lambda d: {**d, "task": "1d-static-sine"}))
     damaged("string-seeds", "config.json", edit_json(lambda d: {**d, "seeds": "2"}))
     damaged("empty-config", "config.json", lambda text: "{}")
+    impossible = {
+        "min-above-mean": {"mean": 0.5, "min": 0.9, "ci95": [0.4, 0.6]},
+        "no-brick": {"mean": 0.99, "min": 0.99, "ci95": [0.98, 1.0], "mean_bricks_used": 0.0},
+    }
+    for name, change in impossible.items():
+        damaged(name, "eval.json", edit_json(lambda d, change=change: {k: {**v, **change} for k, v in d.items()}))
+    huge = work / "huge-results" / "table" / "smoke" / "ppo" / "1d-static-gauss.json"
+    huge.parent.mkdir(parents=True)
+    with huge.open("wb") as f:  # sparse: 916 MB on paper, no disk
+        f.truncate(916 * 10**6)
     (work / "table-runs" / "smoke").mkdir(parents=True)
     (work / "linklock").mkdir()
     (work / "precious.txt").write_text("a file outside the run\n")
@@ -723,6 +733,42 @@ def issue69_cases(work: Path) -> list[dict]:
                 ),
                 (["--out", "file"], "--out file is a file"),
             )
+        ),
+        *(
+            dict(
+                what=f"[69 also] table --report: {what}",
+                argv=["table", "--preset", "smoke", "--report", "--runs-dir", runs, "--results-dir", results],
+                refuse=phrase,
+                also=lambda results=results: not (work / results / "table.md").exists(),
+            )
+            for what, runs, results, phrase in (
+                (
+                    "a 916 MB cell file in the results (sparse)",
+                    "good-runs",
+                    "huge-results",
+                    "is 916,000,000 bytes, over the 8,388,608-byte limit",
+                ),
+                ("eval.json with min 0.9 above its mean 0.5", "min-above-mean-runs", "mab-results", "above its mean"),
+                (
+                    "eval.json with IoU 0.99 and no brick laid",
+                    "no-brick-runs",
+                    "nb-results",
+                    "mean is 0.99 with mean_bricks_used 0",
+                ),
+            )
+        ),
+        dict(
+            what="[69 also] train --switches landmark_action=\u0664 (an Arabic-Indic 4)",
+            argv=["train", "ppo", *SHORT, "--task", "2d-static-sparse", "--switches", "landmark_action=\u0664"]
+            + ["--out", "switch-digit"],
+            refuse="ASCII only",
+            also=lambda: not (work / "switch-digit").exists(),
+        ),
+        dict(
+            what="[69 also] table --preset multi --dry-run in an empty runs directory: its total estimate",
+            argv=["table", "--preset", "multi", "--dry-run", "--runs-dir", "multi-runs"],
+            phrase_ok="total estimate: unknown (6 new",
+            check=lambda: not (work / "multi-runs").exists(),
         ),
         dict(  # described without its phrase: a description holding it would match it, and run every case
             what="robustness.py --only with a phrase no case has",

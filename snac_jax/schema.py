@@ -35,7 +35,7 @@ class Mismatch(Exception):
     """What a spec raises: the text that follows the file's name in the `SchemaError`."""
 
 
-def _field(prefix: str, key: Any) -> str:
+def subfield(prefix: str, key: Any) -> str:
     """`prefix.key`, or `prefix['key']` where the key is not a plain word (eval.json's
     `'2d-static-sparse (seed 0)'`), or `prefix[3]` in a list."""
     if isinstance(key, int):
@@ -209,7 +209,7 @@ class ListOf(Spec):
             raise mismatch(field, self.describe(), value)
         for index, item in enumerate(value):
             try:
-                self.item.check(item, _field(field, index))
+                self.item.check(item, subfield(field, index))
             except Mismatch as inner:
                 if isinstance(self.item, (ListOf, Object, MapOf)):
                     raise
@@ -243,9 +243,9 @@ class Object(Spec):
             raise Mismatch(f"unknown field(s) {unknown}{where}; allowed: {', '.join(allowed)}")
         for name, spec in allowed.items():
             if name in value:
-                spec.check(value[name], _field(field, name))
+                spec.check(value[name], subfield(field, name))
             elif name in self.required:
-                raise Mismatch(f"{_field(field, name)} is missing ({spec.describe()})")
+                raise Mismatch(f"{subfield(field, name)} is missing ({spec.describe()})")
 
 
 class MapOf(Spec):
@@ -267,7 +267,7 @@ class MapOf(Spec):
         if len(value) < self.min_items:
             raise Mismatch(f"{field or 'it'} must have at least {self.min_items} entries, got {len(value)}")
         for key, item in value.items():
-            self.value.check(item, _field(field, key))
+            self.value.check(item, subfield(field, key))
 
 
 def check(data: Any, schema: Spec, where: str | Path) -> Any:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Any
 
 import jax.numpy as jnp
@@ -91,8 +92,9 @@ def parse_switches(text: str) -> dict[str, Any]:
 
     Why text: a training config holds scalars (its fields become CLI flags and config.json
     entries), so the switches of an ablation travel as one string. A value is `true`/`false`, an
-    integer, numbers joined by `/` (a tuple), or a word. The keys are checked here (`SWITCHES`),
-    the values by `make`. The empty string is no switches."""
+    integer (ASCII digits: `_ASCII_INT`), numbers joined by `/` (a tuple), or a word, in ASCII
+    (the text is stored as typed). The keys are checked here (`SWITCHES`), the values by `make`.
+    The empty string is no switches."""
     if not isinstance(text, str):
         raise ValueError(f"switches must be a string of comma-separated key=value pairs, got {text!r}")
     switches: dict[str, Any] = {}
@@ -108,12 +110,22 @@ def parse_switches(text: str) -> dict[str, Any]:
     return switches
 
 
+_ASCII_INT = re.compile(r"-?[0-9]+")
+"""An integer switch value as `format_switches` writes it. Python's `int` reads more ('\u0664' in
+Arabic-Indic digits, '1_0', '+4'), which would be stored as typed in a run's config.json."""
+
+
 def _switch_value(key: str, value: str) -> Any:
+    if not value.isascii():
+        raise ValueError(
+            f"switch {key}={value!r}: ASCII only (digits 0-9); a value is true/false, an integer, "
+            "numbers joined by '/', or a word"
+        )
     if key == "design_change":  # steps, not probabilities: "100/300" is (100, 300)
-        try:
-            return tuple(int(v) for v in value.split("/"))
-        except ValueError:
-            raise ValueError(f"switch design_change={value!r}: two step numbers a/b expected, e.g. 100/300") from None
+        steps = value.split("/")
+        if not all(_ASCII_INT.fullmatch(v) for v in steps):
+            raise ValueError(f"switch design_change={value!r}: two step numbers a/b expected, e.g. 100/300")
+        return tuple(int(v) for v in steps)
     if value.lower() in ("true", "false"):
         return value.lower() == "true"
     if "/" in value:
@@ -121,10 +133,7 @@ def _switch_value(key: str, value: str) -> Any:
             return tuple(float(v) for v in value.split("/"))
         except ValueError:
             raise ValueError(f"switch {key}={value!r}: numbers joined by '/' expected") from None
-    try:
-        return int(value)
-    except ValueError:
-        return value
+    return int(value) if _ASCII_INT.fullmatch(value) else value
 
 
 def format_switches(switches: dict[str, Any]) -> str:

@@ -17,19 +17,31 @@ TASK = "2d-dynamic-dense"
 D0, D1 = f"{TASK}-test0", f"{TASK}-test1"
 
 
+def _agreeing(row: dict) -> dict:
+    """`row` with its statistics and those of its `per_design` made to agree, as the record's schema
+    requires: its episodes (the protocol's) split evenly over the designs kept, its mean theirs, its
+    minimum their least, an interval holding the mean."""
+    strata = {d: {**s, "episodes": row["episodes"] // len(row["per_design"])} for d, s in row["per_design"].items()}
+    mean = sum(s["mean"] for s in strata.values()) / len(strata)
+    least = min(s["min"] for s in strata.values())
+    return {**row, "per_design": strata, "mean": mean, "min": least, "ci95": [mean, mean]}
+
+
 def _tree(tmp: Path, seeds: list[tuple[float, float]], hand: tuple[float, float], hand_seed: int | None = None) -> Path:
     """A results directory holding a copy of a committed cell whose three seeds score `seeds`
     (test0, test1), and a handcrafted record scoring `hand`, both over the two designs only."""
     raw = json.loads(CELL.read_text())
     for row, means in zip(raw["eval"].values(), seeds, strict=True):
-        row["per_design"] = {d: {**row["per_design"][d], "mean": m} for d, m in zip((D0, D1), means)}
+        row["per_design"] = {d: {**row["per_design"][d], "mean": m, "min": 0.0} for d, m in zip((D0, D1), means)}
+    raw["eval"] = {name: _agreeing(row) for name, row in raw["eval"].items()}
     cell = tmp / "results" / "table" / "beyond" / "pqn-belief" / f"{TASK}.json"
     cell.parent.mkdir(parents=True)
     cell.write_text(json.dumps(raw))
     record = json.loads(HAND.read_text())
     row = record[TASK]
-    row["per_design"] = {d: {**row["per_design"][d], "mean": m} for d, m in zip((D0, D1), hand)}
+    row["per_design"] = {d: {**row["per_design"][d], "mean": m, "min": 0.0} for d, m in zip((D0, D1), hand)}
     row["seed"] = row["seed"] if hand_seed is None else hand_seed
+    record[TASK] = _agreeing(row)
     (tmp / "results" / "handcrafted_report_key.json").write_text(json.dumps(record))
     return tmp / "results"
 
@@ -112,6 +124,7 @@ def test_different_designs_are_refused(tmp_path):
     results = _tree(tmp_path, [(0.5, 0.5)] * 3, (0.5, 0.5))
     record = json.loads((results / "handcrafted_report_key.json").read_text())
     record[TASK]["per_design"].pop(D1)
+    record[TASK] = _agreeing(record[TASK])
     (results / "handcrafted_report_key.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit, match="only the same designs are comparable"):
         per_design.main(

@@ -129,6 +129,34 @@ def test_cell_json_and_eval_json_schemas_read_every_committed_cell(tmp_path):
     _refused(cell / "eval.json", schemas.EVAL_JSON, "eval.json: it must have at least 1 entries, got 0")
 
 
+def test_eval_json_refuses_statistics_that_cannot_hold_together(tmp_path):
+    """Each bound below holds by construction (`snac_jax.evaluation.summarize`, and an episode
+    that lays no brick scores IoU 0), so a row that breaks one was edited or damaged."""
+    cell, row = tmp_path / "cell", "1d-static-sin (seed 1)"  # mean 0.7, min 0.1, ci95 [0.65, 0.75], 2 episodes
+    strata = {
+        "a": {"mean": 0.6, "min": 0.1, "std": 0.0, "episodes": 1},
+        "b": {"mean": 0.8, "min": 0.5, "std": 0.0, "episodes": 1},
+    }
+    write_cell(cell)
+    assert schemas.load(_edit(cell / "eval.json", lambda d: d[row].update(per_design=strata)), schemas.EVAL_JSON)
+    where = f"eval.json: ['{row}']"
+    cases = [
+        (dict(min=0.8), f"{where}.min is 0.8, above its mean 0.7"),
+        (dict(ci95=[0.72, 0.75]), f"{where}.ci95 [0.72, 0.75] does not hold its mean 0.7"),
+        (dict(mean_bricks_used=0.0), f"{where}.mean is 0.7 with mean_bricks_used 0"),
+        (dict(per_design={**strata, "b": {**strata["b"], "min": 0.9}}), f"{where}.per_design.b.min is 0.9, above"),
+        (dict(per_design={**strata, "b": {**strata["b"], "episodes": 3}}), f"{where}.episodes is 2, its per_design"),
+        (dict(per_design={**strata, "b": {**strata["b"], "mean": 0.9}}), f"{where}.mean is 0.7, its per_design"),
+        (dict(per_design={**strata, "a": {**strata["a"], "min": 0.2}}), f"{where}.min is 0.1, its per_design"),
+    ]
+    for change, message in cases:
+        write_cell(cell)
+        _refused(_edit(cell / "eval.json", lambda d, change=change: d[row].update(change)), schemas.EVAL_JSON, message)
+    # within float rounding of the bound: the mean of equal IoUs may come out an ulp below them
+    write_cell(cell)
+    assert schemas.load(_edit(cell / "eval.json", lambda d: d[row].update(min=0.7 + 1e-12)), schemas.EVAL_JSON)
+
+
 def test_a_cells_raw_copy_is_checked_part_by_part_naming_the_part_and_the_field(tmp_path):
     from agents.table.files import read_cell, read_raw
     from agents.table.raw import raw_text

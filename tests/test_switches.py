@@ -215,8 +215,9 @@ def test_parse_switches_reads_the_extensions():
         "landmark_action": 4,
         "design_change": (100, 300),
     }
-    with pytest.raises(ValueError, match="two step numbers a/b"):
-        parse_switches("design_change=1.5/3")
+    for steps in ("1.5/3", "1_00/300"):  # int() reads '1_00' as 100: not a step number as written
+        with pytest.raises(ValueError, match="two step numbers a/b"):
+            parse_switches(f"design_change={steps}")
     env, _ = make("2d-dynamic-sparse", design_bank_size=4, **parse_switches("design_change=100/300,landmark_action=2"))
     assert env.config.design_change == (100, 300) and env.num_actions == 6
 
@@ -231,3 +232,37 @@ def test_a_training_config_carries_the_extensions_and_refuses_bad_ones_up_front(
         make_config("ppo", "2d-static-sparse", switches="design_change=100/300")
     with pytest.raises(ValueError, match=r"1 <= a <= b < max_steps=600, got \(300, 100\)"):
         make_config("ppo", "2d-dynamic-sparse", switches="design_change=300/100")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "landmark_action=\u0664",  # Arabic-Indic four: Python's int() reads it as 4
+        "landmarks=\uff18",  # a fullwidth 8
+        "design_change=\u0661\u0660\u0660/\u0663\u0660\u0660",
+        "stride_probs=\u0661/\u0660/\u0660",
+        "reward_scheme=h\u00e9ight",
+    ],
+)
+def test_a_switch_value_outside_ascii_is_refused_not_stored_as_typed(text):
+    """config.json keeps the switches as text; a value Python happens to read (int('\u0664') == 4)
+    would be stored as typed and read differently by anything else, so it is refused in one line."""
+    from agents.training.registry import make_config
+    from snac_jax.tasks import parse_switches
+
+    key = text.partition("=")[0]
+    for parse in (parse_switches, lambda t: make_config("ppo", "2d-dynamic-sparse", switches=t)):
+        with pytest.raises(ValueError, match=rf"^switch {key}=.*: ASCII only") as error:
+            parse(text)
+        assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("text", ["landmark_action=1_0", "landmark_action=+4", "landmarks=0x8"])
+def test_an_integer_switch_is_plain_ascii_digits(text):
+    """int() reads '1_0' as 10 and '+4' as 4; as a switch they are words, which `make` refuses."""
+    from snac_jax.tasks import parse_switches
+
+    key, _, value = text.partition("=")
+    assert parse_switches(text) == {key: value}
+    with pytest.raises(ValueError, match=rf"{key} must be an int"):
+        make("2d-static-sparse", **parse_switches(text))

@@ -493,3 +493,34 @@ def test_report_reads_every_entry_of_the_results_table_or_refuses_it(tmp_path, c
         code, err = _main(argv, capsys)
         assert code == 2 and f"{stray} is not a cell's raw copy" in err, err
         shutil.rmtree(stray) if stray.is_dir() else stray.unlink()
+
+
+def test_report_refuses_a_cell_file_over_the_size_limit_before_reading_it(tmp_path, capsys, monkeypatch):
+    """A raw copy past `RAW_COPY_MAX_BYTES` (sparse: no disk used) is refused in one line naming the
+    file and the limit, unread; so is a runs directory's cell whose files add up past it (its copy
+    would be), and a curve that makes the copy it would write exceed it."""
+    from agents.table import files
+
+    runs, results, cell = _report(tmp_path)
+    argv = ["--preset", "smoke", "--report", "--runs-dir", str(runs), "--results-dir", str(results)]
+    limit = f"{files.RAW_COPY_MAX_BYTES:,}-byte limit"
+    copy = results / "table" / "smoke" / "ppo" / "1d-static-gauss.json"
+    copy.parent.mkdir(parents=True)
+    with copy.open("wb") as f:
+        f.truncate(files.RAW_COPY_MAX_BYTES + 1)
+    code, err = _main(argv, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{copy} is {files.RAW_COPY_MAX_BYTES + 1:,} bytes, over the {limit}" in err, err
+    copy.unlink()
+    with (cell / "metrics.jsonl").open("r+b") as f:  # a runs directory's cell: refused before any file is read
+        f.truncate(files.RAW_COPY_MAX_BYTES)
+    code, err = _main(argv, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(cell) in err and limit in err, err
+    assert not any(results.rglob("*.json"))
+    # Files under the limit whose copy would be over it (the copy re-indents): the same refusal, nothing written.
+    write_cell(cell)
+    read = ("cell.json", "config.json", "eval.json", "metrics.jsonl")
+    monkeypatch.setattr(files, "RAW_COPY_MAX_BYTES", sum((cell / name).stat().st_size for name in read))
+    code, err = _main(argv, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(cell) in err and "copy would be" in err, err
+    assert not any(results.rglob("*.json"))

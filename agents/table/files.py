@@ -29,6 +29,12 @@ CELL_FILE = "cell.json"
 EVAL_FILE = "eval.json"
 RAW_SUFFIX = ".json"
 """A raw copy's file name is its cell's directory name with this suffix (`read_raw`)."""
+RAW_COPY_MAX_BYTES = 8 * 2**20
+"""The largest raw copy the report reads, and writes. It reads every copy of a preset whole (then
+parses and checks it), so a file of hundreds of MB, damaged or another file under a cell's name,
+would take the memory and the minutes of the machine before any check named it. The largest
+committed copy is 26 kB (bench/results/table/tuned/sac/2d-dynamic-dense.json: 20 chunks of
+curve, records of up to 0.9 kB each): 8 MiB holds a curve of some 9,000 chunks."""
 RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
 """What a cell's run leaves before its first checkpoint (`agents.training.driver`), besides its lock."""
 RECORD_FIELD = "adopted_record"
@@ -156,14 +162,27 @@ def check_cell(
         )
 
 
+def check_raw_size(size: int, what: str) -> None:
+    """`ValueError` where `size` bytes are past `RAW_COPY_MAX_BYTES`; `what`: the file (or the
+    cell's files) that has them, as the error names it."""
+    if size > RAW_COPY_MAX_BYTES:
+        raise ValueError(
+            f"{what} {size:,} bytes, over the {RAW_COPY_MAX_BYTES:,}-byte limit of a cell's raw copy "
+            "(agents.table.files.RAW_COPY_MAX_BYTES): not a cell's record, or a damaged one; move it away"
+        )
+
+
 def read_cell(directory: Path) -> dict[str, Any]:
     """A finished cell's files in a runs directory, each checked against its schema and against
     the others (`check_cell`): {"config" (as written), "eval", "cell", "metrics"} ("metrics": its
-    curve, empty where not kept). `ValueError` naming the file and the field of the first problem."""
-    config = checkpoint.read_config(directory)
+    curve, empty where not kept). `ValueError` naming the file and the field of the first problem;
+    files that add up past `RAW_COPY_MAX_BYTES` (their copy would) are refused before any is read."""
     cell_path, eval_path = directory / CELL_FILE, directory / EVAL_FILE
     if not cell_path.is_file():
         raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
+    read = (cell_path, eval_path, directory / checkpoint.CONFIG_FILE, directory / checkpoint.METRICS_FILE)
+    check_raw_size(sum(p.stat().st_size for p in read if p.is_file()), f"{directory}: its cell's files are")
+    config = checkpoint.read_config(directory)
     cell = schemas.load(cell_path, schemas.CELL_JSON)
     results = schemas.load(eval_path, schemas.EVAL_JSON)
     check_cell(
@@ -190,9 +209,11 @@ def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
     schema of the file it was copied from), checked as `read_cell` checks a cell's files; `text`:
     what the report is about to write there, read in its place. Returns {"config" (the config
     class's full settings), "eval", "cell", "metrics" (the curve)}; `ValueError` naming the file
-    and the field (`eval['<seed>'].mean`) of the first problem."""
+    and the field (`eval['<seed>'].mean`) of the first problem; a file past `RAW_COPY_MAX_BYTES`
+    is refused unread."""
     from agents.training.registry import config_from_json
 
+    check_raw_size(path.stat().st_size if text is None else len(text.encode()), f"{path} is")
     record = (
         schemas.load(path, schemas.RAW_CELL_JSON) if text is None else loads_json(text, schemas.RAW_CELL_JSON, path)
     )

@@ -53,15 +53,33 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
             f"  below the preset's budget, a run kept at its own: {', '.join(below)} (to train the preset's "
             "budget, move that directory away or choose another --runs-dir)"
         )
-    known = [c.estimate_s for c in cells if c.estimate_s is not None]
-    unknown = len(cells) - len(known)
     adopted = sum(c.status == "new" and c.adopts_from is not None for c in cells)
     counts = {s: sum(c.status == s for c in cells) for s in ("new", "partial", "done")}
     lines += [
         "",
-        f"total estimate: {duration(sum(known))} ({counts['new'] - adopted} new, "
+        f"total estimate: {_total_estimate(cells)} ({counts['new'] - adopted} new, "
         + (f"{adopted} adopted, " if adopted else "")
-        + f"{counts['partial']} partial, "
-        f"{counts['done']} done" + (f"; {unknown} cells of unknown time not counted)" if unknown else ")"),
+        + f"{counts['partial']} partial, {counts['done']} done"
+        + _unknown_note(cells)
+        + ")",
     ]
     return "\n".join(lines)
+
+
+def _total_estimate(cells: list[Cell]) -> str:
+    """The plan's remaining time: the sum of its cells' estimates where every cell has one; a lower
+    bound where some have none (no run of theirs has started: nothing measured them) and the others
+    add up to some time; 'unknown' where they add up to none, as a plan of cells not started does
+    (a sum of no estimates read as '0 min 00 s', as if nothing were left to train)."""
+    known = sum(c.estimate_s for c in cells if c.estimate_s is not None)
+    if all(c.estimate_s is not None for c in cells):
+        return duration(known)
+    return f"at least {duration(known)}" if known > 0 else "unknown"
+
+
+def _unknown_note(cells: list[Cell]) -> str:
+    unknown = sum(c.estimate_s is None for c in cells)
+    if not unknown:
+        return ""
+    counted = any(c.estimate_s for c in cells)
+    return f"; {unknown} {'cell' if unknown == 1 else 'cells'} of unknown time" + (" not counted" if counted else "")

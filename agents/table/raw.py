@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from agents.table.files import EVAL_FILE, RAW_SUFFIX, read_cell, read_raw, record_path
+from agents.table.files import EVAL_FILE, RAW_SUFFIX, check_raw_size, read_cell, read_raw, record_path
 from agents.table.presets import BASE_ARM, Preset, Variant
 from snac_jax.atomic import atomic_write_text
 
@@ -119,7 +119,9 @@ def copies(runs_dir: str | Path | None, results_dir: str | Path, preset: str) ->
         refuse_links(results_dir, destination)
         if not _copy_of_its_record(files, results_dir):
             if not _holds_the_run(destination, files):
-                planned.append((directory, destination, raw_text(files)))
+                text = raw_text(files)
+                check_raw_size(len(text.encode()), f"{directory}: its raw copy would be")
+                planned.append((directory, destination, text))
         elif destination.is_file():
             planned.append((directory, destination, None))
     return planned

@@ -34,6 +34,7 @@ from snac_jax.schema import (
     Str,
     load_json,
     mismatch,
+    subfield,
 )
 from snac_jax.tasks import MAX_SEED, TASKS
 
@@ -122,8 +123,65 @@ CELL_JSON = Object(
 )
 
 IOU = Number(0.0, 1.0)
-STRATUM = Object({"mean": IOU, "min": IOU, "std": Number(0.0), "episodes": Int(1)})
-EVAL_ROW = Object(
+
+STAT_TOLERANCE = 1e-9
+"""How far a reported statistic may stray past a bound it holds by construction: they are float64
+sums of float32 IoUs, so the mean of equal IoUs may come out an ulp or so below them; an edited or
+damaged number strays by far more."""
+
+
+def _min_at_most_mean(row: dict, field: str) -> None:
+    if row["min"] > row["mean"] + STAT_TOLERANCE:
+        raise Mismatch(f"{subfield(field, 'min')} is {row['min']!r}, above its mean {row['mean']!r}")
+
+
+class _Stratum(Object):
+    """One test design's (or 1D shape's) statistics in an eval row's `per_design`: its minimum is
+    at most its mean."""
+
+    def __init__(self):
+        super().__init__({"mean": IOU, "min": IOU, "std": Number(0.0), "episodes": Int(1)})
+
+    def check(self, value: Any, field: str) -> None:
+        super().check(value, field)
+        _min_at_most_mean(value, field)
+
+
+class _EvalRow(Object):
+    """One training seed's protocol result (`snac_jax.evaluation.TaskResult`): its fields, and the
+    bounds they hold together by construction (`snac_jax.evaluation.summarize`): min <= mean, the
+    95% interval holds the mean, a row whose episodes laid no brick scores IoU 0 (the overlap grows
+    only by a brick laid), and where it has strata, its mean is theirs, its minimum their least and
+    its episodes their sum. A row that breaks one was edited or damaged, and would be reported."""
+
+    def check(self, value: Any, field: str) -> None:
+        super().check(value, field)
+        _min_at_most_mean(value, field)
+        low, high = value["ci95"]
+        if not low - STAT_TOLERANCE <= value["mean"] <= high + STAT_TOLERANCE:
+            raise Mismatch(f"{subfield(field, 'ci95')} {value['ci95']!r} does not hold its mean {value['mean']!r}")
+        if value["mean_bricks_used"] == 0 and value["mean"] > STAT_TOLERANCE:
+            raise Mismatch(
+                f"{subfield(field, 'mean')} is {value['mean']!r} with mean_bricks_used 0: an episode that "
+                "lays no brick scores IoU 0"
+            )
+        strata = list(value["per_design"].values())
+        if not strata:
+            return
+        pooled = {
+            "episodes": sum(s["episodes"] for s in strata),
+            "mean": sum(s["mean"] for s in strata) / len(strata),
+            "min": min(s["min"] for s in strata),
+        }
+        for name, what in (("episodes", "sum"), ("mean", "mean"), ("min", "least")):
+            if abs(value[name] - pooled[name]) > STAT_TOLERANCE:
+                raise Mismatch(
+                    f"{subfield(field, name)} is {value[name]!r}, its per_design's {what} is {pooled[name]!r}"
+                )
+
+
+STRATUM = _Stratum()
+EVAL_ROW = _EvalRow(
     {
         "task": Str(),
         "mean": IOU,
