@@ -50,9 +50,11 @@ def test_gae_matches_hand_computation_with_truncation_and_termination():
     np.testing.assert_allclose(targets[:, 0], np.array([a0, a1, a2, a3]) + np.array([0.5, 1.0, 2.0, 4.0]), rtol=1e-6)
 
 
-@pytest.mark.parametrize("truncations", [3, 7])  # fewer than the 4 worlds (gathered), more (every step)
-def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry_that_saw_them(truncations):
-    ppo = PPO(make_config("ppo", "1d-static-sin", recurrent=True, **dict(TINY, num_envs=4, rollout_steps=6)))
+# Fewer truncations than the 4 worlds; more, which a step limit of 3 allows (two a world in 6 steps).
+@pytest.mark.parametrize("truncations, max_steps", [(3, 750), (7, 3)])
+def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry_that_saw_them(truncations, max_steps):
+    config = dict(TINY, num_envs=4, rollout_steps=6, max_steps=max_steps)
+    ppo = PPO(make_config("ppo", "1d-static-sin", recurrent=True, **config))
     state = ppo.init(jax.random.key(0))
     _, batch, _ = jax.jit(ppo.rollout)(state, ppo.env_params)
     t, n = batch.reward.shape
