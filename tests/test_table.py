@@ -362,6 +362,19 @@ def test_ablation_report_by_hand():
     assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
 
+def test_an_arm_trained_another_number_of_steps_than_its_base_has_no_delta():
+    raw = {
+        "drqn": {
+            "2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.5, 0.7]),
+            "2d-static-dense.gps": _arm("2d-static-dense", "gps", "+gps", "gps=true", [0.8, 0.8]),
+        }
+    }
+    assert ablation.build(raw, arms=["base", "gps"], reps=20)["ablation"]["drqn"]["2d-static-dense"]["gps"]["delta"]
+    raw["drqn"]["2d-static-dense.base"]["config"]["total_steps"] *= 2  # a base retrained at a larger budget
+    table = ablation.build(raw, arms=["base", "gps"], reps=20)
+    assert table["ablation"]["drqn"]["2d-static-dense"]["gps"]["delta"] is None
+
+
 def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only():
     raw = {
         "drqn": {

@@ -83,9 +83,12 @@ def build(
                     **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {}),
                 }
                 if arm != BASE:  # the paper's value of an arm is its change from the base
+                    # A change is read only against a base trained as long: an arm kept at a
+                    # smaller budget than a retrained base would show the budget, not the arm.
+                    comparable = base is not None and base["config"]["total_steps"] == files["config"]["total_steps"]
                     row["delta"] = (
                         statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
-                        if base is not None
+                        if comparable
                         else None
                     )
                 rows[arm] = row
@@ -138,7 +141,8 @@ def section(table: dict, description: str) -> list[str]:
         "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
         "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
         "for two arms of three normal draws and no true difference it holds 0 only about four times in "
-        "five, so read a Δ as an effect only where it is large against the seeds' spread.",
+        "five, so read a Δ as an effect only where it is large against the seeds' spread. No Δ (—) where "
+        "the base has no cell yet or trained another number of env steps than the arm.",
         "",
     ]
     if not table["ablation"]:
