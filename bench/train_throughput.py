@@ -130,10 +130,10 @@ def main() -> None:
         )
         overrides = {name: value for name, value in overrides.items() if name in fields}
         try:
-            rows.append((task, recurrent, settings, make_config(args.algorithm, task, **overrides, **settings)))
+            rows.append((task, settings, make_config(args.algorithm, task, **overrides, **settings)))
         except ValueError as error:
             parser.error(f"{task}: {error}")
-    for task, _recurrent, settings, config in rows:
+    for task, settings, config in rows:
         algorithm = build_algorithm(config)
         mesh = devices.env_mesh(args.devices, config.num_envs)
         state = initial_state(algorithm, mesh)

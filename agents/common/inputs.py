@@ -22,15 +22,16 @@ from snac_jax.transition import PADDING
 _LOWEST_CELL = int(min(LANDMARK_VALUE, PADDING))  # the lowest value a window cell holds
 
 
-def episode_min_steps(env: SNACEnv, params: EnvParams, robots: int = 1) -> int:
+def episode_min_steps(env: SNACEnv, params: EnvParams, robots: int = 1, stuck: bool = True) -> int:
     """A lower bound on the steps of any episode of `env` under `params` (SPEC §4-§5), for one
     robot or a team of `robots` sharing one world (SPEC §13): the step limit; the brick budget,
     since each robot lays at most one counted brick a step; and with the obstacle rule 3, since a
     robot starting in a corner is walled in after two drops and its next action ends the episode
-    (a team's other robots start too far away to wall it in sooner)."""
+    (a team's other robots start too far away to wall it in sooner). `stuck=False` leaves that
+    last term out, for a caller that sizes for the usual episode and tolerates a rare short one."""
     budget = int(np.min(np.asarray(params.design_max_bricks)))
     bound = min(int(params.max_steps_in_episode), -(-budget // robots))
-    if env.config.obstacles:
+    if stuck and env.config.obstacles:
         bound = min(bound, 3)
     return max(bound, 1)
 

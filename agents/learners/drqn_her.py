@@ -20,9 +20,9 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
+from agents.common.inputs import episode_min_steps
 from agents.common.offpolicy import RunnerState, Step, Worlds
 from agents.learners.drqn import DRQN, DRQNConfig
 from agents.training.config import option
@@ -94,14 +94,10 @@ def hindsight_rewards(config: EnvConfig, drop_cell: jax.Array, drop_height: jax.
 class DRQNHER(DRQN):
     @functools.cached_property
     def ring_size(self) -> int:
-        """Final grids kept per world: enough for every episode a buffer row can hold. An episode
-        lasts at least min(brick budget, step limit) steps (3D can end sooner when stuck; a slot
-        overwritten too early only drops that episode's relabelled copy)."""
-        shortest = max(
-            1,
-            min(int(np.min(np.asarray(self.env_params.design_max_bricks))), int(self.env_params.max_steps_in_episode)),
-        )
-        return self.per_world // shortest + 2
+        """Final grids kept per world: enough for every episode a buffer row can hold, sized by
+        the episode's fewest steps without the stuck rule (an episode ended by it is rare, and a
+        slot overwritten too early only drops that episode's relabelled copy)."""
+        return self.per_world // episode_min_steps(self.env, self.env_params, stuck=False) + 2
 
     def _example_step(self) -> HindsightStep:
         base = super()._example_step()
