@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         return _report(args, given_runs_dir)
 
-    from agents.table.plan_format import format_plan
+    from agents.table.plan import format_plan
     from agents.table.run import run_cells
     from agents.training import checkpoint
 
