@@ -80,7 +80,8 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(
                 f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(_PRESET_KEYS.split())}"
             )
-        variants = tuple(_variant(f"{path}: [{name}.variants.{k}]", k, v) for k, v in table.get("variants", {}).items())
+        where, tasks = f"{path}: [{name}.variants", table.get("tasks")
+        variants = tuple(_variant(f"{where}.{k}]", k, v, tasks) for k, v in table.get("variants", {}).items())
         presets[name] = preset = Preset(
             name=name,
             description=table.get("description", ""),
@@ -139,11 +140,13 @@ def _budget(path, tables: dict, preset: str, algorithm: str, budget: dict) -> di
     return budget
 
 
-def _variant(where: str, name: str, table: dict) -> Variant:
+def _variant(where: str, name: str, table: dict, tasks) -> Variant:
+    """An arm; its `tasks` default to its preset's."""
+    table = {"tasks": tasks, **table} if tasks is not None else table
     unknown = sorted(set(table) - _ARM_KEYS)
     if unknown or "tasks" not in table:
         raise ValueError(
-            f"{where} must give tasks, and may give paper, switches, settings and evaluation"
+            f"{where} must give tasks (or its preset), and may give paper, switches, settings and evaluation"
             + (f"; unknown key(s) {unknown}" if unknown else "")
         )
     settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
