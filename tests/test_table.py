@@ -337,7 +337,7 @@ def test_ablation_report_by_hand():
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
     assert "adopted" not in text
     raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
-    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_bases` reads it
+    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_base` reads it
     text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
     assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 

@@ -230,8 +230,8 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     assert not (acting.directory / "checkpoints").exists()
     config, params = scored[1]
     assert config == dataclasses.replace(source.config, gamma=0.5)
-    _, twin, _ = load_trained(source.directory)
-    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(twin.params)))
+    _, trained_state, _ = load_trained(source.directory)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(trained_state.params)))
     cell = json.loads((acting.directory / "cell.json").read_text())
     assert (cell["evaluation"], cell["adopted_from"]) == ({"gamma": 0.5}, "smoke/ppo/1d-static-sin")
     evals = json.loads((acting.directory / "eval.json").read_text())

@@ -135,7 +135,7 @@ def build(
 
 def _own_copy_of_adopted(arm: str, files: dict) -> bool:
     """Whether a base arm that adopted another preset's run is read from this preset's own copy
-    (the run as it was adopted, e.g. kept by `raw.bases_to_keep`) rather than the adopted cell's record."""
+    (the run its arms were measured against) rather than the adopted cell's record."""
     return arm == BASE and bool(files["cell"].get("adopted_from")) and not files.get(READ_FROM_ADOPTED)
 
 

@@ -2,7 +2,7 @@
 
 Each finished cell's small files (`config.json`, `eval.json`, `cell.json`, its curve
 `metrics.jsonl`; never checkpoints) are copied from the runs directory into one file,
-`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json` (`agents.table.raw`), and the
+`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json` (`agents.table.files`), and the
 table is computed from those copies only, so it can be rebuilt from the repository:
 `bench/results/table.md` and `table.json` (every preset found there, one section each) and
 `table-<preset>.png`. An ablation preset's section is `agents.table.ablation`'s.
