@@ -108,7 +108,7 @@ def write_record(results, cell, means=(0.5, 0.7), episodes: int = 2, seed: int =
     episodes with evaluation key `seed`), written by hand: {"cell", "config", "eval", "curve"}."""
     from pathlib import Path
 
-    from agents.table.raw import raw_text
+    from agents.table.files import raw_text
 
     row = {
         "min": 0.1,

@@ -35,13 +35,13 @@ def test_the_tuned_settings_name_pages_that_exist():
 
 def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
     """A cell's raw copy holds the config.json that `snac table --preset P` trains for that cell
-    today (the table's own rule for the same run, `plan._settings_differ`), so a changed tuned entry
+    today (the table's own rule for the same run, `plan.settings_differ`), so a changed tuned entry
     cannot silently redefine an ablation whose arms were measured on the old one; a smaller budget
     is the rule's one exception (a run trained under the wall-time cap the table once had, kept as
     it is). Arms that only score another arm's run again (`evaluation`) train nothing of their own."""
     import json
 
-    from agents.table.plan import _settings_differ, make_plan
+    from agents.table.plan import make_plan, settings_differ
     from agents.table.presets import load_presets
     from agents.training.registry import ALGORITHMS, config_from_json
     from snac_jax.paper import PAPER_TASKS
@@ -58,7 +58,7 @@ def test_every_committed_cell_is_what_its_preset_trains_now(tmp_path):
                 continue
             checked += 1
             stored = config_from_json(json.loads(record.read_text())["config"])
-            differ = _settings_differ(cell, stored)
+            differ = settings_differ(cell, stored)
             if differ:
                 drifted.append(f"{record.relative_to(ROOT)}: {', '.join(differ)}")
     assert checked > 100  # the paper, tuned, beyond and ablation presets' cells

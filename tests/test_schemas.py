@@ -158,8 +158,7 @@ def test_eval_json_refuses_statistics_that_cannot_hold_together(tmp_path):
 
 
 def test_a_cells_raw_copy_is_checked_part_by_part_naming_the_part_and_the_field(tmp_path):
-    from agents.table.files import read_cell, read_raw
-    from agents.table.raw import raw_text
+    from agents.table.files import raw_text, read_cell, read_raw
 
     cell = tmp_path / "runs" / "ppo" / "1d-static-sin"
     write_cell(cell)

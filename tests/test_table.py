@@ -1,6 +1,6 @@
 """`snac table`: the plan and its estimates, the statistics (against hand-computed values), the
-aggregation into table.json / table.md, and (slow) the smoke preset run, interrupted, resumed,
-skipped and reported."""
+aggregation into table.json / table.md, an ablation's base arm read from the preset it adopts, and
+(slow) the smoke preset run, interrupted, resumed, skipped and reported."""
 
 from __future__ import annotations
 
@@ -15,10 +15,9 @@ import numpy as np
 import pytest
 
 from agents.table import ablation, statistics
-from agents.table.plan import TRAIN_SEED, make_plan
-from agents.table.plan_format import format_plan
+from agents.table.ablation import READ_FROM_ADOPTED
+from agents.table.plan import TRAIN_SEED, format_plan, make_plan
 from agents.table.presets import BUDGETS_FILE, Variant, expand_tasks, load_presets
-from agents.table.raw import READ_FROM_ADOPTED
 from agents.table.report import build, markdown
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from tests.table_cells import cell_files as _files
@@ -122,25 +121,6 @@ def test_a_run_below_the_presets_budget_is_kept_as_it_is_and_marked(tmp_path, mo
     )
     with pytest.raises(ValueError, match="total_steps: 8000000 there, 7500000 now"):
         make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
-
-
-def test_a_twin_below_the_presets_budget_is_not_adopted(tmp_path):
-    """An ablation's base arm takes over the paper preset's cell only at the budget its other arms
-    train: the paper's DRQN cells kept at a smaller budget are not its base."""
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["paper"], ["drqn"], ["2d-static-dense"], None, runs)
-    write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
-    [base] = make_plan(
-        PRESETS["ablation"], ["drqn"], ["2d-static-dense"], None, runs, arms=["base"], results_dir=results
-    )
-    assert base.adopts_from is not None and base.config.total_steps == 6_000_000
-    smaller = dataclasses.replace(source, config=dataclasses.replace(source.config, total_steps=4_000_000))
-    smaller.budget = dataclasses.replace(source.budget, env_steps=4_000_000)
-    write_record(results, smaller, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
-    [base] = make_plan(
-        PRESETS["ablation"], ["drqn"], ["2d-static-dense"], None, runs, arms=["base"], results_dir=results
-    )
-    assert (base.adopts_from, base.config.total_steps, base.budget.below) == (None, 6_000_000, False)
 
 
 def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
@@ -357,7 +337,7 @@ def test_ablation_report_by_hand():
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
     assert "adopted" not in text
     raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
-    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_bases` reads it
+    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_base` reads it
     text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
     assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
@@ -444,7 +424,7 @@ def test_a_budget_per_environment_task(tmp_path):
     _refused(
         tmp_path / "typo.toml",
         text.replace('"1d-dynamic"', '"1d-dynamo"'),
-        r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]; allowed: 1d-static-sin",
+        r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]",
     )
 
 
@@ -529,10 +509,21 @@ def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
 # --- the smoke preset, end to end ----------------------------------------------------------------
 
 
+def _abl(**changes):
+    """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
+    arms = (
+        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
+        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
+    )
+    return dataclasses.replace(PRESETS["smoke"], **{"name": "abl", "variants": arms, "adopts": "smoke", **changes})
+
+
 @pytest.mark.slow  # two tiny trainings, a resume and four evaluations: ~1 min on a loaded 2-core CPU
 def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, monkeypatch):
+    from agents.table import report
     from agents.table import run as table_run
     from agents.table.report import write_report
+    from agents.training import checkpoint
 
     runs, results = tmp_path / "runs", tmp_path / "results"
     smoke = PRESETS["smoke"]
@@ -542,12 +533,7 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
 
     cells = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
     assert [c.status for c in cells] == ["done", "partial"] and cells[1].done_steps == 2048 // 4
-    arms = (
-        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
-        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
-    )
-    ablation = dataclasses.replace(smoke, name="abl", variants=arms, adopts="smoke")
-    assert make_plan(ablation, ["ppo"], ["1d-static-gauss"], None, runs)[0].adopts_from is None  # unfinished twin
+    assert make_plan(_abl(), ["ppo"], ["1d-static-gauss"], None, runs)[0].status == "new"  # its base unfinished
     assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
     before = (cells[0].directory / "eval.json").stat().st_mtime_ns
     calls = []
@@ -576,8 +562,6 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
     assert table["learners"] == {"ppo": {}}  # 1d-static-step is missing: no column is complete
     copied = sorted(p.relative_to(results).as_posix() for p in (results / "table").rglob("*") if p.is_file())
     assert copied == [f"table/smoke/ppo/{t}.json" for t in ("1d-static-gauss", "1d-static-sin")]
-    from agents.training import checkpoint
-
     for task, source in (("1d-static-sin", cells[0].directory), ("1d-static-gauss", cells[1].directory)):
         record = json.loads((results / "table" / "smoke" / "ppo" / f"{task}.json").read_text())
         assert list(record) == ["cell", "config", "eval", "curve"]  # the whole record in one file
@@ -586,23 +570,23 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
         assert record["curve"] == checkpoint.read_metrics_lines(source / "metrics.jsonl")
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
-    # An ablation whose base arm has the settings of the finished sin cell adopts that run: no training.
-    base, gps = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs)
-    assert (base.status, base.adopts_from, gps.adopts_from) == ("new", cells[0].directory, None)
+    # The ablation's base arm is the finished smoke cell: adopted, nothing trained or copied for it.
+    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)
+    assert (base.status, base.base_run, gps.status) == ("adopted", cells[0].directory, "new")
     printed = format_plan([base, gps], runs)
     assert "adopt " in printed and "(1 new, 1 adopted, " in printed and base.estimate_s == 0.0
     calls.clear()
-    assert table_run.run_cell(base, progress=False) and calls == []
-    adopted = make_plan(ablation, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0]
-    assert adopted.status == "done" and not (adopted.directory.parent / ".adopting").exists()
-    record = json.loads((adopted.directory / "cell.json").read_text())
-    assert (record["variant"], record["adopted_from"]) == ("base", "smoke/ppo/1d-static-sin")
-    assert (adopted.directory / "eval.json").read_text() == (cells[0].directory / "eval.json").read_text()
-    # Its curve is drawn again under its own title (the ablation preset's name, not the twin's).
-    assert (adopted.directory / "curve.png").read_bytes() != (cells[0].directory / "curve.png").read_bytes()
-    # A twin whose budget alone differs is not adopted.
-    longer = dataclasses.replace(ablation, name="abl2", settings={**smoke.settings, "total_steps": 4096})
-    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].adopts_from is None
+    assert table_run.run_cell(base, progress=False) and calls == [] and not base.directory.exists()
+    # A base whose budget alone differs is not the smoke cell: it trains as the ablation's own.
+    longer = _abl(name="abl2", settings={**smoke.settings, "total_steps": 4096})
+    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].status == "new"
+    # The report reads the base row from the smoke preset's copy.
+    assert table_run.run_cells([gps], progress=False) == 1
+    monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
+    paths = write_report("abl", runs, results, reps=200)
+    assert sorted(p.name for p in (results / "table" / "abl" / "ppo").iterdir()) == ["1d-static-sin.gps.json"]
+    rows = json.loads(paths["json"].read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
+    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["gps"]["delta"] is not None
 
 
 @pytest.mark.slow  # three tiny trainings and six evaluations
@@ -638,148 +622,7 @@ def test_ablation_smoke_grid_trains_each_arm_with_its_switches_and_reports(tmp_p
     assert "Learning curves of the arms: `table-ablation-curves.png`" in paths["md"].read_text()
 
 
-# --- a twin kept only in the record --------------------------------------------------------------
-
-
-def _abl(**changes):
-    """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
-    arms = (
-        Variant(name="base", paper="base", switches="", tasks=("1d-static-sin",)),
-        Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
-    )
-    return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms, adopts="smoke", **changes)
-
-
-@pytest.fixture
-def no_training(monkeypatch):
-    """Fail a test that trains or evaluates: a cell copied from the record does neither."""
-    import agents.training.cli
-    import agents.training.driver
-
-    def refuse(*args, **kwargs):
-        raise AssertionError("trained or evaluated")
-
-    monkeypatch.setattr(agents.training.driver, "train", refuse)
-    monkeypatch.setattr(agents.training.cli, "evaluate_run", refuse)
-
-
-def test_a_twin_kept_only_in_the_record_is_copied_without_training_and_reported(tmp_path, no_training, monkeypatch):
-    from agents.table import run as table_run
-    from agents.table.files import read_cell, read_raw
-    from agents.table.raw import raw_text
-    from agents.table.report import write_report
-    from agents.training import checkpoint
-
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    path = write_record(results, source)
-    record = json.loads(path.read_text())
-    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)[0].adopts_from is None  # runs only
-
-    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, results_dir=results)
-    assert (base.status, base.adopts_from, base.adopts_record, gps.adopts_from) == ("new", path, True, None)
-    printed = format_plan([base, gps], runs)
-    row = next(line for line in printed.splitlines() if "1d-static-sin.base" in line)
-    assert row.split()[4:] == [
-        "adopt",
-        "0",
-        "min",
-        "00",
-        "s",
-        "adopts",
-        "the",
-        "record",
-        str(path) + ",",
-        "finished",
-        "with",
-        "the",
-        "same",
-        "settings",
-    ]
-    assert "(1 new, 1 adopted, " in printed
-
-    moved, rename = [], Path.rename
-
-    def spy(entry, target):
-        moved.append(Path(target).name) if Path(target).parent == base.directory else None
-        return rename(entry, target)
-
-    monkeypatch.setattr(Path, "rename", spy)
-    assert table_run.run_cell(base, progress=False)
-    monkeypatch.setattr(Path, "rename", rename)
-    # Moved in cell.json first (a copy cut short is known as this cell's) and eval.json last (finished).
-    assert moved[0] == "cell.json" and moved[-1] == "eval.json" and len(moved) == 5
-    made = base.directory
-    assert sorted(p.name for p in made.iterdir() if p.name != checkpoint.LOCK_FILE) == [
-        "cell.json",
-        "config.json",
-        "curve.png",
-        "eval.json",
-        "metrics.jsonl",
-    ]  # no checkpoints
-    assert not (made.parent / ".adopting").exists() and (made / "curve.png").stat().st_size > 0
-    cell = json.loads((made / "cell.json").read_text())
-    assert (cell["preset"], cell["variant"], cell["adopted_from"], cell["adopted_record"]) == (
-        "abl",
-        "base",
-        "smoke/ppo/1d-static-sin",
-        str(path),
-    )
-    assert json.loads((made / "eval.json").read_text()) == record["eval"]
-    assert json.loads((made / "config.json").read_text()) == source.config.to_json() == record["config"]
-    assert checkpoint.read_metrics_lines(made / "metrics.jsonl") == record["curve"]
-
-    # A later plan sees it done, with or without the record, and running it again touches nothing.
-    for results_dir in (results, None):
-        [again] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results_dir)
-        assert (again.status, again.adopts_from, again.estimate_s) == ("done", None, 0.0)
-    before = {p.name: p.stat().st_mtime_ns for p in made.iterdir()}
-    assert table_run.run_cell(again, progress=False)
-    assert {p.name: p.stat().st_mtime_ns for p in made.iterdir()} == before
-
-    # The report reads it as any finished cell, but keeps one raw copy of the run, the record's:
-    # beside the gps arm's copy, the base row is read from the smoke preset's file.
-    assert read_cell(made)["eval"] == record["eval"]
-    from agents.table import report
-    from agents.table.presets import load_presets
-
-    monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
-    arm = _gps_arm_copy(results, path)
-    write_report("abl", runs, results, reps=200)
-    assert sorted(p.name for p in arm.parent.iterdir()) == [arm.name]  # no copy of the base
-    # An older copy of the base (a report made before the record held the run) is removed.
-    stale = arm.parent / "1d-static-sin.base.json"
-    stale.write_text(raw_text(read_cell(made)))
-    assert write_report("abl", runs, results, reps=200, dry_run=True)[f"uncopy:{made}"] == stale and stale.is_file()
-    write_report("abl", runs, results, reps=200)
-    assert not stale.exists()
-    rows = json.loads((results / "table.json").read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
-    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.6)
-    assert rows["base"]["paper_variant"] == "base" and rows["gps"]["delta"]["delta"] == pytest.approx(0.0)
-    # The record changed since the arm trained (another learning rate): read alone, the report
-    # stops, naming it; with the base arm's run at hand, that run is copied as the base instead.
-    changed = json.loads(path.read_text())
-    changed["config"]["learning_rate"] *= 2
-    path.write_text(json.dumps(changed))
-    with pytest.raises(
-        ValueError, match=re.escape(str(path)) + r" is the base of ppo/1d-static-sin.gps.*learning_rate"
-    ):
-        write_report("abl", None, results, reps=200)
-    write_report("abl", runs, results, reps=200)
-    copied = read_raw(arm.parent / "1d-static-sin.base.json")
-    assert copied["cell"]["adopted_record"] == str(path) and copied["eval"] == record["eval"]
-    assert copied["config"] == record["config"] != changed["config"]
-    # A copy of the same run with other cell metadata (as `bases_to_keep` writes one from the old
-    # record) is left as it is: the record does not depend on which report wrote it last.
-    own = arm.parent / "1d-static-sin.base.json"
-    kept = json.loads(own.read_text())
-    del kept["cell"]["adopted_record"]
-    own.write_text(json.dumps(kept))
-    write_report("abl", runs, results, reps=200)
-    assert json.loads(own.read_text()) == kept
-    own.write_text("{")  # a damaged one is replaced by the run's own files
-    write_report("abl", runs, results, reps=200)
-    assert read_raw(own)["cell"]["adopted_record"] == str(path)
+# --- a hand-made record --------------------------------------------------------------------------
 
 
 def _gps_arm_copy(results, record):
@@ -798,106 +641,95 @@ def _gps_arm_copy(results, record):
     return arm
 
 
-def test_a_record_an_ablation_reads_as_its_base_is_kept_as_its_own_before_it_is_replaced(tmp_path):
-    from agents.table.files import read_raw, record_path
-    from agents.table.presets import load_presets
-    from agents.table.raw import bases_to_keep, load_raw, with_adopted_bases
+def _abl_report(results, monkeypatch) -> dict:
+    from agents.table import report
 
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    path = write_record(results, source, means=(0.5, 0.7))
-    _gps_arm_copy(results, path)
-    presets = {**load_presets(), "abl": _abl()}
-    own = record_path(results, "abl", "ppo", "1d-static-sin.base")
-    assert bases_to_keep(results, "smoke", presets, {path: path.read_text()}) == {}  # the same run again
-    retrained = path.read_text().replace('"mean": 0.5', '"mean": 0.52')
-    for pending in ({path: retrained}, {path: None}):  # the smoke cell trained again, or its copy removed
-        kept = bases_to_keep(results, "smoke", presets, pending)
-        assert list(kept) == [own]
-        base = read_raw(own, kept[own])
-        assert (base["cell"]["variant"], base["cell"]["adopted_from"]) == ("base", "smoke/ppo/1d-static-sin")
-        assert base["eval"] == read_raw(path)["eval"]  # the run the gps arm was measured against
-        # Read as the report will after writing both: the ablation's own base, not the new record.
-        pending = {**pending, **kept}
-        raw = with_adopted_bases(load_raw(results, "abl", pending), results, presets["abl"], pending)
-        assert raw["ppo"]["1d-static-sin.base"]["eval"] == base["eval"]
-        # table.md says where that run now lives; a base read from the adopted record says nothing more.
-        assert "(read from this preset's own copy, `1d-static-sin.base.json`" in _adopted_line(raw)
-    assert bases_to_keep(results, "other", presets, {path: retrained}) == {}  # abl adopts smoke only
-    before = with_adopted_bases(load_raw(results, "abl"), results, presets["abl"])
-    assert _adopted_line(before).endswith("`smoke/ppo/1d-static-sin`.")
+    monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
+    report.write_report("abl", None, results, reps=200)
+    return json.loads((results / "table.json").read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
 
 
-def _adopted_line(raw) -> str:
-    from agents.table import ablation
+def test_a_hand_made_record_gives_the_expected_rows_and_marks_a_budget_below_its_request(tmp_path):
+    """Two cells copied by hand (one trained half the budget its preset asked): the report's
+    rows, their `*`, and the README's learner table from them."""
+    from agents.table.plan import Budget
+    from agents.table.readme import BEGIN, END, write_readme
+    from agents.table.report import write_report
 
-    table = ablation.build(raw, arms=["base", "gps"], preset="abl", reps=20)
-    [line] = [line for line in ablation.section(table, "") if line.startswith("Arms that adopted")]
-    return line
-
-
-def test_a_copy_from_the_record_cut_short_is_completed_and_a_foreign_one_refused(tmp_path, no_training):
-    from agents.table import run as table_run
-
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    path = write_record(results, source)
-    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-    assert table_run.run_cell(base, progress=False)
-    whole = {p.name: p.read_bytes() for p in base.directory.iterdir() if p.is_file()}
-    # Killed after cell.json (moved first) and config.json, before the curve and eval.json (moved last).
-    for name in ("eval.json", "curve.png", "metrics.jsonl"):
-        (base.directory / name).unlink()
-    with pytest.raises(ValueError, match=r"1d-static-sin.base holds a copy of .*1d-static-sin.json cut short"):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])  # the record not read
-    [cut] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-    assert (cut.status, cut.adopts_from) == ("new", path)
-    assert table_run.run_cell(cut, progress=False)
-    assert {p.name: p.read_bytes() for p in cut.directory.iterdir() if p.is_file()}.keys() == whole.keys()
-    assert (cut.directory / "eval.json").read_bytes() == whole["eval.json"]
-    # This cell's own training start, cut before its first checkpoint, is trained, as `adopt` does.
-    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", arms=["base"], results_dir=results)
-    start.directory.mkdir(parents=True)
-    (start.directory / "config.json").write_text(json.dumps(start.config.to_json()))
-    (start.directory / "metrics.jsonl").write_text("")
-    [start] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs / "other", arms=["base"], results_dir=results)
-    assert start.adopts_record
-    with pytest.raises(AssertionError, match="trained or evaluated"):
-        table_run.run_cell(start, progress=False)
-    # Its cell.json naming no record: this cell's own files back without checkpoints, finished, so
-    # done; without its eval.json, refused (nothing is left to evaluate it with).
-    cell = json.loads((cut.directory / "cell.json").read_text())
-    del cell["adopted_record"]
-    (cut.directory / "cell.json").write_text(json.dumps(cell))
-    [back] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-    assert back.status == "done"
-    (cut.directory / "eval.json").unlink()
-    with pytest.raises(ValueError, match="holds this cell's files without checkpoints and no finished eval.json"):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-
-
-def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
-    runs, results = tmp_path / "runs", tmp_path / "results"
-
-    def adopted(preset=None, **record):
-        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-        return base
-
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], 3, runs)
-    write_record(results, source, means=(0.5, 0.6, 0.7))
-    assert adopted().adopts_from is None  # 3 seeds there, 2 here
-    [source] = make_plan(
-        dataclasses.replace(PRESETS["smoke"], static_episodes=3), ["ppo"], ["1d-static-sin"], None, runs
+    results = tmp_path / "results"
+    cells = make_plan(PRESETS["smoke"], ["ppo"], ["2d-static-dense", "2d-static-sparse"], None, tmp_path / "runs")
+    below = dataclasses.replace(cells[0], budget=Budget(2048, 4096, "test"))
+    write_record(results, below, means=(0.5, 0.7))
+    write_record(results, cells[1], means=(0.2, 0.4))
+    paths = write_report("smoke", None, results, reps=200)
+    table = json.loads(paths["json"].read_text())["smoke"]
+    dense, sparse = table["learners"]["ppo"]["2d-static-dense"], table["learners"]["ppo"]["2d-static-sparse"]
+    assert dense["mean"] == pytest.approx(0.6) and dense["seeds"] == [0.5, 0.7] and sparse["mean"] == pytest.approx(0.3)
+    assert dense["budget"]["requested_per_seed"] == {"2d-static-dense": 4096}
+    assert table["iqm"]["ppo"]["tasks"] == 2 and table["iqm"]["ppo"]["iqm"] == pytest.approx(0.45)
+    md = paths["md"].read_text()
+    assert "| ppo | 2 | — | — | 2.05k* | 2.05k | —" in md  # env steps per seed, `*`: below the request
+    assert "| ppo | — | — | 0.1 | 0.1 | —" in md  # minutes of training, from the curves (8 s each)
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{BEGIN}\nold\n{END}\n")
+    write_readme(readme, json.loads(paths["json"].read_text()))
+    assert (
+        "| ppo (smoke preset) | 2.05k*, 2.05k | — (0.776) | — (0.791) | 0.600 [0.500, 0.700] (0.682) |"
+        in readme.read_text()
     )
-    write_record(results, source, episodes=3)
-    assert adopted().adopts_from is None  # its protocol's 3 episodes, this cell's has 2
+
+
+def test_an_ablations_base_arm_is_read_from_the_preset_it_adopts(tmp_path, monkeypatch):
+    """The base arm of an ablation that adopts another preset is that preset's cell: planned as
+    adopted where its copy in the record has the base arm's config (seeds, protocol, reporting key
+    and budget included), and read from there by the report, unless the ablation holds a base copy
+    of its own; a copy with another config is no base (no Δ)."""
+    runs, results = tmp_path / "runs", tmp_path / "results"
+
+    def base_status(preset=None, results_dir=results):
+        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, ["base"], results_dir)
+        return base.status
+
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    write_record(results, source, seed=TUNING_EVAL_SEED)
-    assert adopted().adopts_from is None  # scored with the tuning key
+    three = dataclasses.replace(source.preset, static_episodes=3)
+    for changes, preset, kwargs in [
+        (dict(seeds=3), source.preset, dict(means=(0.5, 0.6, 0.7))),
+        (dict(total_steps=1024), source.preset, {}),  # a smaller budget: the ablation's arms train 2048
+        ({}, three, dict(episodes=3)),
+        ({}, source.preset, dict(seed=TUNING_EVAL_SEED)),
+    ]:
+        config = dataclasses.replace(source.config, **changes)
+        write_record(results, dataclasses.replace(source, config=config, preset=preset), **kwargs)
+        assert base_status() == "new", (changes, kwargs)
     path = write_record(results, source)
-    assert adopted().adopts_from == path
-    # A budget alone differing (the record's smaller): not adopted.
-    assert adopted(_abl(settings={**PRESETS["smoke"].settings, "total_steps": 4096})).adopts_from is None
+    assert base_status() == "adopted" and base_status(results_dir=None) == "new"  # the record not read
+    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, ["base"], results)
+    row = next(line for line in format_plan([base], runs).splitlines() if "1d-static-sin.base" in line)
+    assert row.split()[4:10] == ["adopt", "0", "min", "00", "s", "the"] and str(path) in row
+
+    _gps_arm_copy(results, path)
+    rows = _abl_report(results, monkeypatch)
+    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.6)
+    assert rows["gps"]["delta"]["delta"] == pytest.approx(0.0) and "own_copy" not in rows["base"]
+    assert not (results / "table" / "abl" / "ppo" / "1d-static-sin.base.json").exists()  # nothing copied
+    assert "`smoke/ppo/1d-static-sin`." in (results / "table.md").read_text()
+    # A base copy of the ablation's own (the run its arms were measured against) wins.
+    own = json.loads(path.read_text())
+    own["cell"].update(preset="abl", variant="base", paper_variant="base", switches="", settings={})
+    own["cell"]["adopted_from"] = "smoke/ppo/1d-static-sin"
+    own["eval"] = {k: {**v, "mean": 0.3, "min": 0.1, "ci95": [0.25, 0.35]} for k, v in own["eval"].items()}
+    own_path = results / "table" / "abl" / "ppo" / "1d-static-sin.base.json"
+    own_path.write_text(json.dumps(own))
+    rows = _abl_report(results, monkeypatch)
+    assert rows["base"]["own_copy"] and rows["base"]["mean"] == pytest.approx(0.3)
+    assert "(read from this preset's own copy, `1d-static-sin.base.json`" in (results / "table.md").read_text()
+    # Without it, a record trained with another config is no base: no base row, no Δ.
+    own_path.unlink()
+    changed = json.loads(path.read_text())
+    changed["config"]["learning_rate"] *= 2
+    path.write_text(json.dumps(changed))
+    rows = _abl_report(results, monkeypatch)
+    assert list(rows) == ["gps"] and rows["gps"]["delta"] is None
 
 
 @pytest.mark.parametrize(
@@ -907,7 +739,7 @@ def test_a_record_twin_with_other_settings_or_protocol_is_not_adopted(tmp_path):
         (lambda text: text.replace('"mean": 0.5', '"mean": 1.5'), r"eval\['1d-static-sin \(seed 0\)'\].mean"),
     ],
 )
-def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, damage, field):
+def test_a_damaged_record_of_an_adopted_base_is_refused_naming_the_file(tmp_path, damage, field):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
     path = write_record(results, source)
@@ -917,28 +749,19 @@ def test_a_damaged_record_twin_is_refused_naming_the_file(tmp_path, capsys, dama
     assert not runs.exists()
 
 
-def test_the_cli_finds_record_twins_under_results_dir(tmp_path, capsys):
+def test_the_cli_finds_an_adopted_base_under_results_dir(tmp_path, capsys):
     """landmark-action's pqn-belief base arm is the beyond preset's cell: planned as adopted from
     the record under --results-dir when --runs-dir keeps no run of it; its other arm trains."""
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs)
     path = write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
-    argv = [
-        "--preset",
-        "landmark-action",
-        "--algorithms",
-        "pqn-belief",
-        "--tasks",
-        "2d-static-sparse",
-        "--runs-dir",
-        str(runs),
-        "--dry-run",
-    ]
+    argv = ["--preset", "landmark-action", "--algorithms", "pqn-belief", "--tasks", "2d-static-sparse"]
+    argv += ["--runs-dir", str(runs), "--dry-run"]
     assert _run_cli([*argv, "--results-dir", str(results)]) == 0
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if "2d-static-sparse.base" in line)
     assert row.split()[:5] == ["pqn-belief", "2d-static-sparse.base", "20M", "3", "adopt"]
-    assert f"adopts the record {path}, finished" in row
+    assert f"the beyond preset's cell {path}, finished" in row
     assert "(1 new, 1 adopted, 0 partial, 0 done" in out
     assert _run_cli([*argv, "--results-dir", str(tmp_path / "elsewhere")]) == 0
-    assert "adopt" not in capsys.readouterr().out and not runs.exists()
+    assert " adopt " not in capsys.readouterr().out and not runs.exists()

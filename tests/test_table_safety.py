@@ -168,9 +168,8 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
 ):
     """A cell trained on another machine and copied back with its files but not its checkpoints (a
     committed cell's files written back as a runs directory's) is done: planned so, never trained
-    or evaluated again, its files untouched. Files of another cell or other settings are refused as
-    foreign; this cell's without a finished eval.json or a finished training are refused in one
-    line, as nothing is left to evaluate or resume them from."""
+    or evaluated again, its files untouched. Files with other settings, or this cell's without a
+    finished eval.json (nothing is left to evaluate them with), are refused as foreign."""
     from agents.table import run as table_run
     from agents.table.plan import make_plan
 
@@ -210,35 +209,12 @@ def test_a_finished_cell_back_without_its_checkpoints_is_done_and_one_without_it
     def edit_json(name, change):
         return lambda d: (d / name).write_text(json.dumps(change(json.loads((d / name).read_text()))))
 
-    # Not this cell's files: another preset's cell.json, or this cell's with other settings.
+    # Not this cell's run: other settings; or this cell's without a finished eval.json.
     foreign = "holds files that no start of this cell left there"
     with pytest.raises(ValueError, match=foreign):
-        plan_with(edit_json("cell.json", lambda c: {**c, "preset": "tuned"}))
-    with pytest.raises(ValueError, match=foreign):
         plan_with(edit_json("config.json", lambda c: {**c, "learning_rate": c["learning_rate"] * 2}))
-    # This cell's, but not a finished run: nothing is left to resume or evaluate it from.
-    with pytest.raises(
-        ValueError,
-        match=r"^\S+1d-dynamic holds this cell's files without checkpoints and no finished "
-        r"eval.json: nothing is left to evaluate; move that directory away$",
-    ):
+    with pytest.raises(ValueError, match=foreign):
         plan_with(lambda d: (d / "eval.json").unlink())
-    for cut, recorded in (
-        (lambda d: (d / "metrics.jsonl").unlink(), 0),
-        (
-            lambda d: (d / "metrics.jsonl").write_text("".join((d / "metrics.jsonl").read_text().splitlines(True)[:3])),
-            3,
-        ),
-    ):
-        with pytest.raises(
-            ValueError,
-            match=rf"1d-dynamic holds this cell's files without checkpoints, and its "
-            rf"metrics.jsonl records {recorded} of the run's \d+ chunks: its training "
-            "did not finish",
-        ):
-            plan_with(cut)
-    with pytest.raises(ValueError, match=foreign):  # a cell.json naming another task is another cell's
-        plan_with(edit_json("cell.json", lambda c: {**c, "task": "1d-static-sin"}))
 
 
 def test_a_cells_own_start_cut_before_its_first_checkpoint_trains_again(tmp_path, monkeypatch):

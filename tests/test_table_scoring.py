@@ -1,9 +1,8 @@
 """`snac table`'s arms that change only how a trained policy acts when scored
-(`Variant.evaluation`, `agents.table.scoring`): checked where the preset is loaded and planned
-(acting options only; a base to score), never taking a raw copy (no params to score), refused
-when a finished cell was scored otherwise, printed "at evaluation" in the report, and (slow)
-taking over a finished run without training it, scoring its own params again with the arm's
-settings, its adoption kept across a kill before scoring."""
+(`Variant.evaluation`): checked where the preset is loaded and planned (acting options only; a
+base run to score), never scoring a raw copy (no params), refused when a finished cell was scored
+otherwise, printed "at evaluation" in the report, and (slow) scoring the base arm's run again
+with the arm's settings, without training, across a kill before scoring."""
 
 from __future__ import annotations
 
@@ -13,9 +12,9 @@ import json
 import pytest
 
 from agents.table import ablation
-from agents.table.plan import cell_config, make_plan
+from agents.table.plan import make_plan
 from agents.table.presets import Variant, load_presets
-from agents.table.scoring import scoring_config
+from agents.table.run import scoring_config
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from tests.table_cells import cell_files, write_record
 
@@ -47,15 +46,14 @@ def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_m
     preset = PRESETS["safe-drops"]
     assert [v.name for v in preset.variants] == ["base", "safe", "at-evaluation"]
     arms = {v.name: v for v in preset.variants}
-    (base, _), (acting, _) = (
-        cell_config(preset, "pqn-belief", "3d-dynamic-sparse", 3, arms[name]) for name in ("base", "at-evaluation")
-    )
-    assert acting == base and not acting.safe_drops  # the same training
+    base, acting = make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, ["base", "at-evaluation"])
+    assert acting.config == base.config and not acting.config.safe_drops  # the same training
+    assert acting.base_run == base.directory  # the base arm trains here first: no beyond run
     assert arms["at-evaluation"].evaluation == {"safe_drops": True} and arms["safe"].evaluation == {}
-    assert scoring_config(acting, arms["at-evaluation"].evaluation) == dataclasses.replace(acting, safe_drops=True)
-    # Planned where the beyond run is not there, it is refused: it has no params to score.
+    assert scoring_config(acting.config, acting.evaluation) == dataclasses.replace(acting.config, safe_drops=True)
+    # Planned without its base arm, where no base run is there, it is refused: no params to score.
     with pytest.raises(ValueError, match="train it first"):
-        make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path)
+        make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, arms=["at-evaluation"])
     cells = make_plan(preset, ["pqn-belief"], ["3d-dynamic-sparse"], None, tmp_path, arms=["base", "safe"])
     assert [c.evaluation for c in cells] == [{}, {}] and "evaluation" not in cells[0].record()
 
@@ -68,35 +66,20 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
         (
             "both",
             head + base + arm + "evaluation = { safe_drops = true }\nsettings = { gamma = 0.9 }\n",
-            r"\[a.variants.b\]: an arm with evaluation settings trains as the base arm .* may not give settings or switches",
+            r"\[a.variants.b\]: an arm with evaluation settings scores the base arm's run: no settings or switches",
         ),
         (
             "switches",
             head + base + arm + 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n',
-            "may not give settings or switches",
+            "no settings or switches",
         ),
-        ("table", head + base + arm + 'evaluation = "safe_drops"\n', r"evaluation must be a table of learner options"),
         (
             "planned",
             head + base + arm + "evaluation = { seeds = 2 }\n",
-            r"evaluation may not set \['seeds'\]: the plan sets"
-            r" seed, seeds, switches, task, total_steps$",
+            r"evaluation may not set \['seeds'\]: the plan sets seed, seeds, switches, task, total_steps$",
         ),
-        (
-            "no adopts",
-            head.replace('adopts = "beyond"\n', "") + base + arm + "evaluation = { safe_drops = true }\n",
-            r"\[a\] has an arm with evaluation settings.*must adopt another's runs",
-        ),
-        (
-            "base settings",
-            head + base + "settings = { gamma = 0.9 }\n" + arm + "evaluation = { safe_drops = true }\n",
-            "its base arm give no settings, switches or evaluation",
-        ),
-        (
-            "base scored",
-            head + base + "evaluation = { safe_drops = true }\n",
-            "its base arm give no settings, switches or evaluation",
-        ),
+        ("base settings", head + base + "settings = { gamma = 0.9 }\n" + arm, "its base arm may change nothing"),
+        ("base scored", head + base + "evaluation = { safe_drops = true }\n", "its base arm may change nothing"),
     ]:
         (tmp_path / f"{name}.toml").write_text(text)
         with pytest.raises(ValueError, match=message):
@@ -118,17 +101,16 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path)
 
 
-def test_a_raw_copy_is_no_twin_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
+def test_a_raw_copy_is_no_run_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
     runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
     path = write_record(results, source)
     [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results, arms=["base"])
-    assert (base.adopts_from, base.adopts_record) == (path, True)
+    assert (base.status, base.base_run) == ("adopted", path)
     with pytest.raises(
         ValueError,
-        match=r"arm 'acting' of preset 'abl' scores the policy of smoke/ppo/1d-static-sin "
-        r"again: .* train it first \(snac table --preset smoke --tasks 1d-static-sin\) "
-        r"or leave the arm out \(--arms\)",
+        match=r"arm 'acting' of preset 'abl' scores the base arm's run again: .* train it first "
+        r"\(snac table --preset smoke --tasks 1d-static-sin\) or leave the arm out \(--arms\)",
     ):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results)
 
@@ -137,8 +119,8 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
     """Its own files back without checkpoints; the branch of a run with its checkpoints is the
     slow test's."""
     runs, preset = tmp_path / "runs", _abl({"gamma": 0.5})
-    config, budget = cell_config(preset, "ppo", SMOKE_TASK, 2, preset.variants[1])
-    directory = runs / "abl" / "ppo" / f"{SMOKE_TASK}.acting"
+    [base, acting] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs)
+    config, budget, directory = acting.config, acting.budget, acting.directory
     directory.mkdir(parents=True)
     row = {
         "min": 0.1,
@@ -220,11 +202,11 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
     assert table_run.run_cell(source, progress=False)
     base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs)
-    assert base.adopts_from == acting.adopts_from == source.directory
-    assert "scored again" in acting.estimate_from
+    assert (base.status, base.base_run, acting.base_run) == ("adopted", source.directory, source.directory)
+    assert "again: unknown" in acting.estimate_from
 
     scored, trained = [], []
-    real_evaluate, real_train = agents.training.cli.evaluate_run, agents.training.driver.train
+    real_evaluate = agents.training.cli.evaluate_run
 
     def evaluate_spy(algorithm, state, out_dir, *args, **kwargs):
         scored.append((algorithm.config, state.params))
@@ -232,27 +214,24 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
             raise KeyboardInterrupt  # killed after the copy, before scoring
         return real_evaluate(algorithm, state, out_dir, *args, **kwargs)
 
-    def train_spy(config, out_dir, **kwargs):
-        trained.append(kwargs["resume"])
-        return real_train(config, out_dir, **kwargs)
-
     monkeypatch.setattr(agents.training.cli, "evaluate_run", evaluate_spy)
-    monkeypatch.setattr(agents.training.driver, "train", train_spy)
+    monkeypatch.setattr(agents.training.driver, "train", lambda *a, **k: trained.append(1))
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cell(acting, progress=False)
-    assert not (acting.directory / "eval.json").exists()  # the twin's scores were never copied
+    assert not (acting.directory / "eval.json").exists()
     [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
-    assert (acting.status, acting.adopts_from) == ("partial", None)  # the twin's whole run, not yet scored
+    assert acting.status == "new"  # its scoring cut short: scored again
     assert table_run.run_cell(acting, progress=False)
-    # Restored, never trained: the twin's chunks and metrics, the twin's params, scored with gamma 0.5.
-    assert trained == [True, True] and len(scored) == 2
+    # Never trained: the base run's params, scored with gamma 0.5, beside its metrics.
+    assert trained == [] and len(scored) == 2
     assert checkpoint.read_metrics_lines(acting.directory / "metrics.jsonl") == checkpoint.read_metrics_lines(
         source.directory / "metrics.jsonl"
     )
+    assert not (acting.directory / "checkpoints").exists()
     config, params = scored[1]
     assert config == dataclasses.replace(source.config, gamma=0.5)
-    _, twin, _ = load_trained(source.directory)
-    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(twin.params)))
+    _, trained_state, _ = load_trained(source.directory)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(trained_state.params)))
     cell = json.loads((acting.directory / "cell.json").read_text())
     assert (cell["evaluation"], cell["adopted_from"]) == ({"gamma": 0.5}, "smoke/ppo/1d-static-sin")
     evals = json.loads((acting.directory / "eval.json").read_text())

@@ -15,16 +15,45 @@ from typing import Any
 import numpy as np
 
 from agents.table import statistics
+from agents.table.files import budget_record, budget_text, read_raw, record_path, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
-from agents.table.presets import arm_changes
-from agents.table.raw import READ_FROM_ADOPTED, budget_record, budget_text, seed_means
+from agents.table.presets import Preset, arm_changes
 from snac_jax.atomic import atomic_write
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
 
 PAPER_TABLE = "ablation_drqn"
 PAPER_LEARNER = "drqn"  # the paper's ablation table is DRQN's
+READ_FROM_ADOPTED = "read_from_adopted"  # set on a base arm read from the adopted preset's copy
+
+
+def with_adopted_base(raw: dict, results_dir: Path, preset: Preset | None, pending: dict[Path, str]) -> dict:
+    """`raw` (`files.load_raw`, the copies of `preset`) with the base arm of each (learner, task)
+    that has other arms but no base copy of its own read from the copy of the preset it `adopts`
+    (`pending`: copies about to be written), where that run has every other arm's config but for
+    the arm's own changes (its switches and settings); else the base has no cell."""
+    if preset is None or preset.adopts is None or not preset.variants:
+        return raw
+    base = next(v for v in preset.variants if v.name == BASE)
+    for algorithm, cells in raw.items():
+        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
+            path = record_path(results_dir, preset.adopts, algorithm, task)
+            if f"{task}.{BASE}" in cells or not (path in pending or path.is_file()):
+                continue
+            record = read_raw(path, pending.get(path))
+            arms = [files for files in cells.values() if files["cell"]["task"] == task]
+            if all(_same_but_changes(record["config"], files) for files in arms):
+                adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
+                adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
+                cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}, READ_FROM_ADOPTED: True}
+    return raw
+
+
+def _same_but_changes(config: dict, arm: dict) -> bool:
+    changed = {"switches", *arm["cell"].get("settings", {})}
+    keys = set(config) | set(arm["config"])
+    return all(config.get(k) == arm["config"].get(k) for k in keys - changed)
 
 
 def curves_name(preset: str) -> str:
@@ -106,7 +135,7 @@ def build(
 
 def _own_copy_of_adopted(arm: str, files: dict) -> bool:
     """Whether a base arm that adopted another preset's run is read from this preset's own copy
-    (the run as it was adopted, e.g. kept by `raw.bases_to_keep`) rather than the adopted cell's record."""
+    (the run its arms were measured against) rather than the adopted cell's record."""
     return arm == BASE and bool(files["cell"].get("adopted_from")) and not files.get(READ_FROM_ADOPTED)
 
 

@@ -44,78 +44,26 @@ def add_parser(subparsers) -> None:
         help="the benchmark table: every learner on the paper's columns, several seeds, resumable",
         description=__doc__.split("\n\n")[0],
     )
-    parser.add_argument(
-        "--preset",
-        choices=sorted(presets),
-        default="paper",
-        help="budget preset ("
-        + "; ".join(f"{n}: {p.description}" for n, p in presets.items())
-        + f"), from {BUDGETS_FILE.name}",
-    )
-    parser.add_argument(
-        "--algorithms",
-        nargs="+",
-        default=None,
-        metavar="ALGORITHM",
-        choices=list(ALGORITHMS),
-        help=f"default: the preset's, else every registered one ({', '.join(ALGORITHMS)})",
-    )
-    parser.add_argument(
+    add = parser.add_argument
+    described = "; ".join(f"{n}: {p.description}" for n, p in presets.items())
+    add("--preset", choices=sorted(presets), default="paper", help=f"budget preset ({described}), {BUDGETS_FILE.name}")
+    add("--algorithms", nargs="+", metavar="ALGORITHM", choices=list(ALGORITHMS), help="default: the preset's, or all")
+    columns = ", ".join(PAPER_TASKS)
+    add(
         "--tasks",
         nargs="+",
-        default=None,
         metavar="TASK",
         type=_task,
-        help=f"paper columns (default: the preset's, else all: {', '.join(PAPER_TASKS)}; 1d-static is its three shapes) "
-        "or environment task ids",
+        help=f"paper columns or task ids (default: the preset's: {columns})",
     )
-    parser.add_argument(
-        "--arms",
-        nargs="+",
-        default=None,
-        metavar="ARM",
-        help="an ablation preset's arms to run (default: all of them; the report reads every arm found)",
-    )
-    parser.add_argument(
-        "--seeds", type=positive_int, default=None, help="seeds per cell, vmapped (default: the preset's)"
-    )
-    parser.add_argument(
-        "--runs-dir",
-        type=Path,
-        default=None,
-        help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>/, an ablation's to <task>.<arm>/ "
-        f"(default {DEFAULT_RUNS_DIR}; with --report, a RUNS_DIR given must exist, the default "
-        "may be absent: the report is then rebuilt from RESULTS_DIR alone)",
-    )
-    parser.add_argument(
-        "--dry-run",
-        action="store_true",
-        help="print the plan (each cell's budget and status; a started cell's time left) and stop; with --report, check every cell and "
-        "print what would be copied and written, writing nothing",
-    )
-    parser.add_argument(
-        "--report",
-        action="store_true",
-        help="copy each finished cell into one JSON file under RESULTS_DIR/table/<preset>/ and write "
-        "RESULTS_DIR/table.md, table.json (every preset found there) and table-<preset>.png "
-        "(no training)",
-    )
-    parser.add_argument(
-        "--results-dir",
-        type=Path,
-        default=DEFAULT_RESULTS_DIR,
-        help=f"where --report writes, and where a preset that adopts another finds that preset's "
-        f"cells when RUNS_DIR keeps no run of them (default {DEFAULT_RESULTS_DIR})",
-    )
-    parser.add_argument(
-        "--readme",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="with --report: also rewrite the generated learner table in the README at PATH "
-        "(between its marker lines; a symbolic link is refused: give the file it points to)",
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add("--arms", nargs="+", metavar="ARM", help="an ablation preset's arms to run (default: all)")
+    add("--seeds", type=positive_int, help="seeds per cell, vmapped (default: the preset's)")
+    add("--runs-dir", type=Path, help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>[.<arm>]/ ({DEFAULT_RUNS_DIR})")
+    add("--dry-run", action="store_true", help="print the plan and stop; with --report, check all and write nothing")
+    add("--report", action="store_true", help="copy the finished cells into RESULTS_DIR/table/, write table.md etc.")
+    add("--results-dir", type=Path, default=DEFAULT_RESULTS_DIR, help=f"the record (default {DEFAULT_RESULTS_DIR})")
+    add("--readme", type=Path, metavar="PATH", help="with --report: also rewrite the README's learner table at PATH")
+    add("--no-progress", action="store_true", help="no progress bars")
     add_devices_argument(parser, cpu_default="1, as snac train")
     parser.set_defaults(func=run)
 
@@ -128,29 +76,24 @@ def plan_from_args(args: argparse.Namespace):
 
     preset = load_presets()[args.preset]
     algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
-    return make_plan(
-        preset,
-        algorithms,
-        args.tasks or list(preset.tasks or PAPER_TASKS),
-        args.seeds,
-        args.runs_dir,
-        arms=args.arms,
-        results_dir=args.results_dir,
-    )
+    tasks = args.tasks or list(preset.tasks or PAPER_TASKS)
+    return make_plan(preset, algorithms, tasks, args.seeds, args.runs_dir, args.arms, args.results_dir)
 
 
 def run(args: argparse.Namespace) -> int:
-    given_runs_dir = args.runs_dir is not None
-    args.runs_dir = args.runs_dir if given_runs_dir else DEFAULT_RUNS_DIR
-    if args.readme is not None:
-        from agents.table.readme import replace_block
+    from agents.table.plan import format_plan
+    from agents.table.readme import replace_block, write_readme
+    from agents.table.report import write_report
+    from agents.table.run import run_cells
+    from agents.training import checkpoint
 
+    given_runs_dir, args.runs_dir = args.runs_dir is not None, args.runs_dir or DEFAULT_RUNS_DIR
+    if args.readme is not None:
         if not args.report:
             raise ValueError("--readme goes with --report (the README's table is written from the report)")
         if args.readme.is_symlink():
             raise ValueError(
-                f"--readme {args.readme} is a symbolic link; give the file it points to "
-                f"({args.readme.resolve()}), so that the link stays a link"
+                f"--readme {args.readme} is a symbolic link; give the file it points to ({args.readme.resolve()})"
             )
         if not args.readme.is_file():
             raise ValueError(f"--readme {args.readme}: no such file")
@@ -158,12 +101,29 @@ def run(args: argparse.Namespace) -> int:
     if args.report and args.arms is not None:
         raise ValueError("--arms chooses the arms to train; --report reports every arm found (leave --arms out)")
     if args.report:
-        return _report(args, given_runs_dir)
+        runs_dir = args.runs_dir
+        if not given_runs_dir and not runs_dir.exists():
+            print(f"no runs under {runs_dir} (the default --runs-dir): the report is rebuilt from "
+                  f"{args.results_dir / 'table'} alone", file=sys.stderr)  # fmt: skip
+            runs_dir = None
+        paths = write_report(args.preset, runs_dir, args.results_dir, dry_run=args.dry_run)
+        if args.dry_run:
+            for key, path in paths.items():
+                print(
+                    f"would copy {key.removeprefix('copy:')} to {path}"
+                    if key.startswith("copy:")
+                    else f"would write {path}"
+                )
+            if args.readme is not None:
+                print(f"would rewrite the learner table in {args.readme}")
+            return 0
+        if args.readme is not None:
+            import json
 
-    from agents.table.plan_format import format_plan
-    from agents.table.run import run_cells
-    from agents.training import checkpoint
-
+            paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
+        for path in paths.values():
+            print(f"wrote {path}")
+        return 0
     if args.dry_run:
         print(format_plan(plan_from_args(args), args.runs_dir))
         return 0
@@ -175,37 +135,4 @@ def run(args: argparse.Namespace) -> int:
         f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",
         file=sys.stderr,
     )
-    return 0
-
-
-def _report(args: argparse.Namespace, given_runs_dir: bool) -> int:
-    """`--report` (and `--readme`); with `--dry-run`, every check and nothing written."""
-    import json
-
-    from agents.table.readme import write_readme
-    from agents.table.report import write_report
-
-    runs_dir = args.runs_dir
-    if not given_runs_dir and not runs_dir.exists():
-        print(
-            f"no runs under {runs_dir} (the default --runs-dir): the report is rebuilt from "
-            f"{args.results_dir / 'table'} alone",
-            file=sys.stderr,
-        )
-        runs_dir = None
-    paths = write_report(args.preset, runs_dir, args.results_dir, dry_run=args.dry_run)
-    if args.dry_run:
-        for key, path in paths.items():
-            print(
-                f"would copy {key.removeprefix('copy:')} to {path}"
-                if key.startswith("copy:")
-                else f"would write {path}"
-            )
-        if args.readme is not None:
-            print(f"would rewrite the learner table in {args.readme}")
-        return 0
-    if args.readme is not None:
-        paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
-    for path in paths.values():
-        print(f"wrote {path}")
     return 0

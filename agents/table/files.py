@@ -1,47 +1,29 @@
-"""The files of `snac table`'s cells: reading them back (each against its schema in
-`agents.training.schemas`, then against each other) and what a runner may touch in a runs directory.
-
-A cell directory (`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`) holds one run of `agents.training.driver`
-with `cell.json` beside it. A runner deletes nothing and starts no run over files it did not
-make: a directory given as a cell's holds nothing (a free lock aside), or this cell's own start cut
-short before its first checkpoint (which it trains again from the start), or it is refused,
-named, before anything runs. A cell copied from another preset's raw copy (`record_copy`) holds
-that run's files but its checkpoints: finished, never trained or evaluated again; so is a cell
-whose files came back without checkpoints from the machine it trained on (`own_files`). The report
-(`agents.table.raw`) reads finished cells with `read_cell`, and their one-file copies under
-`bench/results/table/` with `read_raw`; both refuse a damaged cell naming the file and the field
-instead of leaving it out.
-"""
+"""The files of `snac table`'s cells, read back and checked (each against its schema in
+`agents.training.schemas`, then against each other), and the record: each finished cell's small
+files (`cell.json`, `config.json`, `eval.json`, its curve `metrics.jsonl`; never checkpoints)
+copied into one file, `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, holding
+{"cell", "config", "eval", "curve"}, from which the report rebuilds every page. A damaged cell is
+a `ValueError` naming the file and the field, never left out."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import json
+import math
 from pathlib import Path
 from typing import Any
 
 from agents.training import checkpoint, schemas
 from snac_jax.designs import NUM_TEST_DESIGNS
-from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.schema import loads_json
 from snac_jax.tasks import task_spec
 
 CELL_FILE = "cell.json"
 EVAL_FILE = "eval.json"
-RAW_SUFFIX = ".json"
-"""A raw copy's file name is its cell's directory name with this suffix (`read_raw`)."""
-RAW_COPY_MAX_BYTES = 8 * 2**20
-"""The largest raw copy the report reads, and writes. It reads every copy of a preset whole (then
-parses and checks it), so a file of hundreds of MB, damaged or another file under a cell's name,
-would take the memory and the minutes of the machine before any check named it. The largest
-committed copy is 26 kB (bench/results/table/tuned/sac/2d-dynamic-dense.json: 20 chunks of
-curve, records of up to 0.9 kB each): 8 MiB holds a curve of some 9,000 chunks."""
-RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
-"""What a cell's run leaves before its first checkpoint (`agents.training.driver`), besides its lock."""
-RECORD_FIELD = "adopted_record"
-"""cell.json's field naming the raw copy a cell was copied from (`record_copy`)."""
 CURVE_FILE = "curve.png"
-COPY_FILES = {CELL_FILE, checkpoint.CONFIG_FILE, EVAL_FILE, checkpoint.METRICS_FILE, CURVE_FILE}
-"""What a cell copied from a raw copy holds: its run's files but the checkpoints (`record_copy`)."""
+RAW_SUFFIX = ".json"
+RAW_COPY_MAX_BYTES = 8 * 2**20
+"""The largest raw copy the report reads or writes, so that a huge file under a cell's name is
+refused before it takes the machine's memory (the largest committed copy is 26 kB)."""
 
 
 def expected_episodes(task: str, protocol: dict[str, int]) -> int:
@@ -51,7 +33,7 @@ def expected_episodes(task: str, protocol: dict[str, int]) -> int:
 
 
 def eval_problem(results: dict, seeds: int, episodes: int | None, seed: int) -> str | None:
-    """Why a schema-checked eval.json is not a finished result of the cell (one row per training
+    """Why a schema-checked eval.json is not a finished result of a cell (one row per training
     seed, scored with the evaluation key `seed` over `episodes` episodes each), or None."""
     if len(results) != seeds:
         return f"holds {len(results)} result(s), the run has seeds {seeds}"
@@ -63,84 +45,18 @@ def eval_problem(results: dict, seeds: int, episodes: int | None, seed: int) -> 
     return None
 
 
-def eval_is_valid(path: Path, seeds: int, episodes: int | None = None, seed: int = REPORT_EVAL_SEED) -> bool:
-    """Whether eval.json holds a finished result of the run (`eval_problem`); a missing, damaged
-    or foreign one is not (the runner evaluates the run again)."""
+def eval_is_valid(path: Path, seeds: int, episodes: int, seed: int) -> bool:
     try:
-        results = schemas.load(path, schemas.EVAL_JSON)
+        return eval_problem(schemas.load(path, schemas.EVAL_JSON), seeds, episodes, seed) is None
     except (OSError, ValueError):
         return False
-    return eval_problem(results, seeds, episodes, seed) is None
 
 
-def new_cell_leftovers(directory: Path, same_settings: Callable[[Any], bool]) -> bool:
-    """For a cell without a checkpoint: False where its directory is absent or empty (a free lock
-    aside), True where it holds only what this cell's start left before its first checkpoint
-    (config.json with the cell's settings, a metrics.jsonl without records, a checkpoints/ folder
-    with none in it), which the run trains again from the start. Anything else is a `ValueError`
-    naming the directory: the table never deletes or overwrites files it did not make."""
-    if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
-        raise ValueError(
-            f"{directory} is not a directory (a link or a file), where a cell of the table goes; "
-            "choose another --runs-dir"
-        )
-    try:
-        checkpoint.check_new_run_directory(directory)
-        return False
-    except ValueError as error:
-        if "is not empty" not in str(error):
-            raise
-    checkpoint.check_lock_file(directory)
-    entries = sorted(p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE)
-    ours = set(entries) <= RESTARTABLE and checkpoint.CONFIG_FILE in entries
-    try:
-        ours = ours and same_settings(checkpoint.read_config(directory))
-    except ValueError:
-        ours = False
-    if ours and checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE):
-        raise ValueError(
-            f"{directory} holds a start of this cell whose {checkpoint.METRICS_FILE} records chunks that "
-            "no checkpoint kept; the table deletes nothing it did not make: remove that directory to "
-            "train the cell from the start"
-        )
-    if not ours:
-        shown = ", ".join(entries[:6]) + (", ..." if len(entries) > 6 else "")
-        raise ValueError(
-            f"{directory} holds files that no start of this cell left there ({shown}) and no checkpoint; "
-            "the table deletes nothing it did not make: move that directory away, or choose another "
-            "--runs-dir"
-        )
-    return True
-
-
-def check_finished_without_checkpoints(directory: Path, config, episodes: int) -> None:
-    """A cell's own files back without checkpoints (`own_files`) with the cell's settings `config`
-    must be a finished run: an eval.json that is a finished result of the cell (`episodes` per
-    seed), a metrics.jsonl through the run's last chunk, and files that agree with each other
-    (`read_cell`). Else a `ValueError`: nothing is left to resume or evaluate the run from."""
-    from agents.training.driver import chunk_sizes
-
-    where = f"{directory} holds this cell's files without checkpoints"
-    if not eval_is_valid(directory / EVAL_FILE, config.seeds, episodes):
-        raise ValueError(f"{where} and no finished {EVAL_FILE}: nothing is left to evaluate; move that directory away")
-    records = checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE)
-    chunks = len(chunk_sizes(config.num_updates, config.chunks))
-    if not records or records[-1]["chunk"] != chunks - 1:
-        raise ValueError(
-            f"{where}, and its {checkpoint.METRICS_FILE} records {len(records)} of the run's {chunks} "
-            "chunks: its training did not finish, and nothing is left to resume it from; move that "
-            "directory away"
-        )
-    read_cell(directory)
-
-
-def check_cell(
-    config, cell: dict, results: dict, *, name: str, algorithm: str, cell_where: str, eval_where: str, config_where: str
-) -> None:
-    """The checks between a cell's parts, each already read against its schema: `cell` and the
-    config name the same algorithm and task, an arm's cell names its arm whole, the cell stands
-    where its algorithm and name say (`name`, `algorithm`: its directory's or file's), and
-    `results` is a finished result of it (`eval_problem`). `*_where`: how an error names each part."""
+def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, where: tuple[str, str, str]) -> None:
+    """The checks between a cell's parts: cell.json and the config name the same algorithm and
+    task, the cell stands where its algorithm and name say, and `results` is a finished result of
+    it. `where`: how an error names the cell, eval and config parts."""
+    cell_where, eval_where, config_where = where
     for key, value in (("algorithm", config.algorithm), ("task", config.task)):
         if cell[key] != value:
             raise ValueError(f"{cell_where}: {key} is {cell[key]!r}, its {config_where} has {value!r}")
@@ -151,20 +67,14 @@ def check_cell(
     own = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
     if name != own or algorithm != cell["algorithm"]:
         raise ValueError(
-            f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands "
-            f"({algorithm}/{name})"
+            f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands ({algorithm}/{name})"
         )
     problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
     if problem is not None:
-        raise ValueError(
-            f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell "
-            "again with `snac table` or move it away"
-        )
+        raise ValueError(f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell again")
 
 
 def check_raw_size(size: int, what: str) -> None:
-    """`ValueError` where `size` bytes are past `RAW_COPY_MAX_BYTES`; `what`: the file (or the
-    cell's files) that has them, as the error names it."""
     if size > RAW_COPY_MAX_BYTES:
         raise ValueError(
             f"{what} {size:,} bytes, over the {RAW_COPY_MAX_BYTES:,}-byte limit of a cell's raw copy "
@@ -173,10 +83,8 @@ def check_raw_size(size: int, what: str) -> None:
 
 
 def read_cell(directory: Path) -> dict[str, Any]:
-    """A finished cell's files in a runs directory, each checked against its schema and against
-    the others (`check_cell`): {"config" (as written), "eval", "cell", "metrics"} ("metrics": its
-    curve, empty where not kept). `ValueError` naming the file and the field of the first problem;
-    files that add up past `RAW_COPY_MAX_BYTES` (their copy would) are refused before any is read."""
+    """A finished cell's files in a runs directory, checked: {"config" (as written), "eval",
+    "cell", "metrics"} ("metrics": its curve, empty where not kept)."""
     cell_path, eval_path = directory / CELL_FILE, directory / EVAL_FILE
     if not cell_path.is_file():
         raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
@@ -185,16 +93,8 @@ def read_cell(directory: Path) -> dict[str, Any]:
     config = checkpoint.read_config(directory)
     cell = schemas.load(cell_path, schemas.CELL_JSON)
     results = schemas.load(eval_path, schemas.EVAL_JSON)
-    check_cell(
-        config,
-        cell,
-        results,
-        name=directory.name,
-        algorithm=directory.parent.name,
-        cell_where=str(cell_path),
-        eval_where=str(eval_path),
-        config_where=checkpoint.CONFIG_FILE,
-    )
+    where = (str(cell_path), str(eval_path), checkpoint.CONFIG_FILE)
+    check_cell(config, cell, results, name=directory.name, algorithm=directory.parent.name, where=where)
     return {
         "config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON),
         "eval": results,
@@ -204,81 +104,137 @@ def read_cell(directory: Path) -> dict[str, Any]:
 
 
 def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
-    """A cell's raw copy under `bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json`, one
-    file holding {"cell", "config", "eval", "curve"} (`schemas.RAW_CELL_JSON`: each part against the
-    schema of the file it was copied from), checked as `read_cell` checks a cell's files; `text`:
-    what the report is about to write there, read in its place. Returns {"config" (the config
-    class's full settings), "eval", "cell", "metrics" (the curve)}; `ValueError` naming the file
-    and the field (`eval['<seed>'].mean`) of the first problem; a file past `RAW_COPY_MAX_BYTES`
-    is refused unread."""
+    """A cell's raw copy, checked as `read_cell` checks a cell's files (`text`: what is about to
+    be written there, read in its place): {"config" (the config class's full settings), "eval",
+    "cell", "metrics" (the curve)}."""
     from agents.training.registry import config_from_json
 
     check_raw_size(path.stat().st_size if text is None else len(text.encode()), f"{path} is")
-    record = (
-        schemas.load(path, schemas.RAW_CELL_JSON) if text is None else loads_json(text, schemas.RAW_CELL_JSON, path)
-    )
+    spec = schemas.RAW_CELL_JSON
+    record = schemas.load(path, spec) if text is None else loads_json(text, spec, path)
     try:
         config = config_from_json(record["config"])
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: config: {error}") from error
-    check_cell(
-        config,
-        record["cell"],
-        record["eval"],
-        name=path.name.removesuffix(RAW_SUFFIX),
-        algorithm=path.parent.name,
-        cell_where=f"{path}: cell",
-        eval_where=f"{path}: eval",
-        config_where="config",
-    )
+    where = (f"{path}: cell", f"{path}: eval", "config")
+    name = path.name.removesuffix(RAW_SUFFIX)
+    check_cell(config, record["cell"], record["eval"], name=name, algorithm=path.parent.name, where=where)
     return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}
 
 
+def _finite(value: Any) -> Any:
+    """`value` with every float that is not finite as None (a curve is strict JSON)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value
+
+
+def raw_text(files: dict) -> str:
+    """A cell's raw copy as written: {"cell", "config", "eval", "curve"} indented, each curve
+    record on one line."""
+    parts = [
+        f'  "{name}": ' + json.dumps(files[name], indent=2, allow_nan=False).replace("\n", "\n  ")
+        for name in ("cell", "config", "eval")
+    ]
+    curve = ",\n".join("    " + json.dumps(_finite(r), allow_nan=False) for r in files["metrics"])
+    parts.append('  "curve": ' + (f"[\n{curve}\n  ]" if curve else "[]"))
+    return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
 def record_path(results_dir: str | Path, preset: str, algorithm: str, name: str) -> Path:
-    """Where the report keeps the raw copy of `preset`'s cell `<algorithm>/<name>`."""
+    """Where the record keeps `preset`'s cell `<algorithm>/<name>`."""
     return Path(results_dir) / "table" / preset / algorithm / (name + RAW_SUFFIX)
 
 
-def read_record(path: Path, same_settings: Callable[[Any], bool], episodes: int | None):
-    """The config (a `TrainConfig`) and raw copy (`read_raw`) at `path` where it is a finished run
-    with a cell's settings (`same_settings(config)`, called last) scored with its protocol
-    (`episodes`), seeds and the reporting key; None where there is no such file or it is another
-    run. A damaged copy is a `ValueError` naming the file: it is the repository's record, which the
-    report refuses as well, so it is mended, never trained over unseen."""
-    from agents.training.registry import config_from_json
-
-    if not path.exists() and not path.is_symlink():
-        return None
-    try:
-        raw = read_raw(path)
-    except OSError as error:
-        raise ValueError(f"{path}: not readable ({error}); restore it from git or move it away") from error
-    config = config_from_json(raw["config"])
-    if eval_problem(raw["eval"], config.seeds, episodes, REPORT_EVAL_SEED) is not None or not same_settings(config):
-        return None
-    return config, raw
+def refuse_links(root: Path, path: Path) -> None:
+    """`ValueError` when `path`, or a folder between `root` and it, is a symbolic link."""
+    parts = path.relative_to(root).parts
+    for depth in range(1, len(parts) + 1):
+        if (part := root.joinpath(*parts[:depth])).is_symlink():
+            raise ValueError(
+                f"{part} is a symbolic link inside {root}; the report writes no file through a link: "
+                "replace it with the file or folder itself"
+            )
 
 
-def record_copy(directory: Path, owner: tuple) -> dict | None:
-    """The cell.json of a cell copied from a raw copy (it names the copy in `RECORD_FIELD`) where
-    `directory` holds one of the cell `owner` (its preset, algorithm, task, arm or None), whole or
-    cut short (a subset of `COPY_FILES` with its cell.json, which the copy writes first); None for
-    any other directory, which the table treats as any directory without checkpoints."""
-    cell = own_files(directory, owner)
-    return cell if cell is not None and RECORD_FIELD in cell else None
+def copies(runs_dir: Path | None, results_dir: Path, preset: str) -> list[tuple[Path, Path, str]]:
+    """(cell directory, raw copy path, its text) of every finished cell of `preset` under `runs_dir` (one holding
+    an eval.json), each read back and checked first."""
+    if runs_dir is None:
+        return []
+    if not runs_dir.is_dir():
+        raise ValueError(
+            f"--runs-dir {runs_dir} "
+            + ("is a file, not a directory of runs" if runs_dir.exists() else "does not exist")
+            + "; give the directory `snac table` trained in"
+        )
+    source, target = runs_dir / preset, results_dir / "table" / preset
+    if source.is_dir() and target.is_dir() and source.resolve() == target.resolve():
+        raise ValueError(f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}")
+    planned = []
+    for directory in sorted(p.parent for p in source.glob(f"*/*/{EVAL_FILE}")):
+        text = raw_text(read_cell(directory))
+        check_raw_size(len(text.encode()), f"{directory}: its raw copy would be")
+        destination = target / directory.parent.name / (directory.name + RAW_SUFFIX)
+        refuse_links(results_dir, destination)
+        planned.append((directory, destination, text))
+    return planned
 
 
-def own_files(directory: Path, owner: tuple) -> dict | None:
-    """The cell.json where `directory` holds the cell `owner`'s files but its checkpoints (a subset
-    of `COPY_FILES` with its cell.json): a raw copy's copy (`record_copy`), or a cell that trained
-    on another machine and came back without its checkpoints. None for any other directory."""
-    if directory.is_symlink() or not (directory / CELL_FILE).is_file():
-        return None
-    entries = {p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE}
-    if not entries <= COPY_FILES or any((directory / e).is_symlink() or not (directory / e).is_file() for e in entries):
-        return None
-    try:
-        cell = schemas.load(directory / CELL_FILE, schemas.CELL_JSON)
-    except (OSError, ValueError):
-        return None
-    return cell if (cell["preset"], cell["algorithm"], cell["task"], cell.get("variant")) == tuple(owner) else None
+def load_raw(results_dir: Path, preset: str, pending: dict[Path, str]) -> dict[str, dict[str, dict]]:
+    """algorithm -> cell name -> its raw copy (`read_raw`) of every copy of `preset`, as they
+    will be once `pending` is written. Anything else in the preset's folder is refused, named."""
+    root = results_dir / "table" / preset
+    paths = {p for p in pending if p.parent.parent == root}
+    for entry in sorted(root.glob("*/*")) if root.is_dir() else []:
+        if entry.name.startswith("."):  # an interrupted atomic write's
+            continue
+        if entry.is_symlink() or not entry.is_file() or entry.suffix != RAW_SUFFIX:
+            raise ValueError(
+                f"{entry} is not a cell's raw copy (a file <task>[.<arm>]{RAW_SUFFIX}); move it out of the results"
+            )
+        paths.add(entry)
+    raw: dict[str, dict[str, dict]] = {}
+    for path in sorted(paths):
+        raw.setdefault(path.parent.name, {})[path.name.removesuffix(RAW_SUFFIX)] = read_raw(path, pending.get(path))
+    arms = [n for cells in raw.values() for n, f in cells.items() if "variant" in f["cell"]]
+    if arms and len(arms) < sum(map(len, raw.values())):
+        raise ValueError(f"{root}: cells without a variant beside cells of an ablation's arms in the same preset")
+    return raw
+
+
+def seed_means(files: dict) -> list[float]:
+    """Per-seed protocol means of one cell, in seed order."""
+    return [float(r["mean"]) for r in files["eval"].values()]
+
+
+def budget_record(cells: list[dict]) -> dict[str, Any]:
+    """The budget of one or more cells (a column's shapes): env steps per seed per task, the
+    budget requested, why, and the training wall time from their curves (None where not kept)."""
+    budgets = [c["cell"]["budget"] for c in cells]
+    walls = (
+        None if any(not c.get("metrics") for c in cells) else round(sum(c["metrics"][-1]["wall_s"] for c in cells), 1)
+    )
+    return {
+        "env_steps_per_seed": {c["config"]["task"]: c["config"]["total_steps"] for c in cells},
+        "requested_per_seed": {c["config"]["task"]: b["requested"] for c, b in zip(cells, budgets)},
+        "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
+        "training_wall_s": walls,
+    }
+
+
+def steps_text(n: int) -> str:
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k" if n >= 1e3 else str(n)
+
+
+def budget_text(budget: dict) -> str:
+    """A budget record as the tables print it: env steps per seed, `*` where a task trained
+    below the budget requested for it."""
+    steps = sorted(set(budget["env_steps_per_seed"].values()))
+    text = steps_text(steps[0]) if len(steps) == 1 else f"{steps_text(steps[0])}–{steps_text(steps[-1])}"
+    below = any(n < budget["requested_per_seed"][task] for task, n in budget["env_steps_per_seed"].items())
+    return text + ("*" if below else "")

@@ -1,6 +1,7 @@
-"""The presets of `snac table` (`budgets.toml`): how much each cell of a grid trains, how it is
-scored, and an ablation's arms; and the task names a grid accepts (paper columns or environment
-tasks). Read once, checked at the boundary, so that a typo in the file fails before any training."""
+"""The presets of `snac table` (`budgets.toml`): what each cell of a grid trains and how it is
+scored. A cell is (algorithm, task, env-step budget, arm overrides, seeds); an ablation preset's
+arms (`variants`) are overrides of one base arm, whose cell may be another preset's (`adopts`).
+Read once and checked, so that a typo in the file fails before any training."""
 
 from __future__ import annotations
 
@@ -15,32 +16,19 @@ from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
 from snac_jax.tasks import TASKS, parse_switches
 
 BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured against
-
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
-_PLANNED_OPTIONS = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
-_BUDGET_KEYS = ("env_steps", "episodes", "source")
-_PRESET_KEYS = {
-    "description",
-    "seeds",
-    "budgets",
-    "settings",
-    "static_episodes",
-    "episodes_per_test_design",
-    "algorithms",
-    "tasks",
-    "variants",
-    "adopts",
-}
+_PLANNED = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
+_PRESET_KEYS = (
+    "adopts algorithms budgets description episodes_per_test_design seeds settings static_episodes tasks variants"
+)
+_ARM_KEYS = {"paper", "switches", "settings", "evaluation", "tasks"}
 
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
-    """An ablation's arm: the environment switches its cells train and are scored with, the
-    learner settings it changes (an ingredient of a learner switched off), the learner settings
-    its greedy policy acts with only when scored (`evaluation`: the arm trains as the base arm,
-    so it takes over the run the base arm adopts, checkpoints and all, and scores those params
-    again), its tasks, and its name in the paper's ablation table ("" where the paper has no
-    such arm)."""
+    """An ablation's arm: the switches and learner settings it changes, the learner settings its
+    greedy policy acts with only when scored (`evaluation`: it trains nothing, and scores the base
+    arm's run again), its tasks, and its name in the paper's ablation table ("" if none)."""
 
     name: str
     paper: str
@@ -51,8 +39,7 @@ class Variant:
 
 
 def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
-    """An ablation arm's changes as the table prints them: its switches, its settings, then its
-    evaluation-only settings."""
+    """An arm's changes as the table prints them: switches, settings, then evaluation-only settings."""
     return ", ".join(
         ([switches] if switches else [])
         + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
@@ -62,8 +49,6 @@ def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, A
 
 @dataclasses.dataclass(frozen=True)
 class Preset:
-    """One table of budgets.toml: how much each cell trains and how it is scored."""
-
     name: str
     description: str
     seeds: int
@@ -74,13 +59,7 @@ class Preset:
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
-    adopts: str | None = None  # a preset whose finished run with a cell's very settings the cell takes over
-
-    def adopted_base(self) -> Variant | None:
-        """The base arm where it is another preset's cells as they are (the preset `adopts` and the
-        arm changes nothing): what the report reads from that preset's raw copies (`raw.with_adopted_bases`)."""
-        base = next((v for v in self.variants if v.name == BASE_ARM), None)
-        return None if base is None or self.adopts is None or base.switches or base.settings else base
+    adopts: str | None = None  # the preset whose cell is the base arm where it trained the base arm's config
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -96,57 +75,33 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
     tables = tomllib.loads(Path(path).read_text())
     presets = {}
     for name, table in tables.items():
-        unknown = sorted(set(table) - _PRESET_KEYS)
+        unknown = sorted(set(table) - set(_PRESET_KEYS.split()))
         if unknown:
             raise ValueError(
-                f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(sorted(_PRESET_KEYS))}"
+                f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(_PRESET_KEYS.split())}"
             )
-        table = {
-            **table,
-            "budgets": {
-                algorithm: _same_as(path, tables, name, algorithm, budget)
-                for algorithm, budget in table.get("budgets", {}).items()
-            },
-        }
-        for algorithm, budget in table["budgets"].items():
-            unknown = sorted(set(budget) - set(_BUDGET_KEYS))
-            if unknown or ("env_steps" in budget and "episodes" in budget):
-                raise ValueError(
-                    f"{path}: [{name}.budgets] {algorithm} must give env_steps or episodes (and a source), or "
-                    "same_as" + (f"; unknown key(s) {unknown}" if unknown else "")
-                )
-            per_task = budget.get("env_steps")
-            if isinstance(per_task, dict) and sorted(set(per_task) - set(TASKS)):
-                raise ValueError(
-                    f"{path}: [{name}.budgets] {algorithm}'s env_steps names unknown task(s) "
-                    f"{sorted(set(per_task) - set(TASKS))}; allowed: {', '.join(TASKS)}"
-                )
-        presets[name] = Preset(
+        where, tasks = f"{path}: [{name}.variants", table.get("tasks")
+        variants = tuple(_variant(f"{where}.{k}]", k, v, tasks) for k, v in table.get("variants", {}).items())
+        presets[name] = preset = Preset(
             name=name,
             description=table.get("description", ""),
             seeds=int(table.get("seeds", 1)),
-            budgets=table.get("budgets", {}),
+            budgets={a: _budget(path, tables, name, a, b) for a, b in table.get("budgets", {}).items()},
             settings=table.get("settings", {}),
             static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
             episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
-            variants=tuple(_variant(path, name, key, value) for key, value in table.get("variants", {}).items()),
+            variants=variants,
             adopts=table.get("adopts"),
         )
-        arms = {v.name: v for v in presets[name].variants}
+        arms = {v.name: v for v in variants}
         if arms and BASE_ARM not in arms:
             raise ValueError(
                 f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)"
             )
-        if any(v.evaluation for v in arms.values()) and (
-            arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches or "adopts" not in table
-        ):
-            raise ValueError(
-                f"{path}: [{name}] has an arm with evaluation settings, which scores the base arm's run "
-                "again: the preset must adopt another's runs, and its base arm give no settings, switches "
-                "or evaluation"
-            )
+        if arms and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches) and preset.adopts:
+            raise ValueError(f"{path}: [{name}] adopts another preset's cells: its base arm may change nothing")
     for name, preset in presets.items():
         plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
         if preset.adopts is not None and preset.adopts not in plain:
@@ -157,68 +112,57 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
     return presets
 
 
-def _same_as(path, tables: dict, preset: str, algorithm: str, budget: dict) -> dict:
-    """`budget` with `same_as = "PRESET.ALGORITHM"` replaced by that entry's env steps or
-    episodes and source. Why: a budget another preset reuses (the paper's, for an ablation) is
-    stated once, where it comes from."""
-    if "same_as" not in budget:
-        return budget
-    if set(budget) != {"same_as"}:
+def _budget(path, tables: dict, preset: str, algorithm: str, budget: dict) -> dict:
+    """A budget entry checked: `env_steps` (one number, or one per environment task) or `episodes`,
+    and a `source`; or `same_as = "PRESET.ALGORITHM"`, that entry's (a budget stated once)."""
+    where = f"{path}: [{preset}.budgets] {algorithm}"
+    if "same_as" in budget:
+        if set(budget) != {"same_as"}:
+            raise ValueError(f"{where} gives same_as and {sorted(set(budget) - {'same_as'})}; same_as stands alone")
+        other, _, learner = str(budget["same_as"]).partition(".")
+        target = tables.get(other, {}).get("budgets", {}).get(learner)
+        if not isinstance(target, dict) or "same_as" in target or not {"env_steps", "episodes"} & set(target):
+            raise ValueError(
+                f"{where}'s same_as must name, as PRESET.ALGORITHM, another entry with env_steps or episodes"
+            )
+        whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
+        steps = {k: v for k, v in target.items() if k in ("env_steps", "episodes")}
+        return {**steps, "source": f"{whose}, {target['source']}" if "source" in target else whose}
+    unknown = sorted(set(budget) - {"env_steps", "episodes", "source"})
+    if unknown or ("env_steps" in budget and "episodes" in budget):
         raise ValueError(
-            f"{path}: [{preset}.budgets] {algorithm} gives same_as and {sorted(set(budget) - {'same_as'})}; "
-            "same_as stands alone (or give env_steps or episodes, and a source)"
+            f"{where} must give env_steps or episodes (and a source), or same_as"
+            + (f"; unknown key(s) {unknown}" if unknown else "")
         )
-    reference = budget["same_as"]
-    other, _, learner = str(reference).partition(".")
-    target = tables.get(other, {}).get("budgets", {}).get(learner) if isinstance(tables.get(other), dict) else None
-    if not isinstance(target, dict) or "same_as" in target or not {"env_steps", "episodes"} & set(target):
-        raise ValueError(
-            f"{path}: [{preset}.budgets] {algorithm}'s same_as must name, as PRESET.ALGORITHM, another "
-            f"entry that gives env_steps or episodes itself, got {reference!r}"
-        )
-    whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
-    return {
-        **{k: v for k, v in target.items() if k in ("env_steps", "episodes")},
-        "source": f"{whose}, {target['source']}" if "source" in target else whose,
-    }
+    per_task = budget.get("env_steps")
+    if isinstance(per_task, dict) and set(per_task) - set(TASKS):
+        raise ValueError(f"{where}'s env_steps names unknown task(s) {sorted(set(per_task) - set(TASKS))}")
+    return budget
 
 
-def _variant(path, preset: str, name: str, table: dict) -> Variant:
-    where = f"{path}: [{preset}.variants.{name}]"
-    unknown = sorted(set(table) - {"paper", "switches", "settings", "evaluation", "tasks"})
+def _variant(where: str, name: str, table: dict, tasks) -> Variant:
+    """An arm; its `tasks` default to its preset's."""
+    table = {"tasks": tasks, **table} if tasks is not None else table
+    unknown = sorted(set(table) - _ARM_KEYS)
     if unknown or "tasks" not in table:
         raise ValueError(
-            f"{where} must give tasks, and may give paper, switches, settings and evaluation"
+            f"{where} must give tasks (or its preset), and may give paper, switches, settings and evaluation"
             + (f"; unknown key(s) {unknown}" if unknown else "")
         )
     settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
     for key, options in (("settings", settings), ("evaluation", evaluation)):
-        if not isinstance(options, dict):
-            raise ValueError(f"{where}: {key} must be a table of learner options, e.g. {{ position_coef = 0.0 }}")
-        reserved = sorted(set(options) & _PLANNED_OPTIONS)
-        if reserved:
+        if sorted(set(options) & _PLANNED):
             raise ValueError(
-                f"{where}: {key} may not set {reserved}: the plan sets {', '.join(sorted(_PLANNED_OPTIONS))}"
-                + (" (give an environment change as switches)" if key == "settings" else "")
+                f"{where}: {key} may not set {sorted(set(options) & _PLANNED)}: the plan sets {', '.join(sorted(_PLANNED))}"
             )
     if evaluation and (settings or table.get("switches")):
-        raise ValueError(
-            f"{where}: an arm with evaluation settings trains as the base arm (it scores the base's run "
-            "again), so it may not give settings or switches"
-        )
+        raise ValueError(f"{where}: an arm with evaluation settings scores the base arm's run: no settings or switches")
     try:
         parse_switches(table.get("switches", ""))
         tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
-    return Variant(
-        name=name,
-        paper=table.get("paper", ""),
-        switches=table.get("switches", ""),
-        tasks=tasks,
-        settings=settings,
-        evaluation=evaluation,
-    )
+    return Variant(name, table.get("paper", ""), table.get("switches", ""), tasks, settings, evaluation)
 
 
 def expand_tasks(names) -> list[tuple[str, str]]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from agents.table.raw import budget_text
+from agents.table.files import budget_text
 from agents.table.report import paper_base
 from snac_jax.atomic import atomic_write_text
 

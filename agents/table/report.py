@@ -2,7 +2,7 @@
 
 Each finished cell's small files (`config.json`, `eval.json`, `cell.json`, its curve
 `metrics.jsonl`; never checkpoints) are copied from the runs directory into one file,
-`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json` (`agents.table.raw`), and the
+`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json` (`agents.table.files`), and the
 table is computed from those copies only, so it can be rebuilt from the repository:
 `bench/results/table.md` and `table.json` (every preset found there, one section each) and
 `table-<preset>.png`. An ablation preset's section is `agents.table.ablation`'s.
@@ -22,20 +22,9 @@ from typing import Any
 import numpy as np
 
 from agents.table import ablation, statistics
+from agents.table.files import budget_record, budget_text, copies, load_raw, refuse_links, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
-from agents.table.raw import (
-    Pending,
-    bases_to_keep,
-    budget_record,
-    budget_text,
-    copies,
-    load_raw,
-    refuse_links,
-    seed_means,
-    with_adopted_bases,
-    write_copies,
-)
 from agents.training import schemas
 from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
@@ -343,60 +332,44 @@ def write_report(
     reps: int = statistics.DEFAULT_REPS,
     dry_run: bool = False,
 ) -> dict[str, Path]:
-    """Copy `preset`'s finished cells from `runs_dir` (None: none), then rebuild table.md and table.json from
-    every preset's raw results under `results_dir/table/`, and per preset `table-<preset>.png` (an
-    ablation's: its arms' learning curves, `ablation.curves_name`). Every cell, copied or to be
-    copied, is read and checked before the first file is written (a damaged one is a
-    `ValueError` naming its file and field), and no file is written through a symbolic link in
-    `results_dir`. An ablation's base arm adopted from another preset is read from that preset's
-    copy (`raw.with_adopted_bases`), and one the report's copies would replace is first kept as
-    the ablation's own (`raw.bases_to_keep`). `dry_run`: check all that and return what would be
-    written, writing nothing (the copies as `copy:<cell directory>`, an older copy of a run the
-    record holds once as `uncopy:<cell directory>`, a base kept as `keep:<its file>`)."""
+    """Copy `preset`'s finished cells from `runs_dir` (None: none) into the record, then rebuild
+    table.md and table.json from every preset's copies under `results_dir/table/`, and per preset
+    `table-<preset>.png` (an ablation's: its arms' learning curves). Every copy, written or to be
+    written, is read and checked before the first file is written, and no file is written through
+    a symbolic link. `dry_run`: check all that and return what would be written (the copies as
+    `copy:<cell directory>`), writing nothing."""
     results_dir = Path(results_dir)
-    planned = copies(runs_dir, results_dir, preset)
+    planned = copies(None if runs_dir is None else Path(runs_dir), results_dir, preset)
+    pending = {destination: text for _, destination, text in planned}
     presets = load_presets()
-    pending: Pending = {destination: text for _, destination, text in planned}
-    kept = bases_to_keep(results_dir, preset, presets, pending)
-    pending.update(kept)
     found = sorted(
         {p.name for p in (results_dir / "table").glob("*") if p.is_dir()} | ({preset} if planned else set()),
         key=lambda n: (list(presets).index(n) if n in presets else len(presets), n),
-    )
+    ) or [preset]
     hand_path = results_dir / "handcrafted.json"
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
-    paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
-    # Every copy the tables read, as it will be after the copies (a damaged one stops the report now);
-    # an ablation's adopted base arm is read from the preset it adopts.
     raws = {
-        name: with_adopted_bases(load_raw(results_dir, name, pending), results_dir, presets.get(name), pending)
-        for name in found or [preset]
+        n: ablation.with_adopted_base(load_raw(results_dir, n, pending), results_dir, presets.get(n), pending)
+        for n in found
     }
-    for name in found or [preset]:
-        arms = [v.name for v in presets[name].variants] if name in presets else []
-        paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms else f"table-{name}.png")
+    arms = {n: [v.name for v in presets[n].variants] if n in presets else [] for n in found}
+    paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
+    for name in found:
+        paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms[name] else f"table-{name}.png")
     for path in paths.values():
         refuse_links(results_dir, path)
     if dry_run:
-        return {
-            **{
-                f"{'copy' if text is not None else 'uncopy'}:{source}": destination
-                for source, destination, text in planned
-            },
-            **{f"keep:{path}": path for path in kept},
-            **paths,
-        }
-    for path, text in kept.items():
+        return {**{f"copy:{source}": destination for source, destination, _ in planned}, **paths}
+    for path, text in pending.items():
         atomic_write_text(path, text)
-    write_copies(planned)
     tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
-    for name in found or [preset]:
-        raw, arms = raws[name], [v.name for v in presets[name].variants] if name in presets else []
-        if arms or ablation.is_ablation(raw):
+    for name in found:
+        raw = raws[name]
+        if arms[name] or ablation.is_ablation(raw):
             figure_path = results_dir / ablation.curves_name(name)
-            drawn = ablation.curves(raw, arms=arms, path=figure_path, preset=name)
+            drawn = ablation.curves(raw, arms=arms[name], path=figure_path, preset=name)
             tables[name] = ablation.build(
-                raw, arms=arms, preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED, curves=drawn
+                raw, arms=arms[name], preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED, curves=drawn
             )
             if drawn:
                 paths[f"png:{name}-curves"] = figure_path
