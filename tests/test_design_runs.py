@@ -219,10 +219,19 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
         calls.append((designs.shape[0], max_runs))
         return encode_runs(encode, designs, max_runs)
 
+    refreshed = []
+    refresh = networks.refresh_design_features
+
+    def refresh_spy(encode, designs, seen, features):
+        refreshed.append(designs.shape)
+        return refresh(encode, designs, seen, features)
+
     monkeypatch.setattr(networks, "encode_design_runs", spy)
+    monkeypatch.setattr(networks, "refresh_design_features", refresh_spy)
     once = _chunk_params(algorithm, task)
     engaged = any(max_runs < steps for steps, max_runs in calls)
     monkeypatch.setattr(ObsLayout, "max_design_runs", lambda self, steps: steps)
+    monkeypatch.setattr(networks, "refresh_design_features", lambda encode, designs, seen, features: encode(designs))
     every_step = _chunk_params(algorithm, task)
     for a, b in zip(jax.tree.leaves(once), jax.tree.leaves(every_step)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
@@ -230,3 +239,40 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
         assert not _reads_the_design(once)
         return
     assert engaged, calls  # every learner trains on sequences (replayed windows too) longer than the bound
+    if algorithm in ACTING_WITH_THE_CACHE:
+        assert refreshed, "its rollout encodes every world's design at every step"
+
+
+# The learners whose rollouts keep each world's design features between steps
+# (`networks.apply_with_design_cache`).
+ACTING_WITH_THE_CACHE = {"ppo", "pqn", "pqn-aux", "ppo-privileged", "ippo"}
+
+
+def _encode_counting(calls):
+    def encode(d):  # counts its executions (a loop body is traced once)
+        jax.debug.callback(lambda: calls.append(d.shape[0]))
+        return jnp.stack([d.sum((-1, -2)), d.max((-1, -2))], axis=-1)
+
+    return encode
+
+
+def test_the_cache_encodes_only_the_worlds_whose_design_changed():
+    """40 worlds, a chunk of 3 a pass on the CPU: a first step encodes every world (14 passes), a
+    step where worlds 5 and 31 start an episode one pass, a step without a change none; the
+    features are always the designs' own."""
+    assert networks.design_refresh_chunk(40) == 3
+    designs = jnp.arange(40 * 6, dtype=jnp.float32).reshape(40, 2, 3)
+    calls = []
+    encode = _encode_counting(calls)
+    expected = lambda d: np.stack([np.asarray(d).sum((-1, -2)), np.asarray(d).max((-1, -2))], axis=-1)
+    features = networks.refresh_design_features(encode, designs, jnp.full_like(designs, jnp.nan), jnp.zeros((40, 2)))
+    np.testing.assert_array_equal(np.asarray(features), expected(designs))
+    assert calls == [3] * 14
+    calls.clear()
+    new = designs.at[jnp.array([5, 31])].add(1000.0)
+    refreshed = networks.refresh_design_features(encode, new, designs, features)
+    np.testing.assert_array_equal(np.asarray(refreshed), expected(new))
+    assert calls == [3]
+    calls.clear()
+    assert np.array_equal(np.asarray(networks.refresh_design_features(encode, new, new, refreshed)), expected(new))
+    assert calls == []

@@ -116,6 +116,64 @@ def encode_design_runs(encode: Callable[[jax.Array], jax.Array], designs: jax.Ar
     return jnp.where((run < max_runs)[..., None], out, jnp.nan)
 
 
+DESIGN_CACHE = "design_cache"  # the flax collection of the last design each world showed, and its features
+
+
+def design_refresh_chunk(worlds: int) -> int:
+    """How many worlds' designs `refresh_design_features` encodes per pass. On a CPU a pass
+    costs in proportion to its size, and few worlds start an episode on any one step, so a
+    sixteenth of the batch; on an accelerator one pass over the whole batch costs little more
+    than a small one, and a loop of passes would wait on the host each step, so the batch."""
+    return max(1, -(-worlds // 16)) if jax.default_backend() == "cpu" else worlds
+
+
+def refresh_design_features(
+    encode: Callable[[jax.Array], jax.Array], designs: jax.Array, seen: jax.Array, features: jax.Array
+) -> jax.Array:
+    """`features (B, F)` of `designs (B, *plan)`, given the `features` of the designs `seen`
+    last: `encode` runs only on the worlds whose design changed (a new episode, a design change;
+    every world where `seen` is NaN), a chunk of `design_refresh_chunk(B)` of them per pass.
+
+    Why: acting reads one step of every world, and a dynamic task's design is constant for an
+    episode, so encoding it for every world at every step spent most of the acting time on
+    designs already encoded. The loop is exact whatever the number of changed worlds."""
+    worlds = designs.shape[0]
+    chunk = design_refresh_chunk(worlds)
+    changed = jnp.any((designs != seen).reshape(worlds, -1), axis=-1)
+    if chunk >= worlds:
+        return jnp.where(changed[:, None], encode(designs), features)
+
+    def refresh(encode, carry):
+        features, todo = carry
+        index = jnp.nonzero(todo, size=chunk, fill_value=worlds)[0]  # `worlds`: past the end, dropped
+        fresh = encode(designs[jnp.minimum(index, worlds - 1)])
+        return features.at[index].set(fresh, mode="drop"), todo.at[index].set(False, mode="drop")
+
+    pending = lambda encode, carry: jnp.any(carry[1])
+    if isinstance(encode, nn.Module):  # a bound submodule: flax's lifted loop
+        features, _ = nn.while_loop(pending, refresh, encode, (features, changed))
+    else:
+        features, _ = jax.lax.while_loop(
+            lambda carry: pending(encode, carry), lambda carry: refresh(encode, carry), (features, changed)
+        )
+    return features
+
+
+def apply_with_design_cache(network: nn.Module, variables, cache, *inputs):
+    """`network.apply(variables, *inputs)` for one acting step, with the design features of the
+    worlds whose design did not change taken from `cache` (`refresh_design_features`); returns
+    `(outputs, cache)`. Start each rollout from `empty_design_cache`, since the parameters, and
+    so the features, change between rollouts. A network without a design encoder gives `{}`."""
+    outputs, mutated = network.apply({**variables, DESIGN_CACHE: cache}, *inputs, mutable=[DESIGN_CACHE])
+    return outputs, mutated.get(DESIGN_CACHE, {})
+
+
+def empty_design_cache(network: nn.Module, variables, *inputs):
+    """A cache that has seen no design (NaN): the first step of a rollout encodes every world's."""
+    _, shapes = jax.eval_shape(lambda: network.apply(variables, *inputs, mutable=[DESIGN_CACHE]))
+    return jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes.get(DESIGN_CACHE, {}))
+
+
 def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
     """A hidden layer's ReLU, after a LayerNorm where the network asks for one (inside a compact
     module: the LayerNorm is a submodule of the caller)."""
@@ -158,10 +216,24 @@ class ObservationEncoder(nn.Module):
     def design_features(self, design: jax.Array) -> jax.Array:
         """`DesignEncoder` features of `design (*lead, *plan)`: once per run of one design along
         the time axis where the inputs are a sequence `(T, B, *plan)` (`encode_design_runs`, its
-        bound from the layout); at every entry otherwise (stacked frames, whose zeroed history
-        changes more often than episodes do)."""
+        bound from the layout); for one step `(1, B, *plan)` applied with the `DESIGN_CACHE`
+        collection mutable (`apply_with_design_cache`, acting), only for the worlds whose design
+        differs from the cached one; at every entry otherwise (stacked frames, whose zeroed
+        history changes more often than episodes do)."""
         encoder = DesignEncoder(self.hidden_size)
         lead = design.shape[:-2]
+        if (
+            lead[:1] == (1,)
+            and len(lead) == 2
+            and self.is_mutable_collection(DESIGN_CACHE)
+            and not self.is_initializing()
+        ):
+            current = design[0]
+            seen = self.variable(DESIGN_CACHE, "design", jnp.full, current.shape, jnp.nan, current.dtype)
+            cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, lead[1:] + (self.hidden_size,), jnp.float32)
+            cached.value = refresh_design_features(encoder, current, seen.value, cached.value)
+            seen.value = current
+            return cached.value[None]
         if len(lead) == 2 or (len(lead) == 3 and lead[2] == 1):
             sequence = design.reshape((lead[0], -1) + design.shape[-2:])  # (T, B, *plan)
             features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))

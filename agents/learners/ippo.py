@@ -34,7 +34,13 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import ObservationEncoder, ScannedRNN, mlp_head
+from agents.common.networks import (
+    ObservationEncoder,
+    ScannedRNN,
+    apply_with_design_cache,
+    empty_design_cache,
+    mlp_head,
+)
 from agents.common.targets import gae, truncation_values
 from agents.training.config import TrainConfig, option
 from snac_jax import multi
@@ -220,15 +226,25 @@ class IPPO:
         index = jnp.broadcast_to(jnp.eye(self.robots, dtype=x.dtype), x.shape[:-1] + (self.robots,))
         return jnp.concatenate([x, index], axis=-1)
 
-    def _apply(self, params, carry, inputs, resets):
-        """The network on `carry (W, N, C)`, `inputs (T, W, N, I)`, `resets (T, W)`, robots x
-        worlds as one batch; returns `(carry (W, N, C), logits (T, W, N, A), value (T, W, N))`."""
+    @staticmethod
+    def _robots_as_worlds(carry, inputs, resets):
+        """`carry (W, N, C)`, `inputs (T, W, N, I)`, `resets (T, W)` as one batch of W * N."""
         t, w, n = inputs.shape[:3]
         resets = jnp.broadcast_to(resets[..., None], (t, w, n)).reshape(t, w * n)
-        carry, logits, value = self.network.apply(
-            params, carry.reshape(w * n, -1), inputs.reshape(t, w * n, -1), resets
-        )
-        return carry.reshape(w, n, -1), logits.reshape(t, w, n, -1), value.reshape(t, w, n)
+        return carry.reshape(w * n, -1), inputs.reshape(t, w * n, -1), resets
+
+    def _apply(self, params, carry, inputs, resets, design_cache=None):
+        """The network on `carry (W, N, C)`, `inputs (T, W, N, I)`, `resets (T, W)`, robots x
+        worlds as one batch; returns `(carry (W, N, C), logits (T, W, N, A), value (T, W, N))`,
+        and the new design cache where one is given (acting: `apply_with_design_cache`)."""
+        t, w, n = inputs.shape[:3]
+        flat = self._robots_as_worlds(carry, inputs, resets)
+        if design_cache is None:
+            carry, logits, value = self.network.apply(params, *flat)
+        else:
+            (carry, logits, value), design_cache = apply_with_design_cache(self.network, params, design_cache, *flat)
+        out = carry.reshape(w, n, -1), logits.reshape(t, w, n, -1), value.reshape(t, w, n)
+        return out if design_cache is None else (out, design_cache)
 
     def _world_step(self, key, env_state, actions, env_params):
         env = self.team_env
@@ -282,10 +298,12 @@ class IPPO:
         step = jax.vmap(self._world_step, in_axes=(0, 0, 0, None))
 
         def env_step(carry, _):
-            worlds, key = carry
+            worlds, design_cache, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
             inputs = self._network_inputs(worlds)
-            new_carry, logits, value = self._apply(state.params, worlds.carry, inputs[None], worlds.reset[None])
+            (new_carry, logits, value), design_cache = self._apply(
+                state.params, worlds.carry, inputs[None], worlds.reset[None], design_cache
+            )
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
             obs, env_state, reward, done, terminated, final_iou, final_obs = step(
@@ -319,10 +337,13 @@ class IPPO:
                 carry=new_carry,
                 episode_return=jnp.where(done, 0.0, episode_return),
             )
-            return (worlds, key), (transition, stats)
+            return (worlds, design_cache, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(
-            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        worlds = state.worlds
+        first = self._robots_as_worlds(worlds.carry, self._network_inputs(worlds)[None], worlds.reset[None])
+        design_cache = empty_design_cache(self.network, state.params, *first)
+        (worlds, _, key), (batch, stats) = jax.lax.scan(
+            env_step, (worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
         return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
 

@@ -32,7 +32,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import ActorCritic
+from agents.common.networks import ActorCritic, apply_with_design_cache, empty_design_cache
 from agents.common.targets import gae, truncation_values
 from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
@@ -202,10 +202,12 @@ class PPO:
         step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))  # every world's auto-resetting step
 
         def env_step(carry, _):
-            worlds, key = carry
+            worlds, design_cache, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
             net_obs = self._network_obs(worlds)
-            new_carry, logits, value = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            (new_carry, logits, value), design_cache = apply_with_design_cache(
+                self.network, state.params, design_cache, worlds.carry, net_obs[None], worlds.reset[None]
+            )
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
             obs, env_state, reward, terminated, truncated, info = step(
@@ -230,10 +232,12 @@ class PPO:
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
-            return (worlds, key), (transition, stats)
+            return (worlds, design_cache, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(
-            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
+        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        (worlds, _, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
         stats = jax.tree.map(jnp.sum, stats)
         return state.replace(worlds=worlds, key=key), batch, stats

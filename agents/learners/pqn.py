@@ -36,7 +36,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import LayerNormQNetwork
+from agents.common.networks import LayerNormQNetwork, apply_with_design_cache, empty_design_cache
 from agents.common.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
 from agents.common.targets import q_lambda, truncation_values
 from agents.training.config import TrainConfig, option
@@ -264,10 +264,12 @@ class PQN:
         epsilon = self.epsilon(state.update)
 
         def env_step(carry, _):
-            worlds, key = carry
+            worlds, design_cache, key = carry
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
-            new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            (new_carry, q), design_cache = apply_with_design_cache(
+                self.network, state.params, design_cache, worlds.carry, net_obs[None], worlds.reset[None]
+            )
             action, q = self.epsilon_greedy(key_explore, key_random, q[0], net_obs, epsilon)
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
@@ -290,10 +292,12 @@ class PQN:
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
-            return (worlds, key), (transition, stats)
+            return (worlds, design_cache, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(
-            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
+        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        (worlds, _, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
         return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
 

@@ -35,7 +35,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import ActorCritic, ObservationEncoder, ScannedRNN, mlp_head, scaled_init
+from agents.common.networks import (
+    ActorCritic,
+    ObservationEncoder,
+    ScannedRNN,
+    apply_with_design_cache,
+    empty_design_cache,
+    mlp_head,
+    scaled_init,
+)
 from agents.common.targets import gae, truncation_values
 from agents.learners.ppo import PPO, PPOConfig, RunnerState, Worlds, clipped_objective, episode_stats
 from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
@@ -189,12 +197,18 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         step = jax.vmap(self.env.step_keeping_final_state, in_axes=(0, 0, 0, None))
 
         def env_step(carry, _):
-            worlds, key = carry
+            worlds, design_cache, key = carry
             key, key_act, key_step = jax.random.split(key, 3)
             net_obs = self._network_obs(worlds)
             privileged = self.privileged_state(worlds.env_state, env_params)
-            new_carry, logits, value = self.network.apply(
-                state.params, worlds.carry, net_obs[None], worlds.reset[None], _one_step(privileged)
+            (new_carry, logits, value), design_cache = apply_with_design_cache(
+                self.network,
+                state.params,
+                design_cache,
+                worlds.carry,
+                net_obs[None],
+                worlds.reset[None],
+                _one_step(privileged),
             )
             pi = distrax.Categorical(logits=logits[0])
             action = pi.sample(seed=key_act)
@@ -221,10 +235,14 @@ class PrivilegedPPO(StrideCurriculum, PPO):
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
-            return (worlds, key), (transition, stats)
+            return (worlds, design_cache, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(
-            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        worlds = state.worlds
+        inputs = (worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
+        privileged = _one_step(self.privileged_state(worlds.env_state, env_params))
+        design_cache = empty_design_cache(self.network, state.params, *inputs, privileged)
+        (worlds, _, key), (batch, stats) = jax.lax.scan(
+            env_step, (worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
         return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
 

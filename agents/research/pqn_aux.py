@@ -13,7 +13,14 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from agents.common.networks import LayerNormQNetwork, ObservationEncoder, ScannedRNN, scaled_init
+from agents.common.networks import (
+    LayerNormQNetwork,
+    ObservationEncoder,
+    ScannedRNN,
+    apply_with_design_cache,
+    empty_design_cache,
+    scaled_init,
+)
 from agents.learners.pqn import PQN, PQNConfig, RunnerState, episode_stats, td_loss
 from agents.research.drqn_aux import Auxiliary, AuxiliaryOptions, StrideCurriculum, add_rollout_losses
 from agents.training.config import option
@@ -119,10 +126,12 @@ class PQNAux(StrideCurriculum, PQN):
         epsilon = self.epsilon(state.update)
 
         def env_step(carry, _):
-            worlds, key = carry
+            worlds, design_cache, key = carry
             key, key_explore, key_random, key_step = jax.random.split(key, 4)
             net_obs = self._network_obs(worlds)
-            new_carry, q = self.network.apply(state.params, worlds.carry, net_obs[None], worlds.reset[None])
+            (new_carry, q), design_cache = apply_with_design_cache(
+                self.network, state.params, design_cache, worlds.carry, net_obs[None], worlds.reset[None]
+            )
             action, q = self.epsilon_greedy(key_explore, key_random, q[0], net_obs, epsilon)
             obs, env_state, reward, terminated, truncated, info = step(
                 jax.random.split(key_step, n), worlds.env_state, action, env_params
@@ -146,10 +155,12 @@ class PQNAux(StrideCurriculum, PQN):
             )
             stats = episode_stats(done, info["final_iou"], episode_return)
             worlds = worlds.after_step(env_state, obs, action, done, new_carry, episode_return)
-            return (worlds, key), (transition, stats)
+            return (worlds, design_cache, key), (transition, stats)
 
-        (worlds, key), (batch, stats) = jax.lax.scan(
-            env_step, (state.worlds, state.key), None, length=self.config.rollout_steps
+        inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
+        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        (worlds, _, key), (batch, stats) = jax.lax.scan(
+            env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
         return state.replace(worlds=worlds, key=key), batch, jax.tree.map(jnp.sum, stats)
 
