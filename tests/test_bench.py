@@ -97,7 +97,9 @@ def test_quick_run_covers_every_task(tmp_path):
     assert e2e and all(item["wall_s"] > 0 and "env-steps/s" in item["output"] for item in e2e)
 
 
-@pytest.mark.parametrize("algorithm", ["ppo", "pqn", "dqn"])
+@pytest.mark.parametrize(
+    "algorithm", ["ppo", pytest.param("pqn", marks=pytest.mark.slow), pytest.param("dqn", marks=pytest.mark.slow)]
+)
 def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_path):
     script = ROOT / "bench" / "train_throughput.py"
     done = subprocess.run(
@@ -258,6 +260,7 @@ def test_device_check_quick_writes_its_two_files_with_every_part(tmp_path):
     assert _committed_results() == committed
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_device_check_refuses_bad_arguments_before_measuring(tmp_path):
     script = ROOT / "bench" / "device_check.py"
     (tmp_path / "file").write_text("")

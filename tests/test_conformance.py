@@ -84,6 +84,7 @@ def test_a_cut_trace_file_is_refused(tmp_path):
         load_traces(tmp_path / "short.json")
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_bad_SNAC_GOLDEN_TRACES_fails_the_conformance_tests(tmp_path):
     """Pointed at an empty file, the conformance and NumPy-engine tests fail (they used to be
     skipped, or to pass over zero traces); a cut file fails the same way (`load_traces` above)."""

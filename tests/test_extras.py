@@ -59,6 +59,7 @@ def test_the_environment_depends_on_jax_chex_flax_gymnax_and_numpy_only():
     assert names == {"jax", "chex", "flax", "gymnax", "numpy", "six"}  # six: gymnax imports it undeclared
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_train_without_its_extra_names_the_extra_in_one_line():
     result = _snac_without(["distrax", "optax"], ["train", "ppo", "--task", "1d-static-sin"])
     assert result.returncode == 2, result.stderr[-2000:]

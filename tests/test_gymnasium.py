@@ -277,6 +277,7 @@ def test_render_rgb_array():
         snac_gym.SNACGymEnv("2d-static-dense", render_mode="ansi")
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_throughput_bench_writes_only_its_results(tmp_path):
     script = Path(__file__).resolve().parent.parent / "bench" / "gymnasium_throughput.py"
     args = [

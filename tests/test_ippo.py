@@ -108,6 +108,7 @@ def test_a_single_robot_switch_is_refused():
         make_config("ippo", "2d-static-dense", switches="landmark_action=2")
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_resume_equals_uninterrupted(tmp_path):
     config = make_config("ippo", "2d-static-dense", robots=2, seeds=2, total_steps=3 * 4 * 8, chunks=3, **TINY)
     _, straight = train(config, tmp_path / "straight", progress=False)

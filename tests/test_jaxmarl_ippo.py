@@ -42,6 +42,7 @@ def _load_script(monkeypatch, logged: list[dict]):
     return module
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_jaxmarls_ippo_script_trains_on_a_two_robot_team(monkeypatch):
     logged: list[dict] = []
     script = _load_script(monkeypatch, logged)

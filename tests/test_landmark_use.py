@@ -156,6 +156,7 @@ def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp
     assert (out / "landmark_use.png").stat().st_size > 0
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_run_without_the_switch_is_refused_in_one_line(tmp_path):
     from agents.training.config import save_config
     from agents.training.registry import make_config
@@ -204,6 +205,7 @@ def _config_only_run(tmp_path, arms=None):
     return run
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 @pytest.mark.parametrize(
     "arms, arm, message",
     [
@@ -235,6 +237,7 @@ def test_a_sweep_needs_one_of_its_arms_in_one_line(tmp_path, arms, arm, message)
     assert done.stderr.count("\n") == 1 and not out.exists()
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_an_arm_of_a_sweep_is_scored_with_its_own_policies(tmp_path):
     """Arm 1 of a 2-arm sweep with 2 seeds is run indices 2 and 3: its seeds' IoUs are the
     protocol's for those policies, and differ from arm 0's (another learning rate)."""

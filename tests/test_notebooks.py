@@ -20,7 +20,12 @@ def test_the_notebooks_are_there():
 
 
 @pytest.mark.timeout(400)
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+# The quickstart in the default suite; the others (a training, the protocol) in `pytest -m slow`.
+@pytest.mark.parametrize(
+    "path",
+    [p if p.stem.startswith("01_") else pytest.param(p, marks=pytest.mark.slow) for p in NOTEBOOKS],
+    ids=[p.stem for p in NOTEBOOKS],
+)
 def test_notebook_executes(path, tmp_path):
     notebook = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(

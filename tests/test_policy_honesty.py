@@ -83,6 +83,9 @@ TINY = {
 SINGLE = [name for name in ALGORITHMS if name != "ippo"]
 CASES = [(name, task) for name in SINGLE for task in ("2d-static-sparse", "2d-dynamic-sparse")]
 CASES += [("ppo", "3d-static-sparse")]
+# PPO, PQN and pqn-belief in the default suite; every learner in `pytest -m slow` (each compiles its learner).
+DEFAULT_SUITE = {"ppo", "pqn", "pqn-belief"}
+CASES = [case if case[0] in DEFAULT_SUITE else pytest.param(*case, marks=pytest.mark.slow) for case in CASES]
 
 
 # --- a world that lies about its state --------------------------------------------------------------

@@ -31,7 +31,7 @@ def example():
     ("task", "env_kwargs"),
     [
         ("1d-static-sin", {"max_steps": 6}),  # rollouts of 8 steps cross the step limit: truncations
-        ("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}),
+        pytest.param("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}, marks=pytest.mark.slow),
     ],
 )
 def test_the_recurrent_example_trains_and_scores_its_greedy_policy(example, task, env_kwargs):

@@ -203,6 +203,7 @@ def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_pa
     assert int(action) == int(action_poisoned) and _same(after, after_poisoned)
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_with_every_signal_off_the_learners_are_ppo_drqn_and_pqn():
     """The hooks leave PPO, DRQN and PQN as they were: the new learners with the privileged critic off
     and every auxiliary weight 0 reproduce them exactly (truncations included: max_steps 5), and

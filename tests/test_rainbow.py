@@ -245,6 +245,7 @@ def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an
     np.testing.assert_allclose(loss, (np.log(4.0) + 0.5 * np.log(2.0)) / 2, rtol=1e-5)
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_cross_entropy_priority_changes_the_priority_not_the_loss():
     kl_agent = _agent()
     state = jax.jit(kl_agent.init)(jax.random.key(0))
@@ -328,6 +329,7 @@ def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     assert not np.allclose(noisy_q, agent.expected(logits))
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_acting_draws_noise_for_each_world_apart(trained_1d):
     """Worlds that see the same input get different Q-values when acting (each its own noise
     draw); one world alone gets the values of the network under the batch's one draw."""

@@ -93,6 +93,7 @@ def test_outputs_and_sizes_are_checked_before_the_episode(tmp_path, capsys, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     """`snac render --checkpoint` of an ippo run draws its robots in one world: robot 1's colour,
     which no single-robot picture holds, is in every frame, and the frame count is the one

@@ -107,7 +107,9 @@ def with_drop_down_first(params):
     return {"params": {**params["params"], "Dense_0": {**head, "bias": head["bias"].at[6].add(1e3)}}}
 
 
-@pytest.mark.parametrize("learner, config", [(PQN, PQNConfig), (PQNAux, PQNAuxConfig)])
+@pytest.mark.parametrize(
+    "learner, config", [(PQN, PQNConfig), pytest.param(PQNAux, PQNAuxConfig, marks=pytest.mark.slow)]
+)
 @pytest.mark.parametrize("safe_drops", [True, False])
 def test_the_greedy_rollout_and_its_bootstrap_skip_the_refused_drop(learner, config, safe_drops):
     # Greedy (epsilon 0) from staggered starts, the head preferring the drop down everywhere: where

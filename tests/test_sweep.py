@@ -142,9 +142,10 @@ def test_a_float_the_learner_reads_outside_the_trace_is_refused_before_training(
     "argv,phrase",
     [
         (["--sweep", "num-envs=8,16"], "num_envs cannot be swept in one program"),
-        (
+        pytest.param(
             ["--learning-rate", "0.001", "--sweep", "learning-rate=1e-3,2e-3"],
             "--learning-rate and --sweep learning_rate=... both set",
+            marks=pytest.mark.slow,
         ),
     ],
 )

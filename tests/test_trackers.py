@@ -76,6 +76,7 @@ def test_scalars_are_the_records_numbers_per_seed():
     }
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_train_log_tensorboard_writes_the_metrics_of_metrics_jsonl_across_a_resume(tmp_path):
     from agents.training.driver import train
     from agents.training.registry import make_config

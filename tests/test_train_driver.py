@@ -36,7 +36,7 @@ def test_chunk_sizes_cover_the_run():
     assert chunk_sizes(2, 20) == [1, 1]
 
 
-@pytest.mark.parametrize("ahead", [True, False])
+@pytest.mark.parametrize("ahead", [True, pytest.param(False, marks=pytest.mark.slow)])  # False: `pytest -m slow`
 def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_nothing(
     tmp_path, capsys, monkeypatch, ahead
 ):
