@@ -610,6 +610,39 @@ def test_each_robot_builds_its_share_of_a_hand_written_design():
     np.testing.assert_array_equal(states.estimate, [[0, 0], [19, 19]])
 
 
+def test_a_robot_of_the_team_localises_past_another_robot_in_view():
+    """Robot 0 moves one cell right while robot 1, in its window, moves down: the cells showing
+    robot 1 differ between the two windows. The team's localiser leaves them out and finds the one
+    cell; the single robot's (SPEC §11), which compares them, finds no stride and keeps its
+    estimate, one cell behind."""
+    from snac_jax.policies.handcrafted import handcrafted_policy
+
+    team = multi.make("2d-static-dense", num_robots=2)
+    grid = np.zeros((26, 26), np.int16)
+    grid[:3], grid[-3:], grid[:, :3], grid[:, -3:] = -1, -1, -1, -1
+    for r, c in [(8, 7), (12, 10), (9, 12), (11, 6)]:  # a few bricks: one stride matches
+        grid[r + 3, c + 3] = 1
+    before = _placed(team, [[10, 8], [10, 11]], grid=jnp.asarray(grid))
+    obs_before = stack(team, team.get_obs(before))
+    after = _step(team, before, [RIGHT, DOWN], [1, 1])[1]
+    np.testing.assert_array_equal(after.positions, [[10, 9], [11, 11]])
+    obs_after = stack(team, team.get_obs(after))
+    window_before = obs_before[0, :49].reshape(7, 7)
+    assert float(window_before[3, 6]) == multi.ROBOT_VALUE and float(obs_after[0, 4 * 7 + 5]) == multi.ROBOT_VALUE
+
+    def estimate(policy):
+        state = policy.init(jax.random.key(0), before.world.design).replace(
+            estimate=jnp.asarray([10, 8], jnp.int32),
+            last_action=jnp.asarray(RIGHT, jnp.int32),
+            last_window=window_before,
+        )
+        return tuple(np.asarray(policy.act(None, state, obs_after[0], jax.random.key(1))[1].estimate))
+
+    assert estimate(handcrafted_policy(team.single, team=True)) == (10, 9)
+    assert estimate(handcrafted_policy(team.single)) == (10, 8)
+    assert handcrafted_policy(team.single, team=True) is not handcrafted_policy(team.single)
+
+
 # --- whole episodes: the recording and the protocol's finish ------------------------------------
 
 

@@ -8,7 +8,9 @@ running the single-robot handcrafted policy (SPEC §11) on its share of the desi
 Why a split: the handcrafted robot builds every design cell it sees that lacks bricks, so robots
 given the whole design would crowd the same cells; given disjoint shares, each builds its own and
 the team's work adds up. The share of a cell is the robot whose start is nearest, so each robot
-starts inside its share, with walls in view that fix its position estimate.
+starts inside its share, with walls in view that fix its position estimate. In a team its
+localiser leaves out the cells where it sees another robot (`handcrafted_policy(team=True)`),
+which moved or built there between two views; one robot is the single-robot policy itself.
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ def plan_shares(config: EnvConfig, num_robots: int) -> np.ndarray:
 def _split(env: MultiSNACEnv, variant: str) -> MultiPolicy:
     # One MultiPolicy (the same init/act objects) per configuration, so jitted callers that take
     # it as a static argument compile once per configuration.
-    single = handcrafted_policy(env.single, variant)
+    # One robot is the single-robot policy itself; in a team each robot's localiser leaves out
+    # the cells where it sees another robot.
+    single = handcrafted_policy(env.single, variant, team=env.num_agents > 1)
     shares = jnp.asarray(plan_shares(env.config, env.num_agents))
     starts = jnp.asarray(start_positions(env.config, env.num_agents))
 
