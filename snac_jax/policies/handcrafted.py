@@ -45,7 +45,8 @@ observation, so it re-plans on the design in force from the change on (the brick
 stay; it never removes any). With `landmark_action` it never places a landmark: its localiser
 needs walls, not marks. A landmark (-2) in its window is never a candidate, since a drop there
 would be spent for nothing. As one robot of a team (SPEC §13, `team=True`, 2D/3D) its localiser
-leaves out the window cells that show another robot (-3), before the move or after it.
+leaves out the window cells that show another robot (-3), before the move or after it, and
+after a move that every stride explains counts the median stride (`odometry_stride`).
 """
 
 from __future__ import annotations
@@ -192,7 +193,15 @@ def _plan_1d(config: EnvConfig, variant: str, state: HandcraftedState, window: j
 # --- 2D and 3D -----------------------------------------------------------------------------------
 
 
-def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array, team: bool = False) -> jax.Array:
+def odometry_stride(stride_probs: jax.Array) -> jax.Array:
+    """The median stride of `stride_probs` (strides 1..MAX_STRIDE): the first whose cumulative
+    probability reaches one half. 2 for the tasks' uniform strides, 1 for (1, 0, 0)."""
+    return (1 + jnp.argmax(jnp.cumsum(jnp.asarray(stride_probs)) >= 0.5 - 1e-6)).astype(jnp.int32)
+
+
+def _localise_grid(
+    config: EnvConfig, state: HandcraftedState, window: jax.Array, team: bool = False, odometry: jax.Array | None = None
+) -> jax.Array:
     num_moves = len(_move_directions(config))
     moved = state.last_action < num_moves
     directions = jnp.asarray(_move_directions(config), dtype=jnp.int32)
@@ -200,6 +209,11 @@ def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array
     matches = _shift_matches(config, state.last_window, window, team)[move_index]
     unchanged = _agree(window, state.last_window, team)
     stride = jnp.where(unchanged | matches[0], 1, jnp.where(matches[1], 2, jnp.where(matches[2], 3, 0)))
+    if odometry is not None:
+        # A team's robot (`odometry_stride`): a window that every stride explains says nothing of
+        # the stride, so it takes the median stride, not the reference's 1 (which, with strides
+        # 1-3 equally likely, lags behind on every move across a featureless stretch).
+        stride = jnp.where(unchanged | jnp.all(matches), odometry, stride)
     estimate = _clip_to_plan(config, state.estimate + stride * directions[move_index])
 
     # Absolute fix from a wall at an end of the middle column / middle row.
@@ -348,7 +362,8 @@ def _build(config: EnvConfig, variant: str, team: bool = False) -> Policy:
                 cell = state.estimate[1] + config.half_window
                 built = built.at[0, cell].add(jnp.where(action == _DROP_1D, 1, 0))
         else:
-            state = state.replace(estimate=_localise_grid(config, state, window, team))
+            odometry = odometry_stride(params) if team else None
+            state = state.replace(estimate=_localise_grid(config, state, window, team, odometry))
             plan = _plan_neighbour_drop if neighbour_drop else _plan_own_cell_drop
             action, preference = plan(config, state, window, key)
             built = state.built
@@ -367,13 +382,19 @@ def _cached(config: EnvConfig, variant: str, team: bool = False) -> Policy:
 
 def handcrafted_policy(env: SNACEnv, variant: str = "no-map", *, team: bool = False) -> Policy:
     """The handcrafted baseline for `env`'s task. `variant` selects the 1D version:
-    `"no-map"` (the paper's table) or `"map"`; 2D and 3D have one version. `team=True` is one
-    robot of a team (`snac_jax.policies.split`): in 2D/3D its localiser leaves out the window
-    cells that show another robot (`_agree`); with no other robot in view, and in 1D (where
-    leaving them out scored lower), it acts as the single robot."""
+    `"no-map"` (the paper's table) or `"map"`; 2D and 3D have one version.
+
+    `team=True` is one robot of a team (`snac_jax.policies.split`, SPEC §13), in 2D/3D: its
+    localiser leaves out the window cells that show another robot (`_agree`), and after a move
+    that every stride explains it counts the median stride of `env`'s stride distribution
+    (`odometry_stride`, its `params`) rather than one cell. In 1D (where leaving robots out
+    scored lower) it is the single robot's policy."""
     if variant not in VARIANTS_1D:
         raise ValueError(f"variant must be one of {VARIANTS_1D}, got {variant!r}")
-    return _cached(env.config, variant if env.config.dim == 1 else "no-map", bool(team) and env.config.dim > 1)
+    team = bool(team) and env.config.dim > 1
+    policy = _cached(env.config, variant if env.config.dim == 1 else "no-map", team)
+    # The stride distribution is the env's params, not its configuration: the params of the policy.
+    return policy._replace(params=jnp.asarray(env.default_params.stride_probs)) if team else policy
 
 
 def handcrafted_policy_map(env: SNACEnv) -> Policy:
