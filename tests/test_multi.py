@@ -601,13 +601,107 @@ def test_each_robot_builds_its_share_of_a_hand_written_design():
     team = multi.make("2d-static-dense", num_robots=2, max_steps=60, stride_probs=(1, 0, 0))
     params = tasks.make_params(design, 2, stride_probs=(1, 0, 0), max_steps=60)
     policy = handcrafted_split(team)
-    assert policy is handcrafted_split(multi.make("2d-static-dense", num_robots=2))  # one policy per configuration
+    again = handcrafted_split(multi.make("2d-static-dense", num_robots=2))
+    assert (policy.init, policy.act) == (again.init, again.act)  # compiled once per configuration
+    np.testing.assert_array_equal(policy.params, [1, 0, 0])  # the robots' stride distribution: the env's
+    np.testing.assert_allclose(again.params, [1 / 3] * 3)
     episode = jax.jit(lambda k: multi.run_episode(team, policy, k, 0, params))(jax.random.key(0))
     assert float(episode.iou) == 1.0 and int(episode.bricks_used) == 2 and int(episode.length) == 60
     states = policy.init(jax.random.key(0), jnp.asarray(design[0]))
     own = np.asarray(states.design)[:, 3:-3, 3:-3]
     assert own[0, 2, 3] == 1 and own[0, 17, 16] == 0 and own[1, 17, 16] == 1 and own[1, 2, 3] == 0
     np.testing.assert_array_equal(states.estimate, [[0, 0], [19, 19]])
+
+
+def test_a_robot_of_the_team_localises_past_another_robot_in_view():
+    """Robot 0 moves one cell right while robot 1, in its window, moves down: the cells showing
+    robot 1 differ between the two windows. The team's localiser leaves them out and finds the one
+    cell; the single robot's (SPEC §11), which compares them, finds no stride and keeps its
+    estimate, one cell behind."""
+    from snac_jax.policies.handcrafted import handcrafted_policy
+
+    team = multi.make("2d-static-dense", num_robots=2)
+    grid = np.zeros((26, 26), np.int16)
+    grid[:3], grid[-3:], grid[:, :3], grid[:, -3:] = -1, -1, -1, -1
+    for r, c in [(8, 7), (12, 10), (9, 12), (11, 6)]:  # a few bricks: one stride matches
+        grid[r + 3, c + 3] = 1
+    before = _placed(team, [[10, 8], [10, 11]], grid=jnp.asarray(grid))
+    obs_before = stack(team, team.get_obs(before))
+    after = _step(team, before, [RIGHT, DOWN], [1, 1])[1]
+    np.testing.assert_array_equal(after.positions, [[10, 9], [11, 11]])
+    obs_after = stack(team, team.get_obs(after))
+    window_before = obs_before[0, :49].reshape(7, 7)
+    assert float(window_before[3, 6]) == multi.ROBOT_VALUE and float(obs_after[0, 4 * 7 + 5]) == multi.ROBOT_VALUE
+
+    def estimate(policy):
+        state = policy.init(jax.random.key(0), before.world.design).replace(
+            estimate=jnp.asarray([10, 8], jnp.int32),
+            last_action=jnp.asarray(RIGHT, jnp.int32),
+            last_window=window_before,
+        )
+        return tuple(np.asarray(policy.act(policy.params, state, obs_after[0], jax.random.key(1))[1].estimate))
+
+    assert estimate(handcrafted_policy(team.single, team=True)) == (10, 9)
+    assert estimate(handcrafted_policy(team.single)) == (10, 8)
+    assert handcrafted_policy(team.single, team=True) is not handcrafted_policy(team.single)
+
+
+@pytest.mark.parametrize(
+    "probs, expected", [((1, 0, 0), 1), ((1 / 3, 1 / 3, 1 / 3), 2), ((0.5, 0.5, 0), 1), ((0.2, 0.2, 0.6), 3)]
+)
+def test_the_odometry_stride_is_the_median_stride(probs, expected):
+    from snac_jax.policies.handcrafted import odometry_stride
+
+    assert int(odometry_stride(jnp.asarray(probs, jnp.float32))) == expected
+
+
+@pytest.mark.parametrize("probs, team_counts", [((1 / 3, 1 / 3, 1 / 3), 2), ((1, 0, 0), 1)])
+def test_a_robot_of_the_team_counts_the_median_stride_across_a_featureless_stretch(probs, team_counts):
+    """Robot 0 moves right across empty ground, no wall or brick in view: every stride explains
+    its new window. The single robot counts one cell (SPEC §11); a robot of the team the median
+    of the env's strides, so with strides 1-3 equally likely it does not fall behind by a cell
+    on two moves in three."""
+    from snac_jax.policies.handcrafted import handcrafted_policy
+
+    team = multi.make("2d-dynamic-dense", num_robots=2, stride_probs=probs, test_design=0)
+    grid = np.zeros((26, 26), np.int16)
+    grid[:3], grid[-3:], grid[:, :3], grid[:, -3:] = -1, -1, -1, -1
+    before = _placed(team, [[16, 8], [19, 19]], grid=jnp.asarray(grid))
+    after = _step(team, before, [RIGHT, UP], [3, 1])[1]
+    window_before, obs_after = (
+        stack(team, team.get_obs(before))[0, :49].reshape(7, 7),
+        stack(team, team.get_obs(after))[0],
+    )
+    assert np.all(np.asarray(window_before) == 0) and np.all(np.asarray(obs_after[:49]) == 0)
+
+    def estimate(policy):
+        state = policy.init(jax.random.key(0), before.world.design).replace(
+            estimate=jnp.asarray([16, 8], jnp.int32),
+            last_action=jnp.asarray(RIGHT, jnp.int32),
+            last_window=window_before,
+        )
+        return tuple(np.asarray(policy.act(policy.params, state, obs_after, jax.random.key(1))[1].estimate))
+
+    assert estimate(handcrafted_policy(team.single, team=True)) == (16, 8 + team_counts)
+    assert estimate(handcrafted_policy(team.single)) == (16, 9)
+
+
+def test_one_robot_of_the_split_is_the_single_robot_policy_unchanged():
+    """What one robot of the split scores is a reference row (bench/results/multi.md): these are
+    its episodes as main scored them before the team's localiser changed (IoU, length)."""
+    from snac_jax.policies.team import team_policy
+
+    pinned = {
+        "2d-static-dense": ([0.93464, 0.89744, 0.97333], [461, 447, 474]),
+        "2d-dynamic-dense": ([0.91398, 0.95604, 0.87368], [274, 287, 283]),
+    }
+    for task, (ious, lengths) in pinned.items():
+        env = multi.make(task, num_robots=1, **({"test_design": 4} if "dynamic" in task else {}))
+        policy = team_policy("handcrafted", env)
+        assert policy.params is None
+        out = jax.jit(jax.vmap(lambda k: multi.run_episode(env, policy, k)))(jax.random.split(jax.random.key(11), 3))
+        np.testing.assert_allclose(np.asarray(out.iou), ious, atol=1e-5)
+        np.testing.assert_array_equal(np.asarray(out.length), lengths)
 
 
 # --- whole episodes: the recording and the protocol's finish ------------------------------------

@@ -310,6 +310,79 @@ def test_the_team_policy_ignores_the_state_it_cannot_observe():
     _honest_on_varied_episodes(run, log, shapes)
 
 
+class LyingTeamButDesign(LyingTeam):
+    """`LyingTeam` whose lie leaves the design true: the handcrafted policy is handed the design
+    (SPEC §11), so only the rest of the state it cannot observe is lied about."""
+
+    def __hash__(self) -> int:
+        return hash(("lying-but-design", super().__hash__()))
+
+    def __eq__(self, other: object) -> bool:
+        return type(other) is LyingTeamButDesign and MultiSNACEnv.__eq__(self, other)
+
+    def reset_to_design(self, key, design_index, params=None):
+        obs, state = super().reset_to_design(key, design_index, params)
+        world = state.world
+        return obs, state.replace(
+            world=world.replace(design=jnp.where(world.union < 0, world.design - 1, world.design))
+        )
+
+    def step_env(self, key, state, actions, params=None):
+        world = state.world
+        lying = world.union < 0
+        lied = state.replace(world=world.replace(design=jnp.where(lying, world.design + 1, world.design)))
+        obs, state, rewards, dones, infos = super().step_env(key, lied, actions, params)
+        world = state.world
+        return (
+            obs,
+            state.replace(world=world.replace(design=jnp.where(lying, world.design - 1, world.design))),
+            rewards,
+            dones,
+            infos,
+        )
+
+
+@pytest.mark.parametrize("task, robots", [("2d-dynamic-dense", 2), ("2d-static-dense", 4)])
+def test_the_handcrafted_split_ignores_the_state_it_cannot_observe(task, robots):
+    """The handcrafted split (SPEC §13) acts from its observations, the design and its memory: on a
+    world lying about the true positions, the grid, the budget and the IoU sums (not the design,
+    which it is handed) its actions and memory match the truth's step for step."""
+    from snac_jax import multi
+    from snac_jax.policies.team import team_policy
+
+    team = multi.make(task, num_robots=robots, max_steps=80, **({"test_design": 0} if "dynamic" in task else {}))
+    env = LyingTeamButDesign(team.single, robots, team.default_params)
+    policy, design = team_policy("handcrafted", team), team.default_params.designs[0]
+    params, log = _twice(team.default_params, design), {}
+
+    def recorded(lying):
+        def act(p, memory, obs, key):
+            actions, inner = policy.act(p, memory["inner"], obs, key)
+            jax.debug.callback(partial(_keep, log), lying, memory["t"], obs, actions, inner)
+            return actions, {"inner": inner, "t": memory["t"] + 1}
+
+        init = lambda key, d: {"inner": policy.init(key, d), "t": jnp.zeros((), jnp.int32)}
+        return MultiPolicy(init, act, policy.params, policy.name)
+
+    def episode(lying):  # design index 1 is the lying world's; the same key, so the same strides
+        recorded_policy = recorded(lying)
+        return jax.jit(lambda key: run_episode(env, recorded_policy, key, int(lying), params))(jax.random.key(3))
+
+    outs = [episode(False), episode(True)]
+    jax.effects_barrier()
+    assert int(outs[0].length) == int(outs[1].length) > 20
+    assert float(outs[0].iou) != float(outs[1].iou)  # the second world lied (its IoU sums are negative)
+    np.testing.assert_array_equal(outs[0].team_return, outs[1].team_return)
+    told = {t: v for (lying, t), v in log.items() if not lying}
+    lied = {t: v for (lying, t), v in log.items() if lying}
+    assert sorted(told) == sorted(lied) == list(range(int(outs[0].length)))
+    for t in told:
+        for a, b in zip(jax.tree.leaves(told[t]), jax.tree.leaves(lied[t]), strict=True):
+            np.testing.assert_array_equal(a, b, err_msg=f"step {t}")
+    actions = np.array([told[t][1] for t in told])
+    assert len({tuple(a) for a in actions}) > 1 and np.any(actions == 4)  # it moves in several ways and builds
+
+
 def test_the_check_catches_a_policy_that_reads_the_design():
     """A policy that keeps the design the evaluator hands its `init` (hidden on a static task) and
     shifts its observations by the design's mean: once the state lies, its actions differ."""

@@ -44,7 +44,9 @@ The extensions (SPEC §14-15): with `design_change` the policy reads the design 
 observation, so it re-plans on the design in force from the change on (the bricks already laid
 stay; it never removes any). With `landmark_action` it never places a landmark: its localiser
 needs walls, not marks. A landmark (-2) in its window is never a candidate, since a drop there
-would be spent for nothing.
+would be spent for nothing. As one robot of a team (SPEC §13, `team=True`, 2D/3D) its localiser
+leaves out the window cells that show another robot (-3), before the move or after it, and
+after a move that every stride explains counts the median stride (`odometry_stride`).
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ from flax import struct
 
 from snac_jax.config import ACTIONS_1D, DOWN, LEFT, MAX_STRIDE, MOVE_DIRECTIONS, RIGHT, UP, EnvConfig
 from snac_jax.env import SNACEnv
+from snac_jax.multi.rules import ROBOT_VALUE
 from snac_jax.observation import layout as observation_layout
 from snac_jax.policy import Policy
 from snac_jax.transition import PADDING
@@ -91,11 +94,11 @@ def _move_directions(config: EnvConfig) -> list[tuple[int, int]]:
     return [(dr, dc) for is_drop, dr, dc in config.actions if not is_drop]
 
 
-def _shift_matches(config: EnvConfig, old: jax.Array, new: jax.Array) -> jax.Array:
+def _shift_matches(config: EnvConfig, old: jax.Array, new: jax.Array, team: bool = False) -> jax.Array:
     """bool (num_moves, MAX_STRIDE): does `new` equal `old` moved by k cells along each move?
 
     After a move of k cells in (dr, dc), new[i, j] shows the cell old[i + k*dr, j + k*dc]; the
-    two windows are compared where both exist.
+    two windows are compared where both exist (and, in a team, show no other robot: `_agree`).
     """
     rows, cols = config.window_shape
     table = []
@@ -106,9 +109,20 @@ def _shift_matches(config: EnvConfig, old: jax.Array, new: jax.Array) -> jax.Arr
             c0, c1 = max(0, -k * dc), cols - max(0, k * dc)
             new_part = new[r0:r1, c0:c1]
             old_part = old[r0 + k * dr : r1 + k * dr, c0 + k * dc : c1 + k * dc]
-            per_stride.append(jnp.all(new_part == old_part))
+            per_stride.append(_agree(new_part, old_part, team))
         table.append(jnp.stack(per_stride))
     return jnp.stack(table)
+
+
+def _agree(a: jax.Array, b: jax.Array, team: bool) -> jax.Array:
+    """Do windows (or window parts) `a` and `b` show the same cells? In a team (SPEC §13) a cell
+    where another robot stands in either (`ROBOT_VALUE`) is not compared: the robot moved, or
+    dropped a brick, between the two views, and says nothing of where the viewer moved. A single
+    robot never sees that value, so for it this is plain equality."""
+    same = a == b
+    if team:
+        same = same | (a == ROBOT_VALUE) | (b == ROBOT_VALUE)
+    return jnp.all(same)
 
 
 def _window_of(config: EnvConfig, padded: jax.Array, plan_position: jax.Array) -> jax.Array:
@@ -179,14 +193,27 @@ def _plan_1d(config: EnvConfig, variant: str, state: HandcraftedState, window: j
 # --- 2D and 3D -----------------------------------------------------------------------------------
 
 
-def _localise_grid(config: EnvConfig, state: HandcraftedState, window: jax.Array) -> jax.Array:
+def odometry_stride(stride_probs: jax.Array) -> jax.Array:
+    """The median stride of `stride_probs` (strides 1..MAX_STRIDE): the first whose cumulative
+    probability reaches one half. 2 for the tasks' uniform strides, 1 for (1, 0, 0)."""
+    return (1 + jnp.argmax(jnp.cumsum(jnp.asarray(stride_probs)) >= 0.5 - 1e-6)).astype(jnp.int32)
+
+
+def _localise_grid(
+    config: EnvConfig, state: HandcraftedState, window: jax.Array, team: bool = False, odometry: jax.Array | None = None
+) -> jax.Array:
     num_moves = len(_move_directions(config))
     moved = state.last_action < num_moves
     directions = jnp.asarray(_move_directions(config), dtype=jnp.int32)
     move_index = jnp.clip(state.last_action, 0, num_moves - 1)
-    matches = _shift_matches(config, state.last_window, window)[move_index]
-    unchanged = jnp.all(window == state.last_window)
+    matches = _shift_matches(config, state.last_window, window, team)[move_index]
+    unchanged = _agree(window, state.last_window, team)
     stride = jnp.where(unchanged | matches[0], 1, jnp.where(matches[1], 2, jnp.where(matches[2], 3, 0)))
+    if odometry is not None:
+        # A team's robot (`odometry_stride`): a window that every stride explains says nothing of
+        # the stride, so it takes the median stride, not the reference's 1 (which, with strides
+        # 1-3 equally likely, lags behind on every move across a featureless stretch).
+        stride = jnp.where(unchanged | jnp.all(matches), odometry, stride)
     estimate = _clip_to_plan(config, state.estimate + stride * directions[move_index])
 
     # Absolute fix from a wall at an end of the middle column / middle row.
@@ -302,7 +329,7 @@ def _plan_neighbour_drop(config: EnvConfig, state: HandcraftedState, window: jax
 # --- the policy ----------------------------------------------------------------------------------
 
 
-def _build(config: EnvConfig, variant: str) -> Policy:
+def _build(config: EnvConfig, variant: str, team: bool = False) -> Policy:
     neighbour_drop = config.dim > 1 and any(is_drop and (dr, dc) != (0, 0) for is_drop, dr, dc in config.actions)
     drop_action = [a for a, (is_drop, _, _) in enumerate(config.actions) if is_drop][0]
 
@@ -335,7 +362,8 @@ def _build(config: EnvConfig, variant: str) -> Policy:
                 cell = state.estimate[1] + config.half_window
                 built = built.at[0, cell].add(jnp.where(action == _DROP_1D, 1, 0))
         else:
-            state = state.replace(estimate=_localise_grid(config, state, window))
+            odometry = odometry_stride(params) if team else None
+            state = state.replace(estimate=_localise_grid(config, state, window, team, odometry))
             plan = _plan_neighbour_drop if neighbour_drop else _plan_own_cell_drop
             action, preference = plan(config, state, window, key)
             built = state.built
@@ -346,18 +374,27 @@ def _build(config: EnvConfig, variant: str) -> Policy:
 
 
 @functools.cache
-def _cached(config: EnvConfig, variant: str) -> Policy:
+def _cached(config: EnvConfig, variant: str, team: bool = False) -> Policy:
     # One Policy (the same init/act objects) per configuration, so jitted evaluators that take
     # them as static arguments compile once per configuration.
-    return _build(config, variant)
+    return _build(config, variant, team)
 
 
-def handcrafted_policy(env: SNACEnv, variant: str = "no-map") -> Policy:
+def handcrafted_policy(env: SNACEnv, variant: str = "no-map", *, team: bool = False) -> Policy:
     """The handcrafted baseline for `env`'s task. `variant` selects the 1D version:
-    `"no-map"` (the paper's table) or `"map"`; 2D and 3D have one version."""
+    `"no-map"` (the paper's table) or `"map"`; 2D and 3D have one version.
+
+    `team=True` is one robot of a team (`snac_jax.policies.split`, SPEC §13), in 2D/3D: its
+    localiser leaves out the window cells that show another robot (`_agree`), and after a move
+    that every stride explains it counts the median stride of `env`'s stride distribution
+    (`odometry_stride`, its `params`) rather than one cell. In 1D (where leaving robots out
+    scored lower) it is the single robot's policy."""
     if variant not in VARIANTS_1D:
         raise ValueError(f"variant must be one of {VARIANTS_1D}, got {variant!r}")
-    return _cached(env.config, variant if env.config.dim == 1 else "no-map")
+    team = bool(team) and env.config.dim > 1
+    policy = _cached(env.config, variant if env.config.dim == 1 else "no-map", team)
+    # The stride distribution is the env's params, not its configuration: the params of the policy.
+    return policy._replace(params=jnp.asarray(env.default_params.stride_probs)) if team else policy
 
 
 def handcrafted_policy_map(env: SNACEnv) -> Policy:

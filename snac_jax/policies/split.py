@@ -8,7 +8,11 @@ running the single-robot handcrafted policy (SPEC §11) on its share of the desi
 Why a split: the handcrafted robot builds every design cell it sees that lacks bricks, so robots
 given the whole design would crowd the same cells; given disjoint shares, each builds its own and
 the team's work adds up. The share of a cell is the robot whose start is nearest, so each robot
-starts inside its share, with walls in view that fix its position estimate.
+starts inside its share, with walls in view that fix its position estimate. In a team its
+localiser leaves out the cells where it sees another robot (`handcrafted_policy(team=True)`),
+which moved or built there between two views, and counts the median stride after a move that
+every stride explains (the team's `params`: the env's stride distribution); one robot is the
+single-robot policy itself.
 """
 
 from __future__ import annotations
@@ -38,7 +42,9 @@ def plan_shares(config: EnvConfig, num_robots: int) -> np.ndarray:
 def _split(env: MultiSNACEnv, variant: str) -> MultiPolicy:
     # One MultiPolicy (the same init/act objects) per configuration, so jitted callers that take
     # it as a static argument compile once per configuration.
-    single = handcrafted_policy(env.single, variant)
+    # One robot is the single-robot policy itself; in a team each robot's localiser leaves out
+    # the cells where it sees another robot.
+    single = handcrafted_policy(env.single, variant, team=env.num_agents > 1)
     shares = jnp.asarray(plan_shares(env.config, env.num_agents))
     starts = jnp.asarray(start_positions(env.config, env.num_agents))
 
@@ -49,8 +55,9 @@ def _split(env: MultiSNACEnv, variant: str) -> MultiPolicy:
         return states.replace(estimate=starts)
 
     def act(params, states, obs: jax.Array, key: jax.Array):
+        # `params`: the robots' (one robot: none; a team: the stride distribution, `odometry_stride`)
         keys = jax.random.split(key, env.num_agents)
-        return jax.vmap(single.act, in_axes=(None, 0, 0, 0))(single.params, states, obs, keys)
+        return jax.vmap(single.act, in_axes=(None, 0, 0, 0))(params, states, obs, keys)
 
     return MultiPolicy(init=init, act=act, params=None, name=f"{single.name}-split")
 
@@ -62,4 +69,6 @@ def handcrafted_split(env: MultiSNACEnv, variant: str = "no-map") -> MultiPolicy
         raise ValueError(f"handcrafted_split takes a snac_jax.multi env, got {type(env).__name__}")
     if variant not in VARIANTS_1D:
         raise ValueError(f"variant must be one of {VARIANTS_1D}, got {variant!r}")
-    return _split(env, variant)
+    # The same init/act per configuration (compiled once); the params, the robots' stride
+    # distribution in a team, are the env's own.
+    return _split(env, variant)._replace(params=handcrafted_policy(env.single, variant, team=env.num_agents > 1).params)
