@@ -12,9 +12,8 @@ import json
 import pytest
 
 from agents.table import ablation
-from agents.table.plan import make_plan
+from agents.table.plan import make_plan, scoring_config
 from agents.table.presets import Variant, load_presets
-from agents.table.run import scoring_config
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from tests.table_cells import cell_files, write_record
 

@@ -50,6 +50,22 @@ class Budget:
         return f"{text} (below {steps_text(self.requested)})" if self.below else text
 
 
+def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConfig:
+    """The config whose greedy policy a cell scores: its training config with the arm's
+    evaluation-only settings, which may only be the learner's `acting_options`."""
+    if not evaluation:
+        return config
+    other = sorted(set(evaluation) - set(config.acting_options))
+    if other:
+        raise ValueError(
+            f"{config.algorithm} cannot act with {other} at evaluation: an option there may change only how "
+            f"the trained policy acts, not its network, its world or its training; {config.algorithm}'s: "
+            f"{', '.join(config.acting_options) or 'none'}"
+        )
+    trained = {k: v for k, v in config.to_json().items() if k not in ("algorithm", "task")}
+    return make_config(config.algorithm, config.task, **{**trained, **evaluation})
+
+
 def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     """Env steps per seed the preset asks for `config`'s algorithm and task, and why."""
     budget, why = preset.budgets.get(config.algorithm, {}), preset.name
@@ -301,8 +317,6 @@ def make_plan(
     for cell in cells:
         adopts = preset.adopts is not None and cell.variant is not None
         if cell.evaluation:
-            from agents.table.run import scoring_config
-
             scoring_config(cell.config, cell.evaluation)  # an option the learner refuses fails before training
         cell_state(cell)
         if cell.status == "new" and adopts and cell.variant.name == BASE_ARM:

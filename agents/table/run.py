@@ -8,32 +8,12 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any
 
 from agents.table.files import CELL_FILE, CURVE_FILE
-from agents.table.plan import Cell, cell_state
+from agents.table.plan import Cell, cell_state, scoring_config
 from agents.training import checkpoint
-from agents.training.config import TrainConfig
 from snac_jax.atomic import atomic_write_json
 from snac_jax.evaluation import REPORT_EVAL_SEED
-
-
-def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConfig:
-    """The config whose greedy policy a cell scores: its training config with the arm's
-    evaluation-only settings, which may only be the learner's `acting_options`."""
-    from agents.training.registry import make_config
-
-    if not evaluation:
-        return config
-    other = sorted(set(evaluation) - set(config.acting_options))
-    if other:
-        raise ValueError(
-            f"{config.algorithm} cannot act with {other} at evaluation: an option there may change only how "
-            f"the trained policy acts, not its network, its world or its training; {config.algorithm}'s: "
-            f"{', '.join(config.acting_options) or 'none'}"
-        )
-    trained = {k: v for k, v in config.to_json().items() if k not in ("algorithm", "task")}
-    return make_config(config.algorithm, config.task, **{**trained, **evaluation})
 
 
 def run_cell(
