@@ -233,20 +233,21 @@ def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observat
         taken = jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0]
         return jnp.mean((taken - targets) ** 2)
 
-    grads = jax.grad(td_loss)(state.params)["params"]
+    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: op by op it compiles ~300 programs
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["auxiliary_heads"]))
     assert float(jnp.abs(grads["ScannedRNN_0"]["GRUCell_0"]["hn"]["kernel"]).max()) > 0  # the check bites
-    (_, info), full = jax.value_and_grad(agent._loss, has_aux=True)(state.params, carry0, batch, targets)
+    (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
     assert float(jnp.abs(full["params"]["auxiliary_heads"]["Dense_0"]["kernel"]).max()) > 0
     assert np.isfinite(float(info["position_loss"])) and float(info["belief_nll"]) >= 0.0
 
     policy = agent.policy(state.params)
     policy_state = policy.init(jax.random.key(1), agent.env_params.designs[0])
     obs, _ = agent.env.reset(jax.random.key(2), agent.env_params)
-    action, _ = policy.act(state.params, policy_state, obs, jax.random.key(3))
+    action, _ = jax.jit(policy.act)(state.params, policy_state, obs, jax.random.key(3))
     assert 0 <= int(action) < agent.env.num_actions
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_wider_egocentric_view_without_the_design_encoder():
     agent = build_algorithm(make_config("pqn-belief", "2d-dynamic-dense", **TINY, view_radius=7, design_encoder=False))
     params = jax.jit(agent.init)(jax.random.key(0)).params["params"]
@@ -293,9 +294,9 @@ def test_the_filters_move_head_learns_from_the_move_loss_only():
         (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         return jnp.mean((jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0] - targets) ** 2)
 
-    grads = jax.grad(td_loss)(state.params)["params"]
+    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: op by op it compiles ~300 programs
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["move_head"]))
-    (_, info), full = jax.value_and_grad(agent._loss, has_aux=True)(state.params, carry0, batch, targets)
+    (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
     assert all(float(jnp.abs(g).max()) > 0.0 for g in jax.tree.leaves(full["params"]["move_head"])[:1])
     assert np.isfinite(float(info["move_loss"])) and float(info["belief_nll"]) >= 0.0
     # The belief after the rollout rides in the carry: each world's rows and columns sum to 1.

@@ -208,6 +208,7 @@ def tiny_run(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_tiny_run_draws_the_evaluators_worst_episodes_with_their_beliefs(tiny_run, tmp_path, monkeypatch):
     from agents.training import trained
     from agents.training.checkpoint import read_config

@@ -24,6 +24,7 @@ def _committed_results() -> dict[str, int]:
     return {p.name: p.stat().st_mtime_ns for p in (ROOT / "bench" / "results").rglob("*") if p.is_file()}
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_tiny_run_writes_rows_table_and_plots(tmp_path):
     committed = _committed_results()
     rows = _run(
@@ -97,9 +98,7 @@ def test_quick_run_covers_every_task(tmp_path):
     assert e2e and all(item["wall_s"] > 0 and "env-steps/s" in item["output"] for item in e2e)
 
 
-@pytest.mark.parametrize(
-    "algorithm", ["ppo", pytest.param("pqn", marks=pytest.mark.slow), pytest.param("dqn", marks=pytest.mark.slow)]
-)
+@pytest.mark.parametrize("algorithm", [pytest.param(name, marks=pytest.mark.slow) for name in ("ppo", "pqn", "dqn")])
 def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_path):
     script = ROOT / "bench" / "train_throughput.py"
     done = subprocess.run(

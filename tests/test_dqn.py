@@ -161,11 +161,12 @@ def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart():
 
 def test_burn_in_steps_carry_no_gradient(her_1d):
     agent, state = her_1d
-    batch, obs, rewards, mask = agent.sample(state, jax.random.key(3))
+    batch, obs, rewards, mask = jax.jit(agent.sample)(state, jax.random.key(3))
     burn_in, first_trained = agent.burn_in, agent.config.context  # rows: previous step, burn-in, trained
     assert agent.layout.num_actions and first_trained == 1 + burn_in, "the fixture should read the previous step"
-    loss = lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0]
-    grad = np.asarray(jax.grad(loss)(obs))
+    # Jitted: op by op, the loss and its gradient compile some 300 small programs.
+    loss = jax.jit(lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0])
+    grad = np.asarray(jax.jit(jax.grad(loss))(obs))
     assert np.abs(grad[: first_trained - 1]).max() == 0.0
     # The last burn-in observation reaches the first trained step only as its previous window.
     assert np.abs(grad[first_trained - 1, ..., agent.layout.window_size :]).max() == 0.0
@@ -247,7 +248,7 @@ def test_hindsight_rewards_equal_replaying_against_the_final_grid(her_1d):
     _check_relabelled_rewards_equal_replay(agent, state, jax.random.key(11))
 
 
-@pytest.mark.parametrize("task", ["2d-static-dense", "1d-dynamic"])
+@pytest.mark.parametrize("task", [pytest.param("2d-static-dense", marks=pytest.mark.slow), "1d-dynamic"])
 def test_hindsight_relabelling_in_2d_and_on_dynamic_designs(task):
     agent = _agent(
         "drqn-her",
@@ -326,7 +327,7 @@ def test_annealed_learning_rate_decays_linearly_over_the_runs_gradient_steps():
     [
         ("dqn", "1d-static-gauss", dict(frame_stack=3, n_step=2)),
         ("drqn", "2d-static-sparse", dict(double_q=False, dueling=False)),
-        ("drqn-her", "2d-dynamic-dense", {}),
+        pytest.param("drqn-her", "2d-dynamic-dense", {}, marks=pytest.mark.slow),
     ],
 )
 def test_tiny_run_of_each_agent_completes(algorithm, task, options):
@@ -403,9 +404,9 @@ def test_replayed_windows_read_the_previous_step_from_the_row_before():
         assert inputs[t, o + w :].argmax() == a
 
 
-# Each is a training and an evaluation subprocess (~45 s); drqn stays in the default suite.
+# Each is a training and an evaluation subprocess (~45 s): `pytest -m slow` (test_train_driver runs PPO's in the default suite).
 @pytest.mark.parametrize(
-    "algorithm", [pytest.param("dqn", marks=pytest.mark.slow), "drqn", pytest.param("drqn-her", marks=pytest.mark.slow)]
+    "algorithm", [pytest.param(name, marks=pytest.mark.slow) for name in ("dqn", "drqn", "drqn-her")]
 )
 def test_cli_trains_each_value_based_agent_and_evaluates_it(algorithm, tmp_path):
     import json

@@ -21,7 +21,14 @@ def test_same_key_same_episode_and_other_key_differs(task):
     assert not np.array_equal(a[1][0], c[1][0])
 
 
-@pytest.mark.parametrize("task", ["1d-dynamic", "2d-dynamic-sparse", "3d-static-dense"])
+@pytest.mark.parametrize(
+    "task",
+    [
+        pytest.param("1d-dynamic", marks=pytest.mark.slow),
+        "2d-dynamic-sparse",
+        pytest.param("3d-static-dense", marks=pytest.mark.slow),
+    ],
+)
 def test_vmap_over_1024_envs_matches_single_env_runs(task):
     env, params = make(task, design_bank_size=256) if "dynamic" in task else make(task)
     keys = jax.random.split(jax.random.key(1), 1024)

@@ -225,6 +225,7 @@ def test_a_team_of_one_is_the_single_robot(tmp_path, capsys):
     assert (two["finished_fraction"] == 0.0) == (two["mean_length"] == 750)
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_team_checkpoint_is_scored_as_its_training_scored_it(tmp_path, capsys):
     """`snac eval --checkpoint` of an ippo run: the team, its robots and step limit from the run,
     the same numbers as the run's own evaluation (`evaluate_team`) on the same key."""

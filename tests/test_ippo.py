@@ -76,7 +76,7 @@ def test_every_robot_reads_its_index_and_the_worlds_keep_their_axis_first():
     assert not np.allclose(logits[0, 0, 0], logits[0, 0, 1])
 
 
-@pytest.mark.parametrize("robots", [1, 2])
+@pytest.mark.parametrize("robots", [pytest.param(1, marks=pytest.mark.slow), 2])
 def test_training_counts_episodes_per_world_and_learns_finite(robots):
     # A step limit of 6 ends every world's episode inside a rollout of 8 steps.
     config = make_config("ippo", "1d-static-sin", robots=robots, max_steps=6, total_steps=2 * 4 * 8, **TINY)
@@ -119,6 +119,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert [r["chunk"] for r in read_metrics(tmp_path / "killed")] == [0, 1, 2]
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_snac_train_ippo_trains_and_scores_the_team(tmp_path, capsys):
     from snac_jax.cli import main
 

@@ -140,8 +140,8 @@ def make_train(env, env_params):
     ("task", "overrides"),
     [
         ("1d-static-sin", {"max_steps": 6}),
-        ("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6, "gps": True}),
-        ("3d-static-dense", {"max_steps": 6, "landmarks": 2}),
+        pytest.param("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6, "gps": True}, marks=pytest.mark.slow),
+        pytest.param("3d-static-dense", {"max_steps": 6, "landmarks": 2}, marks=pytest.mark.slow),
     ],
 )
 def test_purejaxrl_shaped_ppo_runs(task, overrides):
@@ -189,7 +189,7 @@ def _standalone_example():
     ("task", "env_kwargs"),
     [
         ("1d-static-sin", {"max_steps": 6}),
-        ("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}),
+        pytest.param("2d-dynamic-sparse", {"design_bank_size": 4, "max_steps": 6}, marks=pytest.mark.slow),
     ],
 )
 def test_the_standalone_example_trains_and_scores_its_greedy_policy(task, env_kwargs):

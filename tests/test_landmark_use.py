@@ -108,6 +108,7 @@ def tiny_run(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_tiny_run_gives_consistent_counts_and_the_protocols_ious(tiny_run, tmp_path):
     from agents.training import trained
     from agents.training.checkpoint import read_config

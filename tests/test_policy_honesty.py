@@ -342,7 +342,9 @@ class LyingTeamButDesign(LyingTeam):
         )
 
 
-@pytest.mark.parametrize("task, robots", [("2d-dynamic-dense", 2), ("2d-static-dense", 4)])
+@pytest.mark.parametrize(
+    "task, robots", [("2d-dynamic-dense", 2), pytest.param("2d-static-dense", 4, marks=pytest.mark.slow)]
+)
 def test_the_handcrafted_split_ignores_the_state_it_cannot_observe(task, robots):
     """The handcrafted split (SPEC §13) acts from its observations, the design and its memory: on a
     world lying about the true positions, the grid, the budget and the IoU sums (not the design,

@@ -132,7 +132,12 @@ def test_scanned_recurrent_network_equals_step_by_step_with_resets():
 
 
 @pytest.mark.parametrize(
-    "task,recurrent", [("1d-static-sin", False), ("1d-static-sin", True), ("2d-dynamic-sparse", True)]
+    "task,recurrent",
+    [
+        pytest.param("1d-static-sin", False, marks=pytest.mark.slow),
+        ("1d-static-sin", True),
+        pytest.param("2d-dynamic-sparse", True, marks=pytest.mark.slow),
+    ],
 )
 def test_tiny_training_run_has_finite_losses(task, recurrent):
     config = make_config("ppo", task, recurrent=recurrent, **TINY)

@@ -265,7 +265,10 @@ def test_cross_entropy_priority_changes_the_priority_not_the_loss():
     assert np.all(np.asarray(ce) > np.asarray(kl) + 1e-3)
 
 
-@pytest.mark.parametrize("options", [dict(), dict(sequence_length=3, n_step=2, frame_stack=2)])
+@pytest.mark.parametrize(
+    "options",
+    [pytest.param(o, marks=pytest.mark.slow) for o in (dict(), dict(sequence_length=3, n_step=2, frame_stack=2))],
+)
 def test_window_logits_are_the_full_windows_rows_the_loss_reads(options):
     """The loss computes only the learning rows and the rows n steps later; under the same noise
     keys they equal those rows of the whole window read at once (the network is feed-forward)."""
@@ -405,6 +408,7 @@ def test_ablated_and_other_configurations_train(options):
         assert "NoisyDense_0" not in state.params["params"] and metrics["epsilon"][0] > 0.0
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_layer_norm_normalises_every_hidden_layer_and_is_off_by_default():
     # Four hidden ReLUs (two in the encoder, one per dueling stream), each after a LayerNorm; with
     # them the output no longer depends on the scale of the first layer's pre-activations.

@@ -110,7 +110,7 @@ def with_drop_down_first(params):
 @pytest.mark.parametrize(
     "learner, config", [(PQN, PQNConfig), pytest.param(PQNAux, PQNAuxConfig, marks=pytest.mark.slow)]
 )
-@pytest.mark.parametrize("safe_drops", [True, False])
+@pytest.mark.parametrize("safe_drops", [pytest.param(True, marks=pytest.mark.slow), False])
 def test_the_greedy_rollout_and_its_bootstrap_skip_the_refused_drop(learner, config, safe_drops):
     # Greedy (epsilon 0) from staggered starts, the head preferring the drop down everywhere: where
     # down is the last free neighbour, the rollout must act otherwise and bootstrap from the best

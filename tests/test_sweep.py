@@ -64,6 +64,7 @@ def sweep_run(tmp_path_factory):
     return base, config, swept
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_sweep_of_two_values_and_two_seeds_equals_the_separate_runs(sweep_run):
     base, config, swept = sweep_run
     assert swept.num_arms == 2 and swept.arms == ((VALUES[0],), (VALUES[1],))

@@ -36,7 +36,8 @@ def test_chunk_sizes_cover_the_run():
     assert chunk_sizes(2, 20) == [1, 1]
 
 
-@pytest.mark.parametrize("ahead", [True, pytest.param(False, marks=pytest.mark.slow)])  # False: `pytest -m slow`
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
+@pytest.mark.parametrize("ahead", [True, False])
 def test_a_shorter_last_chunk_compiles_once_ahead_or_when_needed_and_changes_nothing(
     tmp_path, capsys, monkeypatch, ahead
 ):
@@ -359,6 +360,7 @@ def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     assert gif.stat().st_size > 0
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, capsys, monkeypatch):
     """A `--seeds 2` run keeps both policies in one checkpoint: `snac eval --checkpoint
     --seed-index 1` and `snac render` load the second (the first by default), an index past the
@@ -874,6 +876,7 @@ def test_run_files_are_readable_by_others(tmp_path):
     assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tmp_path, capsys):
     """The paper scored the task as defined: a run trained (and so scored) with max_steps 5 has
     no paper row or delta beside it, as `snac eval` of its checkpoint says."""

@@ -222,6 +222,7 @@ def test_snac_train_refuses_learning_starts_beyond_the_budget_in_one_line(tmp_pa
 # --- divergence ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
 def test_a_diverged_run_is_flagged_resumed_and_noted_beside_its_evaluation(tmp_path, capsys):
     """Rewards scaled past float32 make the critic's loss infinite from its first gradient step,
     which `learning_starts` puts in the last two of three chunks."""
