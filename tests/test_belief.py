@@ -233,7 +233,7 @@ def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observat
         taken = jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0]
         return jnp.mean((taken - targets) ** 2)
 
-    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: op by op it compiles ~300 programs
+    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: one program, not one per op
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["auxiliary_heads"]))
     assert float(jnp.abs(grads["ScannedRNN_0"]["GRUCell_0"]["hn"]["kernel"]).max()) > 0  # the check bites
     (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
@@ -294,7 +294,7 @@ def test_the_filters_move_head_learns_from_the_move_loss_only():
         (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         return jnp.mean((jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0] - targets) ** 2)
 
-    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: op by op it compiles ~300 programs
+    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: one program, not one per op
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["move_head"]))
     (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
     assert all(float(jnp.abs(g).max()) > 0.0 for g in jax.tree.leaves(full["params"]["move_head"])[:1])

@@ -279,7 +279,7 @@ def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes()
     np.testing.assert_array_equal(times, again)
 
 
-@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
+@pytest.mark.slow  # about 10 s on the 2-core CPU, cold: `pytest -m slow` (CI runs both)
 def test_two_seeds_through_the_driver_differ(tmp_path):
     from agents.training.driver import read_metrics, train
 

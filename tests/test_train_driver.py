@@ -876,7 +876,7 @@ def test_run_files_are_readable_by_others(tmp_path):
     assert modes == {name: 0o644 for name in ("config.json", "run.json", "metrics.jsonl", "curve.png", "eval.json")}
 
 
-@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
+@pytest.mark.slow  # about 10 s on the 2-core CPU, cold: `pytest -m slow` (CI runs both)
 def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tmp_path, capsys):
     """The paper scored the task as defined: a run trained (and so scored) with max_steps 5 has
     no paper row or delta beside it, as `snac eval` of its checkpoint says."""
