@@ -239,13 +239,8 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
         assert not _reads_the_design(once)
         return
     assert engaged, calls  # every learner trains on sequences (replayed windows too) longer than the bound
-    if algorithm in ACTING_WITH_THE_CACHE:
-        assert refreshed, "its rollout encodes every world's design at every step"
-
-
-# The learners whose rollouts keep each world's design features between steps
-# (`networks.apply_with_design_cache`).
-ACTING_WITH_THE_CACHE = {"ppo", "pqn", "pqn-aux", "ppo-privileged", "ippo"}
+    # and acts with each world's design features kept between steps (`networks.apply_with_design_cache`)
+    assert refreshed, "its rollout encodes every world's design at every step"
 
 
 def _encode_counting(calls):

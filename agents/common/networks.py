@@ -159,19 +159,26 @@ def refresh_design_features(
     return features
 
 
-def apply_with_design_cache(network: nn.Module, variables, cache, *inputs):
-    """`network.apply(variables, *inputs)` for one acting step, with the design features of the
-    worlds whose design did not change taken from `cache` (`refresh_design_features`); returns
-    `(outputs, cache)`. Start each rollout from `empty_design_cache`, since the parameters, and
-    so the features, change between rollouts. A network without a design encoder gives `{}`."""
-    outputs, mutated = network.apply({**variables, DESIGN_CACHE: cache}, *inputs, mutable=[DESIGN_CACHE])
+def apply_with_design_cache(network: nn.Module, variables, cache, *inputs, **kwargs):
+    """`network.apply(variables, *inputs, **kwargs)` for one acting step, with the design
+    features of the worlds whose design did not change taken from `cache`
+    (`refresh_design_features`); returns `(outputs, cache)`. Start each rollout from
+    `empty_design_cache` (or `unseen_design_cache`), since the parameters, and so the features,
+    change between rollouts. A network without a design encoder gives `{}`."""
+    outputs, mutated = network.apply({**variables, DESIGN_CACHE: cache}, *inputs, mutable=[DESIGN_CACHE], **kwargs)
     return outputs, mutated.get(DESIGN_CACHE, {})
 
 
+def unseen_design_cache(shapes):
+    """A cache of the structure `shapes` (as `jax.eval_shape` gives it) that has seen no design
+    (NaN): the first step of a rollout encodes every world's."""
+    return jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes)
+
+
 def empty_design_cache(network: nn.Module, variables, *inputs):
-    """A cache that has seen no design (NaN): the first step of a rollout encodes every world's."""
+    """`unseen_design_cache` of `network` applied to `inputs`."""
     _, shapes = jax.eval_shape(lambda: network.apply(variables, *inputs, mutable=[DESIGN_CACHE]))
-    return jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes.get(DESIGN_CACHE, {}))
+    return unseen_design_cache(shapes.get(DESIGN_CACHE, {}))
 
 
 def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
@@ -216,25 +223,21 @@ class ObservationEncoder(nn.Module):
     def design_features(self, design: jax.Array) -> jax.Array:
         """`DesignEncoder` features of `design (*lead, *plan)`: once per run of one design along
         the time axis where the inputs are a sequence `(T, B, *plan)` (`encode_design_runs`, its
-        bound from the layout); for one step `(1, B, *plan)` applied with the `DESIGN_CACHE`
-        collection mutable (`apply_with_design_cache`, acting), only for the worlds whose design
-        differs from the cached one; at every entry otherwise (stacked frames, whose zeroed
-        history changes more often than episodes do)."""
+        bound from the layout); for one step `(1, B, *plan)` or one frame `(1, B, 1, *plan)`
+        applied with the `DESIGN_CACHE` collection mutable (`apply_with_design_cache`, acting),
+        only for the worlds whose design differs from the cached one; at every entry otherwise
+        (stacked frames, whose zeroed history changes more often than episodes do)."""
         encoder = DesignEncoder(self.hidden_size)
         lead = design.shape[:-2]
-        if (
-            lead[:1] == (1,)
-            and len(lead) == 2
-            and self.is_mutable_collection(DESIGN_CACHE)
-            and not self.is_initializing()
-        ):
-            current = design[0]
+        one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
+        if one_frame and lead[0] == 1 and self.is_mutable_collection(DESIGN_CACHE) and not self.is_initializing():
+            current = design.reshape((lead[1],) + design.shape[-2:])
             seen = self.variable(DESIGN_CACHE, "design", jnp.full, current.shape, jnp.nan, current.dtype)
-            cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, lead[1:] + (self.hidden_size,), jnp.float32)
+            cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, (lead[1], self.hidden_size), jnp.float32)
             cached.value = refresh_design_features(encoder, current, seen.value, cached.value)
             seen.value = current
-            return cached.value[None]
-        if len(lead) == 2 or (len(lead) == 3 and lead[2] == 1):
+            return cached.value.reshape(lead + (self.hidden_size,))
+        if one_frame:
             sequence = design.reshape((lead[0], -1) + design.shape[-2:])  # (T, B, *plan)
             features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))
             return features.reshape(lead + (self.hidden_size,))

@@ -41,7 +41,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import frames_with_history
+from agents.common.networks import frames_with_history, unseen_design_cache
 from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
 
@@ -235,8 +235,9 @@ class ReplayLearner:
         """`(carry, scores (T, B, A))` whose argmax is the greedy action, from `frames (T, B, k, O)`."""
         raise NotImplementedError
 
-    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array):
-        """`(carry, action (B,))`: the exploring action of every world, with `acting_keys` keys."""
+    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array, cache):
+        """`(carry, action (B,), cache)`: the exploring action of every world, with `acting_keys`
+        keys, its network applied with the design cache `cache` (`apply_with_design_cache`)."""
         raise NotImplementedError
 
     def loss(self, params, target_params, batch: Step, obs, rewards, mask) -> tuple[jax.Array, dict]:
@@ -305,13 +306,17 @@ class ReplayLearner:
         )
         return env_state, obs, reward, done, info, step, worlds
 
-    def _env_step(self, params, worlds: Worlds, key: jax.Array, env_steps: jax.Array, env_params):
-        """One exploring step in every world."""
+    def _acting_frames(self, worlds: Worlds) -> tuple[jax.Array, jax.Array]:
+        """`(net_obs (B, O'), frames (B, k, O'))`: the network input of every world's next action."""
+        net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
+        return net_obs, frames_with_history(worlds.history, net_obs)
+
+    def _env_step(self, params, worlds: Worlds, cache, key: jax.Array, env_steps: jax.Array, env_params):
+        """One exploring step in every world; `cache`: the acting network's design cache."""
         n = self.config.num_envs
         keys = jax.random.split(key, self.acting_keys + 1)  # to act with, and the last to step the worlds
-        net_obs = self.layout.with_previous_step(worlds.obs, worlds.previous_obs, worlds.last_action, worlds.reset)
-        frames = frames_with_history(worlds.history, net_obs)
-        carry, action = self.act(params, worlds, frames, keys[:-1], env_steps)
+        net_obs, frames = self._acting_frames(worlds)
+        carry, action, cache = self.act(params, worlds, frames, keys[:-1], env_steps, cache)
         env_state, obs, reward, done, info, step, worlds = self._world_step(
             worlds, jax.random.split(keys[-1], n), action, env_params
         )
@@ -337,17 +342,24 @@ class ReplayLearner:
             episode_return=jnp.where(done, 0.0, episode_return),
             episode=worlds.episode + done.astype(jnp.int32),
         )
-        return worlds, step, stats
+        return worlds, step, stats, cache
 
     def _rollout(self, state: RunnerState, env_params):
         def body(carry, _):
-            worlds, key, env_steps = carry
+            worlds, cache, key, env_steps = carry
             key, key_step = jax.random.split(key)
-            worlds, step, stats = self._env_step(state.params, worlds, key_step, env_steps, env_params)
-            return (worlds, key, env_steps + self.config.num_envs), (step, stats)
+            worlds, step, stats, cache = self._env_step(state.params, worlds, cache, key_step, env_steps, env_params)
+            return (worlds, cache, key, env_steps + self.config.num_envs), (step, stats)
 
-        (worlds, key, env_steps), (steps, stats) = jax.lax.scan(
-            body, (state.worlds, state.key, state.env_steps), None, length=self.config.rollout_steps
+        # The design features of each world are kept from step to step (a dynamic task's design
+        # is constant for an episode) and encoded again where a world's design changes; the
+        # cache starts empty in each rollout, as the parameters changed since the last.
+        _, frames = self._acting_frames(state.worlds)
+        keys = jax.random.split(state.key, self.acting_keys)
+        shapes = jax.eval_shape(lambda: self.act(state.params, state.worlds, frames, keys, state.env_steps, {})[2])
+        cache = unseen_design_cache(shapes)
+        (worlds, _, key, env_steps), (steps, stats) = jax.lax.scan(
+            body, (state.worlds, cache, state.key, state.env_steps), None, length=self.config.rollout_steps
         )
         state = state.replace(worlds=worlds, key=key, env_steps=env_steps)
         return state, steps, jax.tree.map(jnp.sum, stats)

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from agents.common.networks import QNetwork, stack_frames
+from agents.common.networks import QNetwork, apply_with_design_cache, stack_frames
 from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
 from agents.common.targets import n_step_targets
 from agents.training.config import option
@@ -104,18 +104,19 @@ class DQN(ReplayLearner):
     def action_scores(self, params, carry, frames, resets):
         return self.network.apply(params, carry, frames, resets)
 
-    def acting_scores(self, params, carry, frames, resets, keys: jax.Array):
-        """The Q-values `act` is epsilon-greedy on, given the `acting_keys` beyond its own two."""
-        return self.action_scores(params, carry, frames, resets)
+    def acting_scores(self, params, carry, frames, resets, keys: jax.Array, cache):
+        """`((carry, Q-values), cache)`: the Q-values `act` is epsilon-greedy on, given the
+        `acting_keys` beyond its own two and the design cache (`apply_with_design_cache`)."""
+        return apply_with_design_cache(self.network, params, cache, carry, frames, resets)
 
-    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array):
+    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array, cache):
         """Epsilon-greedy on the Q-values (`acting_scores`)."""
         n = self.config.num_envs
         key_explore, key_random = keys[0], keys[1]
-        carry, q = self.acting_scores(params, worlds.carry, frames[None], worlds.reset[None], keys[2:])
+        (carry, q), cache = self.acting_scores(params, worlds.carry, frames[None], worlds.reset[None], keys[2:], cache)
         explore = jax.random.uniform(key_explore, (n,)) < self.epsilon(env_steps)
         action = jnp.where(explore, jax.random.randint(key_random, (n,), 0, self.env.num_actions), jnp.argmax(q[0], -1))
-        return carry, action
+        return carry, action, cache
 
     def update_target(self, params, target_params, gradient_step):
         return optax.periodic_update(params, target_params, gradient_step, self.config.target_update_interval)

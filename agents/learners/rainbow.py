@@ -33,7 +33,7 @@ import numpy as np
 import optax
 from jax.scipy.special import xlogy
 
-from agents.common.networks import QNetwork
+from agents.common.networks import QNetwork, apply_with_design_cache
 from agents.common.offpolicy import RunnerState, Step
 from agents.common.targets import categorical_projection, n_step_returns
 from agents.learners.dqn import DQN, DQNConfig
@@ -164,11 +164,13 @@ class Rainbow(DQN):
     def action_scores(self, params, carry, frames, resets):
         return self.q_values(params, carry, frames, resets)
 
-    def acting_scores(self, params, carry, frames, resets, keys: jax.Array):
+    def acting_scores(self, params, carry, frames, resets, keys: jax.Array, cache):
         """Q-values under noise drawn for each world apart. Why: one draw for all worlds perturbs
         every world the same way, and at sigma0 = 0.1 that rarely changes the mean network's
         choice, so all worlds took the same action (bench/results/rainbow.md)."""
-        return self.q_values(params, carry, frames, resets, keys[0], per_world=True)
+        noise = {"noise": True, "noise_per_world": True, "rngs": {"noise": keys[0]}} if self.config.noisy else {}
+        (carry, logits), cache = apply_with_design_cache(self.network, params, cache, carry, frames, resets, **noise)
+        return (carry, self.expected(logits)), cache
 
     # --- learning ----------------------------------------------------------------------------------
 

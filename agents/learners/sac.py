@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import optax
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import ObservationEncoder, scaled_init
+from agents.common.networks import ObservationEncoder, apply_with_design_cache, scaled_init
 from agents.common.offpolicy import ReplayConfig, ReplayLearner, Step, Worlds
 from agents.common.targets import n_step_targets
 from agents.training.config import option
@@ -202,13 +202,13 @@ class SAC(ReplayLearner):
     def action_scores(self, params, carry, frames, resets):
         return carry, self.actor.apply(params["actor"], frames[..., 0, :])
 
-    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array):
+    def act(self, params, worlds: Worlds, frames: jax.Array, keys: jax.Array, env_steps: jax.Array, cache):
         """A sample of the policy, or a uniformly random action before `learning_starts`."""
         key_random, key_policy = keys
-        _, logits = self.action_scores(params, worlds.carry, frames[None], worlds.reset[None])
+        logits, cache = apply_with_design_cache(self.actor, params["actor"], cache, frames[None, :, 0, :])
         sampled = jax.random.categorical(key_policy, logits[0])
         uniform = jax.random.randint(key_random, sampled.shape, 0, self.env.num_actions)
-        return worlds.carry, jnp.where(env_steps < self.config.learning_starts, uniform, sampled)
+        return worlds.carry, jnp.where(env_steps < self.config.learning_starts, uniform, sampled), cache
 
     def update_target(self, params, target_params, gradient_step):
         return optax.incremental_update(params["critic"], target_params, self.config.tau)
