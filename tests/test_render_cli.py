@@ -172,6 +172,32 @@ def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     assert not np.all(iio.imread(single, index=None) == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1).any()
 
 
+def test_a_registered_policy_is_drawn_as_a_team_of_robots(tmp_path, capsys):
+    """`snac render --policy handcrafted --robots 3` draws the handcrafted split's team: robot 2's
+    colour, which neither a single robot nor a team of two holds, is in every frame; `--robots`
+    with a checkpoint is refused before anything runs."""
+    from snac_jax.rendering.robots import ROBOT_COLOURS
+
+    third = np.array(ROBOT_COLOURS[2], np.uint8)
+    out = tmp_path / "team.gif"
+    args = ["render", "--task", "2d-static-dense", "--policy", "handcrafted", "--max-steps", "6", "--every", "3"]
+    assert main([*args, "--robots", "3", "--out", str(out), "--seed", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "policy handcrafted-split, 3 robots, seed 1: " in printed
+    steps = int(re.search(r"(\d+) steps", printed).group(1))
+    frames = iio.imread(out, index=None)
+    assert frames.shape[0] == len(frame_indices(steps, 3))
+    assert np.all(frames == third, axis=-1).any(axis=(1, 2)).all()
+    pair = tmp_path / "pair.gif"
+    assert main([*args, "--robots", "2", "--out", str(pair)]) == 0
+    assert not np.all(iio.imread(pair, index=None) == third, axis=-1).any()
+    capsys.readouterr()
+    rc = main(
+        ["render", "--task", "2d-static-dense", "--checkpoint", str(tmp_path), "--robots", "2", "--out", str(out)]
+    )
+    assert rc == 2 and "--robots goes with --policy" in capsys.readouterr().err
+
+
 def test_a_team_episode_compiles_once_per_configuration():
     """Two episodes of one team and world (other keys) reuse one compilation of the recorder."""
     import jax

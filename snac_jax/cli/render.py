@@ -1,8 +1,9 @@
 """`snac render`: record one episode of a policy as a GIF, with step, bricks and IoU on every frame.
 
-The checkpoint of a team run (`snac train ippo --robots N`) is drawn as its team: N robots in one
-world (`snac_jax.multi`, SPEC §13), each in its colour (`snac_jax.rendering.robots`), its episode
-recorded by `snac_jax.multi.episodes.record_team_episode`.
+A team is drawn as N robots in one world (`snac_jax.multi`, SPEC §13), each in its colour
+(`snac_jax.rendering.robots`), its episode recorded by `snac_jax.multi.episodes.record_team_episode`:
+a registered policy with `--robots N` (as `snac eval --robots`: the handcrafted ones split the plan,
+`snac_jax.policies.team`), or the checkpoint of a team run (`snac train ippo --robots N`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,13 @@ def add_parser(subparsers) -> None:
         default=None,
         metavar="DIR",
         help="a trained agent's checkpoint directory (a team run, snac train ippo, draws its team)",
+    )
+    parser.add_argument(
+        "--robots",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="with --policy: a team of N robots in one world (SPEC §13); handcrafted splits the plan among them",
     )
     add_seed_index_argument(parser)
     parser.add_argument("--out", required=True, help="the GIF to write (written atomically)")
@@ -99,11 +107,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--hold must be >= 0 seconds, got {args.hold}")
     if args.policy is not None and args.checkpoint is not None:
         raise ValueError("give --policy NAME or --checkpoint DIR, not both")
+    if args.robots is not None and args.checkpoint is not None:
+        raise ValueError("--robots goes with --policy; a checkpoint is drawn with its run's own robots")
     check_seed_index(args)
     check_writable(args.out, "--out")
     name = args.policy or (f"checkpoint {args.checkpoint}" if args.checkpoint else "random")
     overrides = {} if args.max_steps is None else {"max_steps": args.max_steps}
-    robots = None  # a team run's robot count
+    robots = args.robots  # a team's robot count (None: one robot, the single-robot env)
     try:
         if args.checkpoint is not None:
             from snac_jax.plugins import load_checkpoint
@@ -120,9 +130,11 @@ def run(args: argparse.Namespace) -> int:
             policy = build_policy(name, env) if args.checkpoint is None else builder(env)
         else:
             from snac_jax import multi
+            from snac_jax.policies.team import team_policy
 
             env = multi.make(args.task, num_robots=robots, **overrides)
-            params, policy = env.default_params, builder(env)
+            params = env.default_params
+            policy = team_policy(name, env) if args.checkpoint is None else builder(env)
     except (ValueError, FileNotFoundError) as error:
         raise ValueError(f"policy {name!r}: {error}") from error
     one_frame = frame_bytes(env if robots is None else env.single, params, args.cell)
