@@ -3,7 +3,7 @@
 A file edited by hand, cut short by a full disk or written by another program must fail with one
 line naming the file and the field (`<file>: seeds must be an int >= 1, got '2'`), never with a
 `KeyError` deep inside a report, and never be half-read. A schema is a small tree of specs
-(`Int`, `Number`, `Bool`, `Str`, `ListOf`, `Object`, `MapOf`, `Nullable`, `Anything`), each of
+(`Int`, `Number`, `Bool`, `Str`, `ListOf`, `Object`, `MapOf`, `Nullable`, `Either`, `Anything`), each of
 which says in words what it allows; `check` walks a parsed value against it and `load_json` reads,
 parses and checks a file. Numbers are always finite: JSON readers accept `NaN` and `Infinity`,
 and a score of NaN is no score.
@@ -175,6 +175,25 @@ class OneOf(Spec):
     def check(self, value: Any, field: str) -> None:
         if not any(type(value) is type(v) and value == v for v in self.values):
             raise mismatch(field, self.describe(), value)
+
+
+class Either(Spec):
+    """A value that matches one of `specs` (a number, or a table of numbers)."""
+
+    def __init__(self, *specs: Spec):
+        self.specs = specs
+
+    def describe(self) -> str:
+        return " or ".join(spec.describe() for spec in self.specs)
+
+    def check(self, value: Any, field: str) -> None:
+        errors = []
+        for spec in self.specs:
+            try:
+                return spec.check(value, field)
+            except Mismatch as error:
+                errors.append(str(error))
+        raise Mismatch(errors[-1] if isinstance(value, dict) else str(mismatch(field, self.describe(), value)))
 
 
 class Nullable(Spec):

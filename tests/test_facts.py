@@ -106,48 +106,23 @@ def test_the_paper_presets_budgets_are_the_paper_appendixs():
     assert all(budget.get("source") for budget in paper.budgets.values())
 
 
-def test_a_budget_given_as_same_as_is_that_entrys():
+def test_an_ablation_trains_the_budgets_of_the_preset_it_adopts_unless_it_gives_its_own():
     from agents.table.presets import load_presets
 
     raw, presets = tomllib.loads(BUDGETS.read_text()), load_presets()
-    references = [
-        (name, algorithm, budget["same_as"])
-        for name, table in raw.items()
-        for algorithm, budget in table.get("budgets", {}).items()
-        if "same_as" in budget
-    ]
-    assert {(name, algorithm) for name, algorithm, _ in references} >= {
-        ("ablation", "drqn"),
-        ("privileged-ablation", "ppo-privileged"),
-        ("paper", "ppo-privileged"),
-    }
-    for name, algorithm, reference in references:
-        other, _, learner = reference.partition(".")
-        mine, theirs = presets[name].budgets[algorithm], presets[other].budgets[learner]
-        assert {k: mine.get(k) for k in ("env_steps", "episodes")} == {
-            k: theirs.get(k) for k in ("env_steps", "episodes")
-        }
-        assert theirs["source"] in mine["source"]
-
-
-@pytest.mark.parametrize(
-    "entry, message",
-    [
-        ('same_as = "paper.nobody"', "same_as must name"),
-        ('same_as = "paper.ppo", env_steps = 5', "same_as stands alone"),
-        ('same_as = "q.ppo"', "same_as must name"),  # itself a same_as: one step only
-    ],
-)
-def test_a_same_as_that_names_no_budget_is_refused(tmp_path, entry, message):
-    from agents.table.presets import load_presets
-
-    path = tmp_path / "budgets.toml"
-    path.write_text(
-        f'[paper.budgets]\nppo = {{ env_steps = 10, source = "s" }}\n[q.budgets]\nppo = {{ same_as = "paper.ppo" }}\n'
-        f"[r.budgets]\nppo = {{ {entry} }}\n"
-    )
-    with pytest.raises(ValueError, match=message):
-        load_presets(path)
+    adopting = [name for name, preset in presets.items() if preset.adopts is not None]
+    assert {"ablation", "privileged-ablation", "belief-ablation"} <= set(adopting)
+    for name in adopting:
+        preset, own = presets[name], raw[name].get("budgets", {})
+        for algorithm, theirs in presets[preset.adopts].budgets.items():
+            mine = preset.budgets[algorithm]
+            if algorithm in own:
+                assert mine == own[algorithm], (name, algorithm)
+            else:
+                steps = ("env_steps", "episodes")
+                assert {k: mine.get(k) for k in steps} == {k: theirs.get(k) for k in steps}, (name, algorithm)
+                assert theirs["source"] in mine["source"]
+    assert presets["ablation"].budgets["drqn"]["episodes"] == presets["paper"].budgets["drqn"]["episodes"]
 
 
 # --- the observation's cell values -------------------------------------------------------------

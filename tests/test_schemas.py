@@ -158,35 +158,35 @@ def test_eval_json_refuses_statistics_that_cannot_hold_together(tmp_path):
 
 
 def test_a_cells_raw_copy_is_checked_part_by_part_naming_the_part_and_the_field(tmp_path):
-    from agents.table.files import raw_text, read_cell, read_raw
+    from agents.table.files import read_cell, read_raw
 
     cell = tmp_path / "runs" / "ppo" / "1d-static-sin"
     write_cell(cell)
     copy = tmp_path / "results" / "ppo" / "1d-static-sin.json"
     copy.parent.mkdir(parents=True)
-    copy.write_text(raw_text(read_cell(cell)))
+    copy.write_text(read_cell(cell))
     assert read_raw(copy)["eval"] == json.loads((cell / "eval.json").read_text())
     _refused(
         _edit(copy, lambda d: d["cell"]["budget"].update(capped="no")),
         schemas.RAW_CELL_JSON,
         "1d-static-sin.json: cell.budget.capped must be true or false, got 'no'",
     )
-    copy.write_text(raw_text(read_cell(cell)))
+    copy.write_text(read_cell(cell))
     _refused(
         _edit(copy, lambda d: d["curve"].append({"chunk": 1, "wall_s": -1.0})),
         schemas.RAW_CELL_JSON,
         "1d-static-sin.json: curve[1].wall_s must be a finite number >= 0",
     )
-    copy.write_text(raw_text(read_cell(cell)))
+    copy.write_text(read_cell(cell))
     _refused(
         _edit(copy, lambda d: d["curve"].append({"iou": 0.5})),
         schemas.RAW_CELL_JSON,
         "1d-static-sin.json: curve[1].chunk must be an int >= 0, got None",
     )
-    copy.write_text(raw_text(read_cell(cell)))
+    copy.write_text(read_cell(cell))
     _refused(_edit(copy, lambda d: d.pop("eval")), schemas.RAW_CELL_JSON, "1d-static-sin.json: eval is missing")
     # A copy under another cell's name is refused, naming both.
-    copy.write_text(raw_text(read_cell(cell)))
+    copy.write_text(read_cell(cell))
     elsewhere = copy.with_name("1d-static-gauss.json")
     copy.rename(elsewhere)
     with pytest.raises(

@@ -8,16 +8,14 @@ import argparse
 import dataclasses
 import json
 import re
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from agents.table import ablation, statistics
-from agents.table.ablation import READ_FROM_ADOPTED
 from agents.table.plan import TRAIN_SEED, format_plan, make_plan
-from agents.table.presets import BUDGETS_FILE, Variant, expand_tasks, load_presets
+from agents.table.presets import Variant, expand_tasks, load_presets
 from agents.table.report import build, markdown
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from tests.table_cells import cell_files as _files
@@ -55,72 +53,64 @@ def test_paper_budgets_and_estimates(tmp_path):
     assert len(cells) == 3 * 4 and {c.status for c in cells} == {"new"}
     # PPO: 10M steps per seed, trained as 152 whole updates of 1024 worlds x 64 steps.
     ppo = by["ppo", "1d-static-gauss"]
-    assert ppo.config.total_steps == 10_000_000 and not ppo.budget.below and ppo.total_steps == 152 * 1024 * 64
+    assert ppo.config.total_steps == 10_000_000 and ppo.total_steps == 152 * 1024 * 64
     assert ppo.config.seeds == 3 and ppo.config.seed == TRAIN_SEED
     # DRQN: 10,000 episodes x 750 steps, the whole of it: nothing caps a budget.
     drqn = by["drqn", "1d-static-sin"]
-    assert (drqn.budget.requested, drqn.budget.env_steps, drqn.config.total_steps) == (7_500_000,) * 3
+    assert drqn.config.total_steps == 7_500_000
+    assert drqn.record()["budget"] == {"env_steps": 7_500_000, "requested": 7_500_000, "source": drqn.budget_source}
     # DQN: 3,000 episodes x 600 steps on 2D.
-    assert by["dqn", "2d-static-dense"].budget.requested == 1_800_000
+    assert by["dqn", "2d-static-dense"].config.total_steps == 1_800_000
     # A cell that has not started has no time estimate: nothing measured it.
     assert {(c.estimate_s, c.estimate_from) for c in cells} == {(None, "unknown: not started")}
     text = format_plan(cells, tmp_path)
     assert "x the step limit (1D: 750)" in text
     assert "total estimate: unknown (12 new, 0 partial, 0 done; 12 cells of unknown time)" in text
-    assert "7.5M" in text and "below" not in text
+    assert "7.5M" in text
 
 
-def test_wall_time_and_cheap_seed_keys_are_refused_naming_the_allowed_ones(tmp_path):
-    for key in ("wall_limit_minutes = 30", "cheap_seeds = 5", "cheap_minutes = 5"):
+def test_unknown_keys_are_refused_naming_the_allowed_ones(tmp_path):
+    for key in ("wall_limit_minutes = 30", "cheap_seeds = 5"):
         _refused(
             tmp_path / "preset.toml",
             f"[a]\nseeds = 3\n{key}\n",
-            rf"\[a\] has unknown key\(s\) \['{key.split()[0]}'\]; allowed: .*budgets, description",
+            rf"unknown field\(s\) \['{key.split()[0]}'\] in a; allowed: description, seeds, .*budgets",
         )
     _refused(
         tmp_path / "budget.toml",
         '[a]\nseeds = 1\n[a.budgets]\ndrqn = { episodes = 10_000, source = "s", wall_limit_minutes = 60 }\n',
-        r"drqn must give env_steps or episodes \(and a source\), or same_as; unknown key\(s\) \['wall_limit_minutes'\]",
+        r"unknown field\(s\) \['wall_limit_minutes'\] in a.budgets.drqn; allowed: env_steps, episodes, source",
     )
     _refused(
-        tmp_path / "same.toml",
-        '[p.budgets]\nppo = { env_steps = 10, source = "s" }\n[a.budgets]\nppo = { same_as = "p.ppo", wall_limit_minutes = 60 }\n',
-        r"ppo gives same_as and \['wall_limit_minutes'\]; same_as stands alone",
+        tmp_path / "both.toml",
+        '[a]\nseeds = 1\n[a.budgets]\ndrqn = { episodes = 10_000, env_steps = 5, source = "s" }\n',
+        r"a.budgets.drqn gives env_steps and episodes; one or the other",
     )
-    for name, table in tomllib.loads(BUDGETS_FILE.read_text()).items():
-        keys = set(table) | {k for budget in table.get("budgets", {}).values() for k in budget}
-        assert not keys & {"wall_limit_minutes", "cheap_seeds", "cheap_minutes"}, name
+    _refused(tmp_path / "seeds.toml", '[a]\nseeds = "3"\n', r"a.seeds must be an int >= 1, got '3'")
+    _refused(
+        tmp_path / "steps.toml",
+        '[a]\n[a.budgets]\ndrqn = { env_steps = 0, source = "s" }\n',
+        r"a.budgets.drqn.env_steps must be an int >= 1 or an object, got 0",
+    )
 
 
-def test_a_run_below_the_presets_budget_is_kept_as_it_is_and_marked(tmp_path, monkeypatch):
-    """A run trained when the table capped budgets to a wall time stays the cell's, at its own
-    budget: resumed to it, or finished; the plan says it is below the preset's and how to train
-    the preset's instead. Any other difference, a larger budget included, refuses the directory."""
+def test_a_run_with_another_budget_is_a_run_with_other_settings(tmp_path, monkeypatch):
+    """A run with the cell's settings but another total_steps (a smaller one included, as the
+    wall-time cap the table once had left) is refused, naming the budgets, never trained over."""
     from agents.training import checkpoint
     from agents.training.config import save_config
 
     [cell] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
     cell.directory.mkdir(parents=True)
-    save_config(
-        dataclasses.replace(cell.config, total_steps=1_700_000),
-        cell.directory / checkpoint.CONFIG_FILE,
-    )
     monkeypatch.setattr(checkpoint, "latest_chunk", lambda directory: 0)  # as if a chunk were saved
-    [kept] = make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
-    assert kept.status == "partial" and kept.config.total_steps == 1_700_000
-    assert (kept.budget.env_steps, kept.budget.requested, kept.budget.below) == (1_700_000, 7_500_000, True)
-    assert kept.record()["budget"] == {"env_steps": 1_700_000, "requested": 7_500_000, "source": kept.budget.source}
-    text = format_plan([kept], tmp_path)
-    assert "1.7M (below 7.5M)" in text
-    assert "below the preset's budget, a run kept at its own: drqn/1d-static-sin (to train the preset's" in text
-    with pytest.raises(ValueError, match="holds a run made with other settings"):
-        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 2, tmp_path)
-    save_config(
-        dataclasses.replace(cell.config, total_steps=8_000_000),
-        cell.directory / checkpoint.CONFIG_FILE,
-    )
-    with pytest.raises(ValueError, match="total_steps: 8000000 there, 7500000 now"):
-        make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
+    for steps in (1_700_000, 8_000_000):
+        save_config(dataclasses.replace(cell.config, total_steps=steps), cell.directory / checkpoint.CONFIG_FILE)
+        with pytest.raises(
+            ValueError, match=f"holds a run made with other settings \\(total_steps: {steps} there, 7500000 now"
+        ):
+            make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)
+    save_config(cell.config, cell.directory / checkpoint.CONFIG_FILE)
+    assert make_plan(PRESETS["paper"], ["drqn"], ["1d-static-sin"], 3, tmp_path)[0].status == "partial"
 
 
 def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
@@ -129,7 +119,7 @@ def test_tuned_preset_keeps_the_tuned_settings(tmp_path):
     [cell] = make_plan(PRESETS["tuned"], ["ppo"], ["1d-static-step"], 2, tmp_path)
     tuned = make_config("ppo", "1d-static-step")
     assert cell.config.total_steps == tuned.total_steps and cell.config.rnn_size == tuned.rnn_size
-    assert "agents/tuned/ppo.toml" in cell.budget.source
+    assert "agents/tuned/ppo.toml" in cell.budget_source
 
 
 def test_dry_run_prints_the_plan(tmp_path, capsys):
@@ -308,7 +298,7 @@ def test_ablation_preset_has_every_arm_of_the_papers_table():
         "2d-static-sparse.landmarks",
     ]
     assert cells[0].config.switches == "" and cells[3].config.env_overrides == {"obstacles": True}
-    assert cells[1].record()["paper_variant"] == "+gps" and cells[1].budget.requested == 10_000 * 600
+    assert cells[1].record()["paper_variant"] == "+gps" and cells[1].config.total_steps == 10_000 * 600
 
 
 def test_ablation_report_by_hand():
@@ -337,7 +327,6 @@ def test_ablation_report_by_hand():
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
     assert "adopted" not in text
     raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
-    raw["drqn"]["2d-static-dense.base"][READ_FROM_ADOPTED] = True  # as `with_adopted_base` reads it
     text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
     assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
@@ -364,9 +353,6 @@ def test_ablation_report_keeps_unknown_arms_and_gives_paper_values_to_drqn_only(
         "ppo": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.4])},
         "drqn-aux": {"2d-static-dense.base": _arm("2d-static-dense", "base", "base", "", [0.6])},
     }
-    assert ablation.is_ablation(raw) and not ablation.is_ablation(
-        {"ppo": {"1d-dynamic": _files("ppo", "1d-dynamic", [0.5], 10)}}
-    )
     table = ablation.build(raw, arms=["base", "gps"], reps=200)
     assert list(table["ablation"]["drqn"]["2d-static-dense"]) == ["base", "renamed"]  # an arm budgets.toml lost
     assert table["ablation"]["drqn"]["2d-static-dense"]["renamed"]["paper"] == 0.079
@@ -415,7 +401,7 @@ def test_a_budget_per_environment_task(tmp_path):
     (tmp_path / "ok.toml").write_text(text)
     preset = load_presets(tmp_path / "ok.toml")["b"]
     cells = make_plan(preset, ["pqn"], ["1d-dynamic", "2d-static-sparse"], None, tmp_path)
-    assert [c.budget.requested for c in cells] == [3_000_000, 9_000_000] and cells[0].budget.source == "b: why"
+    assert cells[0].budget_source == "b: why"
     assert [c.config.total_steps for c in cells] == [3_000_000, 9_000_000]
     with pytest.raises(
         ValueError, match="the b preset gives pqn a budget on 1d-dynamic, 2d-static-sparse only, not on 2d-static-dense"
@@ -424,7 +410,7 @@ def test_a_budget_per_environment_task(tmp_path):
     _refused(
         tmp_path / "typo.toml",
         text.replace('"1d-dynamic"', '"1d-dynamo"'),
-        r"\[b.budgets\] pqn's env_steps names unknown task\(s\) \['1d-dynamo'\]",
+        r"unknown field\(s\) \['1d-dynamo'\] in b.budgets.pqn.env_steps; allowed: 1d-static-sin",
     )
 
 
@@ -493,7 +479,7 @@ def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
     _refused(
         tmp_path / "typo.toml",
         arm.replace("tasks =", "setting = { x = 1 }\ntasks ="),
-        r"\[a.variants.base\] must give tasks.*unknown key\(s\) \['setting'\]",
+        r"unknown field\(s\) \['setting'\] in a.variants.base; allowed: paper, switches",
     )
     _refused(
         tmp_path / "planned.toml",
@@ -570,16 +556,21 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
         assert record["curve"] == checkpoint.read_metrics_lines(source / "metrics.jsonl")
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
 
-    # The ablation's base arm is the finished smoke cell: adopted, nothing trained or copied for it.
-    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)
-    assert (base.status, base.base_run, gps.status) == ("adopted", cells[0].directory, "new")
+    # The ablation's base arm is the smoke cell in the record: adopted, nothing trained or copied for it.
+    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)[0].status == "new"  # no record read
+    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, results_dir=results)
+    assert (base.status, base.base_run, gps.status) == (
+        "adopted",
+        results / "table/smoke/ppo/1d-static-sin.json",
+        "new",
+    )
     printed = format_plan([base, gps], runs)
     assert "adopt " in printed and "(1 new, 1 adopted, " in printed and base.estimate_s == 0.0
     calls.clear()
     assert table_run.run_cell(base, progress=False) and calls == [] and not base.directory.exists()
     # A base whose budget alone differs is not the smoke cell: it trains as the ablation's own.
     longer = _abl(name="abl2", settings={**smoke.settings, "total_steps": 4096})
-    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, arms=["base"])[0].status == "new"
+    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, ["base"], results)[0].status == "new"
     # The report reads the base row from the smoke preset's copy.
     assert table_run.run_cells([gps], progress=False) == 1
     monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
@@ -652,14 +643,13 @@ def _abl_report(results, monkeypatch) -> dict:
 def test_a_hand_made_record_gives_the_expected_rows_and_marks_a_budget_below_its_request(tmp_path):
     """Two cells copied by hand (one trained half the budget its preset asked): the report's
     rows, their `*`, and the README's learner table from them."""
-    from agents.table.plan import Budget
     from agents.table.readme import BEGIN, END, write_readme
     from agents.table.report import write_report
 
     results = tmp_path / "results"
     cells = make_plan(PRESETS["smoke"], ["ppo"], ["2d-static-dense", "2d-static-sparse"], None, tmp_path / "runs")
-    below = dataclasses.replace(cells[0], budget=Budget(2048, 4096, "test"))
-    write_record(results, below, means=(0.5, 0.7))
+    below = write_record(results, cells[0], means=(0.5, 0.7))  # as the wall-time cap once left it
+    below.write_text(below.read_text().replace('"requested": 2048', '"requested": 4096'))
     write_record(results, cells[1], means=(0.2, 0.4))
     paths = write_report("smoke", None, results, reps=200)
     table = json.loads(paths["json"].read_text())["smoke"]

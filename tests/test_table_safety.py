@@ -357,13 +357,13 @@ def test_report_refuses_an_impossible_iou_naming_the_file_and_the_field(tmp_path
         (
             "cell.json",
             lambda text: text.replace('"static_episodes": 2', '"static_episodes": 3'),
-            r"eval.json: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
+            r"1d-static-sin: eval: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
             r"sin.json: eval: \['1d-static-sin \(seed 0\)'\].episodes is 2, the cell's protocol has 3",
         ),
         (
             "config.json",
             lambda text: text.replace('"seeds": 2', '"seeds": 3'),
-            r"eval.json: holds 2 result\(s\), the run has seeds 3",
+            r"1d-static-sin: eval: holds 2 result\(s\), the run has seeds 3",
             r"sin.json: eval: holds 2 result\(s\), the run has seeds 3",
         ),
     ],
@@ -454,8 +454,9 @@ def test_report_writes_through_no_link_in_the_results_and_keeps_a_readme_link(tm
 
 
 def test_report_reads_every_entry_of_the_results_table_or_refuses_it(tmp_path, capsys):
-    """Each cell is one raw file; a cell's directory or any other entry under a learner's folder
-    is refused, named, rather than left out of the table. A curve with a chunk in which no
+    """Each cell is one raw file; a cell's directory or any other entry under a learner's folder,
+    or a preset's folder budgets.toml does not name, is refused, named, rather than left out of
+    the table. A curve with a chunk in which no
     episode ended (NaN in an older metrics.jsonl) is copied as strict JSON, null."""
     runs, results, cell = _report(tmp_path)
     with (cell / "metrics.jsonl").open("a") as f:
@@ -469,6 +470,10 @@ def test_report_reads_every_entry_of_the_results_table_or_refuses_it(tmp_path, c
         code, err = _main(argv, capsys)
         assert code == 2 and f"{stray} is not a cell's raw copy" in err, err
         shutil.rmtree(stray) if stray.is_dir() else stray.unlink()
+    # A folder of cells of no preset of budgets.toml (renamed, or removed from it) is refused too.
+    (results / "table" / "renamed").mkdir()
+    code, err = _main(argv, capsys)
+    assert code == 2 and "holds cells of ['renamed'], no preset of budgets.toml" in err, err
 
 
 def test_report_refuses_a_cell_file_over_the_size_limit_before_reading_it(tmp_path, capsys, monkeypatch):
@@ -498,5 +503,5 @@ def test_report_refuses_a_cell_file_over_the_size_limit_before_reading_it(tmp_pa
     read = ("cell.json", "config.json", "eval.json", "metrics.jsonl")
     monkeypatch.setattr(files, "RAW_COPY_MAX_BYTES", sum((cell / name).stat().st_size for name in read))
     code, err = _main(argv, capsys)
-    assert code == 2 and len(err.strip().splitlines()) == 1 and str(cell) in err and "copy would be" in err, err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"{cell} is " in err and "-byte limit" in err, err
     assert not any(results.rglob("*.json"))

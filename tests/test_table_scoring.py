@@ -119,7 +119,7 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
     slow test's."""
     runs, preset = tmp_path / "runs", _abl({"gamma": 0.5})
     [base, acting] = make_plan(preset, ["ppo"], [SMOKE_TASK], None, runs)
-    config, budget, directory = acting.config, acting.budget, acting.directory
+    config, directory = acting.config, acting.directory
     directory.mkdir(parents=True)
     row = {
         "min": 0.1,
@@ -141,7 +141,7 @@ def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_a
         "algorithm": "ppo",
         "column": "1d-static",
         "task": SMOKE_TASK,
-        "budget": dataclasses.asdict(budget),
+        "budget": acting.record()["budget"],
         "eval_seed": REPORT_EVAL_SEED,
         "protocol": preset.protocol,
         "variant": "acting",
@@ -197,11 +197,12 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     from agents.training import checkpoint
     from agents.training.trained import load_trained
 
-    runs = tmp_path / "runs"
+    runs, results = tmp_path / "runs", tmp_path / "results"
     [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
     assert table_run.run_cell(source, progress=False)
-    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs)
-    assert (base.status, base.base_run, acting.base_run) == ("adopted", source.directory, source.directory)
+    record = write_record(results, source)  # the base cell in the record: the base arm is adopted
+    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results)
+    assert (base.status, base.base_run, acting.base_run) == ("adopted", record, source.directory)
     assert "again: unknown" in acting.estimate_from
 
     scored, trained = [], []
@@ -218,7 +219,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cell(acting, progress=False)
     assert not (acting.directory / "eval.json").exists()
-    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
+    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, ["acting"], results)
     assert acting.status == "new"  # its scoring cut short: scored again
     assert table_run.run_cell(acting, progress=False)
     # Never trained: the base run's params, scored with gamma 0.5, beside its metrics.

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from agents.table import statistics
-from agents.table.files import budget_record, budget_text, read_raw, record_path, seed_means
+from agents.table.files import adopted_base, budget_record, budget_text, interval, read_raw, record_path, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import Preset, arm_changes
@@ -25,35 +25,31 @@ from snac_jax.paper import load_paper_results
 
 PAPER_TABLE = "ablation_drqn"
 PAPER_LEARNER = "drqn"  # the paper's ablation table is DRQN's
-READ_FROM_ADOPTED = "read_from_adopted"  # set on a base arm read from the adopted preset's copy
 
 
-def with_adopted_base(raw: dict, results_dir: Path, preset: Preset | None, pending: dict[Path, str]) -> dict:
+def with_adopted_base(raw: dict, results_dir: Path, preset: Preset, pending: dict[Path, str]) -> dict:
     """`raw` (`files.load_raw`, the copies of `preset`) with the base arm of each (learner, task)
     that has other arms but no base copy of its own read from the copy of the preset it `adopts`
-    (`pending`: copies about to be written), where that run has every other arm's config but for
-    the arm's own changes (its switches and settings); else the base has no cell."""
-    if preset is None or preset.adopts is None or not preset.variants:
+    (`pending`: copies about to be written), where that cell is every arm's base
+    (`files.adopted_base`); else the base has no cell. A base copy of its own that names the run
+    it adopted is marked `own_copy` (the run as it was adopted, which its arms were measured against)."""
+    if preset.adopts is None or not preset.variants:
         return raw
     base = next(v for v in preset.variants if v.name == BASE)
     for algorithm, cells in raw.items():
         for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
             path = record_path(results_dir, preset.adopts, algorithm, task)
-            if f"{task}.{BASE}" in cells or not (path in pending or path.is_file()):
+            if (own := cells.get(f"{task}.{BASE}")) is not None:
+                own["own_copy"] = "adopted_from" in own["cell"]
+            if own is not None or not (path in pending or path.is_file()):
                 continue
             record = read_raw(path, pending.get(path))
             arms = [files for files in cells.values() if files["cell"]["task"] == task]
-            if all(_same_but_changes(record["config"], files) for files in arms):
+            if all(adopted_base(record, files) for files in arms):
                 adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
                 adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
-                cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}, READ_FROM_ADOPTED: True}
+                cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}}
     return raw
-
-
-def _same_but_changes(config: dict, arm: dict) -> bool:
-    changed = {"switches", *arm["cell"].get("settings", {})}
-    keys = set(config) | set(arm["config"])
-    return all(config.get(k) == arm["config"].get(k) for k in keys - changed)
 
 
 def curves_name(preset: str) -> str:
@@ -64,11 +60,6 @@ def curves_name(preset: str) -> str:
 def _arm_order(arms: list[str]):
     """Sort key of arm names: the preset's order, then arms it does not name, by name."""
     return lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
-
-
-def is_ablation(raw: dict) -> bool:
-    """Whether copied cells (`raw.load_raw`) are an ablation's: their cell.json names an arm."""
-    return any("variant" in files["cell"] for cells in raw.values() for files in cells.values())
 
 
 def build(
@@ -108,7 +99,7 @@ def build(
                     "budget": budget_record([files]),
                     "paper": paper_arm.get("avg"),
                     "adopted_from": files["cell"].get("adopted_from"),
-                    **({"own_copy": True} if _own_copy_of_adopted(arm, files) else {}),
+                    **({"own_copy": True} if files.get("own_copy") else {}),
                     **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {}),
                 }
                 if arm != BASE:  # the paper's value of an arm is its change from the base
@@ -131,17 +122,6 @@ def build(
         "ablation": learners,
         "curves": curves,
     }
-
-
-def _own_copy_of_adopted(arm: str, files: dict) -> bool:
-    """Whether a base arm that adopted another preset's run is read from this preset's own copy
-    (the run its arms were measured against) rather than the adopted cell's record."""
-    return arm == BASE and bool(files["cell"].get("adopted_from")) and not files.get(READ_FROM_ADOPTED)
-
-
-def _interval(value: float, ci: list[float], signed: bool = False) -> str:
-    sign = "+" if signed else ""
-    return f"{value:{sign}.3f} [{ci[0]:{sign}.3f}, {ci[1]:{sign}.3f}]"
 
 
 def _scored_otherwise(table: dict) -> bool:
@@ -183,10 +163,8 @@ def section(table: dict, description: str) -> list[str]:
     for learner, tasks in table["ablation"].items():
         for task, rows in tasks.items():
             for arm, row in rows.items():
-                ours = _interval(row["mean"], row["ci95"])
-                delta = (
-                    "—" if row.get("delta") is None else _interval(row["delta"]["delta"], row["delta"]["ci95"], True)
-                )
+                ours = interval(row["mean"], row["ci95"])
+                delta = "—" if row.get("delta") is None else interval(row["delta"]["delta"], row["delta"]["ci95"], True)
                 paper = (
                     "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
                 )

@@ -14,6 +14,7 @@ Presets: `agents/table/budgets.toml`, budgets in env steps.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -21,16 +22,6 @@ from snac_jax.cli.arguments import add_devices_argument, positive_int
 
 DEFAULT_RUNS_DIR = Path("runs") / "table"
 DEFAULT_RESULTS_DIR = Path("bench") / "results"
-
-
-def _task(text: str) -> str:
-    from agents.table.presets import expand_tasks
-
-    try:
-        expand_tasks([text])
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
-    return text
 
 
 def add_parser(subparsers) -> None:
@@ -49,13 +40,7 @@ def add_parser(subparsers) -> None:
     add("--preset", choices=sorted(presets), default="paper", help=f"budget preset ({described}), {BUDGETS_FILE.name}")
     add("--algorithms", nargs="+", metavar="ALGORITHM", choices=list(ALGORITHMS), help="default: the preset's, or all")
     columns = ", ".join(PAPER_TASKS)
-    add(
-        "--tasks",
-        nargs="+",
-        metavar="TASK",
-        type=_task,
-        help=f"paper columns or task ids (default: the preset's: {columns})",
-    )
+    add("--tasks", nargs="+", metavar="TASK", help=f"paper columns or task ids (default: the preset's: {columns})")
     add("--arms", nargs="+", metavar="ARM", help="an ablation preset's arms to run (default: all)")
     add("--seeds", type=positive_int, help="seeds per cell, vmapped (default: the preset's)")
     add("--runs-dir", type=Path, help=f"cells go to RUNS_DIR/<preset>/<algorithm>/<task>[.<arm>]/ ({DEFAULT_RUNS_DIR})")
@@ -109,20 +94,13 @@ def run(args: argparse.Namespace) -> int:
         paths = write_report(args.preset, runs_dir, args.results_dir, dry_run=args.dry_run)
         if args.dry_run:
             for key, path in paths.items():
-                print(
-                    f"would copy {key.removeprefix('copy:')} to {path}"
-                    if key.startswith("copy:")
-                    else f"would write {path}"
-                )
+                print(f"would copy {key[5:]} to {path}" if key.startswith("copy:") else f"would write {path}")
             if args.readme is not None:
                 print(f"would rewrite the learner table in {args.readme}")
             return 0
         if args.readme is not None:
-            import json
-
             paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
-        for path in paths.values():
-            print(f"wrote {path}")
+        print("\n".join(f"wrote {path}" for path in paths.values()))
         return 0
     if args.dry_run:
         print(format_plan(plan_from_args(args), args.runs_dir))

@@ -52,26 +52,26 @@ def eval_is_valid(path: Path, seeds: int, episodes: int, seed: int) -> bool:
         return False
 
 
-def check_cell(config, cell: dict, results: dict, *, name: str, algorithm: str, where: tuple[str, str, str]) -> None:
-    """The checks between a cell's parts: cell.json and the config name the same algorithm and
-    task, the cell stands where its algorithm and name say, and `results` is a finished result of
-    it. `where`: how an error names the cell, eval and config parts."""
-    cell_where, eval_where, config_where = where
+def _check_parts(path: Path, config, cell: dict, results: dict) -> None:
+    """The checks between a cell's parts (`path`: its raw copy, or its directory): cell.json and
+    the config name the same algorithm and task, the cell stands where its algorithm and name say,
+    and `results` is a finished result of it."""
     for key, value in (("algorithm", config.algorithm), ("task", config.task)):
         if cell[key] != value:
-            raise ValueError(f"{cell_where}: {key} is {cell[key]!r}, its {config_where} has {value!r}")
+            raise ValueError(f"{path}: cell: {key} is {cell[key]!r}, its config has {value!r}")
     arm = [k for k in ("variant", "paper_variant", "switches") if k in cell]
     if arm and len(arm) != 3:
         missing = sorted({"variant", "paper_variant", "switches"} - set(arm))
-        raise ValueError(f"{cell_where}: an arm's cell needs variant, paper_variant and switches; {missing} missing")
-    own = cell["task"] + (f".{cell['variant']}" if "variant" in cell else "")
-    if name != own or algorithm != cell["algorithm"]:
+        raise ValueError(f"{path}: cell: an arm's cell needs variant, paper_variant and switches; {missing} missing")
+    own, name = cell["task"] + (f".{cell['variant']}" if "variant" in cell else ""), path.name.removesuffix(RAW_SUFFIX)
+    if name != own or path.parent.name != cell["algorithm"]:
         raise ValueError(
-            f"{cell_where}: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands ({algorithm}/{name})"
+            f"{path}: cell: its algorithm and task ({cell['algorithm']}/{own}) are not where it stands "
+            f"({path.parent.name}/{name})"
         )
     problem = eval_problem(results, config.seeds, expected_episodes(cell["task"], cell["protocol"]), cell["eval_seed"])
     if problem is not None:
-        raise ValueError(f"{eval_where}: {problem} (from {cell_where} and {config_where}); evaluate the cell again")
+        raise ValueError(f"{path}: eval: {problem} (from its cell and config); evaluate the cell again")
 
 
 def check_raw_size(size: int, what: str) -> None:
@@ -82,31 +82,30 @@ def check_raw_size(size: int, what: str) -> None:
         )
 
 
-def read_cell(directory: Path) -> dict[str, Any]:
-    """A finished cell's files in a runs directory, checked: {"config" (as written), "eval",
-    "cell", "metrics"} ("metrics": its curve, empty where not kept)."""
+def read_cell(directory: Path) -> str:
+    """The raw copy's text of a finished cell in a runs directory: each of its files checked
+    against its own schema (an error names the file), then the parts together as `read_raw`
+    checks a copy. The config is kept as written."""
     cell_path, eval_path = directory / CELL_FILE, directory / EVAL_FILE
     if not cell_path.is_file():
         raise ValueError(f"{cell_path} is missing: {directory} is not a cell of the table")
     read = (cell_path, eval_path, directory / checkpoint.CONFIG_FILE, directory / checkpoint.METRICS_FILE)
     check_raw_size(sum(p.stat().st_size for p in read if p.is_file()), f"{directory}: its cell's files are")
-    config = checkpoint.read_config(directory)
-    cell = schemas.load(cell_path, schemas.CELL_JSON)
-    results = schemas.load(eval_path, schemas.EVAL_JSON)
-    where = (str(cell_path), str(eval_path), checkpoint.CONFIG_FILE)
-    check_cell(config, cell, results, name=directory.name, algorithm=directory.parent.name, where=where)
-    return {
-        "config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON),
-        "eval": results,
-        "cell": cell,
-        "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE),
-    }
+    text = raw_text(
+        {
+            "cell": schemas.load(cell_path, schemas.CELL_JSON),
+            "config": schemas.load(directory / checkpoint.CONFIG_FILE, schemas.CONFIG_JSON),
+            "eval": schemas.load(eval_path, schemas.EVAL_JSON),
+            "metrics": checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE),
+        }
+    )
+    read_raw(directory, text)
+    return text
 
 
 def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
-    """A cell's raw copy, checked as `read_cell` checks a cell's files (`text`: what is about to
-    be written there, read in its place): {"config" (the config class's full settings), "eval",
-    "cell", "metrics" (the curve)}."""
+    """A cell's raw copy, checked (`text`: what is about to be written there, read in its place):
+    {"config" (the config class's full settings), "eval", "cell", "metrics" (the curve)}."""
     from agents.training.registry import config_from_json
 
     check_raw_size(path.stat().st_size if text is None else len(text.encode()), f"{path} is")
@@ -116,10 +115,20 @@ def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
         config = config_from_json(record["config"])
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: config: {error}") from error
-    where = (f"{path}: cell", f"{path}: eval", "config")
-    name = path.name.removesuffix(RAW_SUFFIX)
-    check_cell(config, record["cell"], record["eval"], name=name, algorithm=path.parent.name, where=where)
+    _check_parts(path, config, record["cell"], record["eval"])
     return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}
+
+
+def adopted_base(record: dict, arm: dict) -> bool:
+    """Whether another preset's cell (`record`, a raw copy as `read_raw` gives it) is the base
+    cell of an ablation's arm (`arm`: {"config", "cell"}): the same config but for the arm's own
+    changes (its switches and settings), scored with the same key and protocol. The one rule by
+    which the plan adopts a base arm and the report reads it."""
+    changed = {"switches", *arm["cell"].get("settings", {})}
+    config, other = record["config"], arm["config"]
+    same = all(config.get(k) == other.get(k) for k in (set(config) | set(other)) - changed)
+    scored = all(record["cell"][k] == arm["cell"][k] for k in ("eval_seed", "protocol"))
+    return same and scored
 
 
 def _finite(value: Any) -> Any:
@@ -177,8 +186,7 @@ def copies(runs_dir: Path | None, results_dir: Path, preset: str) -> list[tuple[
         raise ValueError(f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}")
     planned = []
     for directory in sorted(p.parent for p in source.glob(f"*/*/{EVAL_FILE}")):
-        text = raw_text(read_cell(directory))
-        check_raw_size(len(text.encode()), f"{directory}: its raw copy would be")
+        text = read_cell(directory)
         destination = target / directory.parent.name / (directory.name + RAW_SUFFIX)
         refuse_links(results_dir, destination)
         planned.append((directory, destination, text))
@@ -225,6 +233,16 @@ def budget_record(cells: list[dict]) -> dict[str, Any]:
         "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
         "training_wall_s": walls,
     }
+
+
+def number(value: float | None, digits: int = 3) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
+
+
+def interval(value: float, ci: list[float], signed: bool = False) -> str:
+    """`mean [low, high]` as the pages print a cell (`signed`: a difference, with its sign)."""
+    sign = "+" if signed else ""
+    return f"{value:{sign}.3f} [{ci[0]:{sign}.3f}, {ci[1]:{sign}.3f}]"
 
 
 def steps_text(n: int) -> str:

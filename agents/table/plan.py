@@ -6,12 +6,13 @@ A cell is (algorithm, task, env-step budget, arm overrides, seeds), trained as o
 then scored with the reporting protocol. Its directory says where it stands: `done` (a finished
 eval.json, with or without checkpoints), `partial` (checkpoints: resumed), or `new` (empty, or
 only what its own start left before a first checkpoint). A run there with other settings is
-refused, never trained over; one with the cell's settings but a smaller budget (trained when the
-table capped budgets to a wall time) stays the cell's, at its own budget, marked below the preset's.
+refused, never trained over (another budget included).
 
-An ablation preset that `adopts` another has no cell of its own for a base arm whose config that
-preset's cell trained (finished in the runs directory, or in the record): the base arm is that
-cell (`adopted`). An arm with `evaluation` settings trains nothing: it scores the base arm's run.
+An ablation names its base cell: a preset that `adopts` another has no cell of its own for a base
+arm whose config that preset's cell trained, as its copy in the record says (`files.adopted_base`,
+the report's rule too): the base arm is that cell (`adopted`). An arm with `evaluation` settings
+trains nothing: it scores the base arm's run again (the adopted preset's run where the base arm
+is adopted, else its own).
 """
 
 from __future__ import annotations
@@ -20,11 +21,20 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from agents.table.files import CELL_FILE, EVAL_FILE, eval_is_valid, expected_episodes, read_raw, record_path, steps_text
+from agents.table.files import (
+    CELL_FILE,
+    EVAL_FILE,
+    adopted_base,
+    eval_is_valid,
+    expected_episodes,
+    read_raw,
+    record_path,
+    steps_text,
+)
 from agents.table.presets import BASE_ARM, Preset, Variant, expand_tasks
 from agents.training import checkpoint, schemas
 from agents.training.config import TrainConfig
-from agents.training.registry import ALGORITHMS, config_class, config_from_json, make_config, tuned_source
+from agents.training.registry import make_config, tuned_source
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.tasks import task_spec
 
@@ -33,21 +43,6 @@ TRAIN_SEED = 1
 chose the tuned settings trained from base seed 0, so no table run repeats one of them."""
 RESTARTABLE = {checkpoint.CONFIG_FILE, checkpoint.METRICS_FILE, checkpoint.CHECKPOINT_DIR}
 """What a cell's start leaves before its first checkpoint, besides its lock."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Budget:
-    env_steps: int  # per seed, what the cell trains: the preset's, or its run's where smaller
-    requested: int  # per seed, the preset's
-    source: str
-
-    @property
-    def below(self) -> bool:
-        return self.env_steps < self.requested
-
-    def describe(self) -> str:
-        text = steps_text(self.env_steps)
-        return f"{text} (below {steps_text(self.requested)})" if self.below else text
 
 
 def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConfig:
@@ -68,27 +63,26 @@ def scoring_config(config: TrainConfig, evaluation: dict[str, Any]) -> TrainConf
 
 def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
     """Env steps per seed the preset asks for `config`'s algorithm and task, and why."""
-    budget, why = preset.budgets.get(config.algorithm, {}), preset.name
-    if isinstance(budget.get("env_steps"), dict):  # one budget per environment task
-        if config.task not in budget["env_steps"]:
+    budget = preset.budgets.get(config.algorithm, {})
+    steps, why = budget.get("env_steps"), f"{preset.name}: {budget.get('source')}"
+    if isinstance(steps, dict):  # one budget per environment task
+        if config.task not in steps:
             raise ValueError(
-                f"the {preset.name} preset gives {config.algorithm} a budget on "
-                f"{', '.join(budget['env_steps'])} only, not on {config.task}"
+                f"the {preset.name} preset gives {config.algorithm} a budget on {', '.join(steps)} only, not on {config.task}"
             )
-        return int(budget["env_steps"][config.task]), f"{why}: {budget['source']}"
-    if "env_steps" in budget:
-        return int(budget["env_steps"]), f"{why}: {budget['source']}"
+        return steps[config.task], why
+    if steps is not None:
+        return steps, why
     if "episodes" in budget:
         limit = config.max_steps or task_spec(config.task).max_steps
-        dim = task_spec(config.task).dim
-        return int(budget["episodes"]) * limit, f"{why}: {budget['source']}, x the step limit ({dim}D: {limit})"
+        return budget["episodes"] * limit, f"{why}, x the step limit ({task_spec(config.task).dim}D: {limit})"
     if "source" in budget:
-        return config.total_steps, f"{why}: {budget['source']}"
+        return config.total_steps, why
     if "total_steps" in preset.overrides(config.algorithm):
-        return config.total_steps, f"{why}: the preset's total_steps"
+        return config.total_steps, f"{preset.name}: the preset's total_steps"
     if (source := tuned_source(config.algorithm, config.task, "total_steps")) is not None:
-        return config.total_steps, f"{why}: tuned total_steps (agents/tuned/{source.name})"
-    return config.total_steps, f"{why}: {type(config).__name__}'s default total_steps (no tuned entry)"
+        return config.total_steps, f"{preset.name}: tuned total_steps (agents/tuned/{source.name})"
+    return config.total_steps, f"{preset.name}: {type(config).__name__}'s default total_steps (no tuned entry)"
 
 
 @dataclasses.dataclass
@@ -97,8 +91,8 @@ class Cell:
     column: str
     task: str
     directory: Path
-    config: TrainConfig
-    budget: Budget
+    config: TrainConfig  # its total_steps: the budget, env steps per seed
+    budget_source: str  # why that budget
     preset: Preset
     variant: Variant | None = None  # an ablation's arm: the cell's directory is <task>.<arm>
     status: str = "new"  # new | partial | done | adopted
@@ -125,12 +119,14 @@ class Cell:
             arm |= {"switches": self.variant.switches, "settings": self.variant.settings}
             if self.evaluation:
                 arm |= {"evaluation": self.evaluation, "adopted_from": _name(self.base_run)}
+        steps = self.config.total_steps
         return {
             "preset": self.preset.name,
             "algorithm": self.algorithm,
             "column": self.column,
             "task": self.task,
-            "budget": dataclasses.asdict(self.budget),
+            # `requested` above `env_steps`: a record of the former wall-time cap (the report's `*`)
+            "budget": {"env_steps": steps, "requested": steps, "source": self.budget_source},
             "eval_seed": REPORT_EVAL_SEED,
             "protocol": self.preset.protocol,
             **arm,
@@ -143,24 +139,17 @@ def _name(path: Path | None) -> str:
 
 
 def settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
-    """The settings in which a run made with `config` differs from the cell's; a smaller budget
-    alone is none (a run kept at its own budget)."""
+    """The settings in which a run made with `config` differs from the cell's."""
     stored, wanted = config.to_json(), cell.config.to_json()
-    differ = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
-    return [] if differ == ["total_steps"] and config.total_steps <= cell.budget.requested else differ
+    return sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
 
 
-def _take(cell: Cell, directory: Path) -> bool:
-    """Whether the config.json in `directory` is the cell's (`settings_differ`); if so the cell
-    takes its budget."""
+def _ours(cell: Cell) -> bool:
+    """Whether the cell's directory holds a config.json with the cell's settings."""
     try:
-        config = checkpoint.read_config(directory)
-    except ValueError:
+        return not settings_differ(cell, checkpoint.read_config(cell.directory))
+    except (OSError, ValueError):
         return False
-    if settings_differ(cell, config):
-        return False
-    cell.config, cell.budget = config, dataclasses.replace(cell.budget, env_steps=config.total_steps)
-    return True
 
 
 def cell_state(cell: Cell) -> None:
@@ -169,7 +158,7 @@ def cell_state(cell: Cell) -> None:
     if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
         raise ValueError(f"{directory} is not a directory (a link or a file), where a cell of the table goes")
     last = checkpoint.latest_chunk(directory)
-    ours = (directory / checkpoint.CONFIG_FILE).is_file() and _take(cell, directory)
+    ours = _ours(cell)
     if last is not None and not ours:
         stored, wanted = checkpoint.read_config(directory), cell.config.to_json()
         changes = ", ".join(
@@ -226,26 +215,15 @@ def _check_new(cell: Cell, ours: bool) -> None:
     )
 
 
-def adopted_run(cell: Cell, runs_dir: Path, results_dir: Path | None) -> Path | None:
-    """The `adopts` preset's cell (alg, task) where it finished with `cell`'s very config (budget
-    included): its run in the runs directory, else its copy in the record (`results_dir`); None."""
-    run = runs_dir / cell.preset.adopts / cell.algorithm / cell.task
-    episodes = expected_episodes(cell.task, cell.preset.protocol)
-    try:
-        if checkpoint.latest_chunk(run) is not None and checkpoint.read_config(run).to_json() == cell.config.to_json():
-            if eval_is_valid(run / EVAL_FILE, cell.config.seeds, episodes, REPORT_EVAL_SEED):
-                return run
-    except (OSError, ValueError):  # another preset's run this code no longer reads
-        pass
-    copy = None if results_dir is None else record_path(results_dir, cell.preset.adopts, cell.algorithm, cell.task)
-    if copy is None or not copy.is_file():
+def adopted_record(cell: Cell, results_dir: Path | None) -> Path | None:
+    """The record's copy of the `adopts` preset's cell (alg, task) where it is this base arm's
+    cell (`files.adopted_base`); else None."""
+    if results_dir is None:
         return None
-    raw = read_raw(copy)
-    same = config_from_json(raw["config"]).to_json() == cell.config.to_json()
-    scored = raw["cell"]["eval_seed"] == REPORT_EVAL_SEED and all(
-        r["episodes"] == episodes for r in raw["eval"].values()
-    )
-    return copy if same and scored else None
+    path = record_path(results_dir, cell.preset.adopts, cell.algorithm, cell.task)
+    scored = {"eval_seed": REPORT_EVAL_SEED, "protocol": cell.preset.protocol, "settings": cell.variant.settings}
+    arm = {"config": cell.config.to_json(), "cell": scored}
+    return path if path.is_file() and adopted_base(read_raw(path), arm) else None
 
 
 def estimate(cell: Cell) -> None:
@@ -286,10 +264,6 @@ def make_plan(
             its = ", ".join(names) if names else "none (it is not an ablation)"
             raise ValueError(f"preset {preset.name!r} {wrong}; its arms: {its}")
         variants = tuple(v for v in preset.variants if v.name in arms)
-    for algorithm in algorithms:
-        if algorithm not in ALGORITHMS:
-            raise ValueError(f"unknown algorithm {algorithm!r}; allowed: {', '.join(ALGORITHMS)}")
-        config_class(algorithm)
     cells = []
     for algorithm in algorithms:
         for column, task in expand_tasks(tasks):
@@ -306,35 +280,42 @@ def make_plan(
                 config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
                 name = task if variant is None else f"{task}.{variant.name}"
                 directory = runs_dir / preset.name / algorithm / name
-                cells.append(
-                    Cell(algorithm, column, task, directory, config, Budget(steps, steps, source), preset, variant)
-                )
+                cells.append(Cell(algorithm, column, task, directory, config, source, preset, variant))
     if variants and not cells:
         chosen = "arm" if arms is None else "arm named in --arms"
         listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in variants)
         raise ValueError(f"no {chosen} of preset {preset.name!r} runs on {', '.join(tasks)}; their tasks: {listing}")
     training = set()  # (algorithm, task) whose base arm this plan trains
     for cell in cells:
-        adopts = preset.adopts is not None and cell.variant is not None
+        base = cell.variant is not None and cell.variant.name == BASE_ARM
+        adopted = adopted_record(cell, results_dir) if preset.adopts and (base or cell.evaluation) else None
         if cell.evaluation:
             scoring_config(cell.config, cell.evaluation)  # an option the learner refuses fails before training
         cell_state(cell)
-        if cell.status == "new" and adopts and cell.variant.name == BASE_ARM:
-            if (run := adopted_run(cell, runs_dir, results_dir)) is not None:
-                cell.status, cell.base_run = "adopted", run
-        if cell.variant is not None and cell.variant.name == BASE_ARM and cell.status in ("new", "partial"):
+        if cell.status == "new" and base and adopted is not None:
+            cell.status, cell.base_run = "adopted", adopted
+        if base and cell.status in ("new", "partial"):
             training.add((cell.algorithm, cell.task))
         if cell.evaluation and cell.status != "done":
             own = runs_dir / preset.name / cell.algorithm / f"{cell.task}.{BASE_ARM}"
-            cell.base_run = (adopts and adopted_run(cell, runs_dir, None)) or own
-            if (cell.algorithm, cell.task) not in training and checkpoint.latest_chunk(cell.base_run) is None:
+            cell.base_run = own if adopted is None else runs_dir / preset.adopts / cell.algorithm / cell.task
+            if (cell.algorithm, cell.task) not in training and not _has_run(cell, cell.base_run):
                 raise ValueError(
                     f"arm {cell.variant.name!r} of preset {preset.name!r} scores the base arm's run again: "
-                    f"no finished run of it with checkpoints is under {runs_dir}; train it first "
+                    f"no run of it with checkpoints and this arm's config is at {cell.base_run}; train it first "
                     f"(snac table --preset {preset.adopts or preset.name} --tasks {cell.task}) or leave the arm out (--arms)"
                 )
         estimate(cell)
     return cells
+
+
+def _has_run(cell: Cell, directory: Path) -> bool:
+    """Whether `directory` holds a run with checkpoints trained with the cell's config."""
+    try:
+        config = checkpoint.read_config(directory)
+        return checkpoint.latest_chunk(directory) is not None and not settings_differ(cell, config)
+    except (OSError, ValueError):
+        return False
 
 
 def duration(seconds: float | None) -> str:
@@ -345,8 +326,8 @@ def duration(seconds: float | None) -> str:
 
 
 def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
-    """The plan as printed before anything starts: one line per cell, the budgets' sources, the
-    cells below them, and the total estimate (a lower bound, or unknown, where cells have none)."""
+    """The plan as printed before anything starts: one line per cell, the budgets' sources and
+    the total estimate (a lower bound, or unknown, where cells have none)."""
     if not cells:
         return "nothing to run"
     preset = cells[0].preset
@@ -365,16 +346,10 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
             else c.status.replace("adopted", "adopt")
         )
         lines.append(
-            f"{c.algorithm:<10} {c.directory.name:<{width}} {c.budget.describe():>24} {c.config.seeds:>5} {status:<9} "
+            f"{c.algorithm:<10} {c.directory.name:<{width}} {steps_text(c.config.total_steps):>24} {c.config.seeds:>5} {status:<9} "
             f"{duration(c.estimate_s):>13}  {c.estimate_from}"
         )
-    lines += ["", "budgets:", *(f"  {s}" for s in dict.fromkeys(f"{c.algorithm}: {c.budget.source}" for c in cells))]
-    below = [f"{c.algorithm}/{c.directory.name}" for c in cells if c.budget.below]
-    if below:
-        lines.append(
-            f"  below the preset's budget, a run kept at its own: {', '.join(below)} (to train the preset's "
-            "budget, move that directory away or choose another --runs-dir)"
-        )
+    lines += ["", "budgets:", *(f"  {s}" for s in dict.fromkeys(f"{c.algorithm}: {c.budget_source}" for c in cells))]
     counts = {s: sum(c.status == s for c in cells) for s in ("new", "adopted", "partial", "done")}
     known = sum(c.estimate_s for c in cells if c.estimate_s is not None)
     unknown = sum(c.estimate_s is None for c in cells)

@@ -1,7 +1,8 @@
 """The presets of `snac table` (`budgets.toml`): what each cell of a grid trains and how it is
 scored. A cell is (algorithm, task, env-step budget, arm overrides, seeds); an ablation preset's
-arms (`variants`) are overrides of one base arm, whose cell may be another preset's (`adopts`).
-Read once and checked, so that a typo in the file fails before any training."""
+arms (`variants`) are overrides of one base arm, whose cell may be another preset's (`adopts`: its
+base cells, whose budgets its arms train too). Read once and checked against one schema, so that a
+typo in the file fails before any training."""
 
 from __future__ import annotations
 
@@ -13,15 +14,45 @@ from typing import Any
 
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
+from snac_jax.schema import Anything, Either, Int, ListOf, MapOf, Object, Str, check
 from snac_jax.tasks import TASKS, parse_switches
 
 BASE_ARM = "base"  # the arm every other arm of an ablation preset is measured against
 BUDGETS_FILE = Path(__file__).parent / "budgets.toml"
 _PLANNED = {"seeds", "seed", "switches", "total_steps", "task"}  # what an arm's settings cannot change
-_PRESET_KEYS = (
-    "adopts algorithms budgets description episodes_per_test_design seeds settings static_episodes tasks variants"
+
+_BUDGET = Object(
+    {},
+    {"env_steps": Either(Int(1), Object({}, {task: Int(1) for task in TASKS})), "episodes": Int(1), "source": Str()},
 )
-_ARM_KEYS = {"paper", "switches", "settings", "evaluation", "tasks"}
+_ARM = Object(
+    {},
+    {
+        "paper": Str(),
+        "switches": Str(),
+        "settings": MapOf(Anything()),
+        "evaluation": MapOf(Anything()),
+        "tasks": ListOf(Str()),
+    },
+)
+PRESETS_SCHEMA = MapOf(
+    Object(
+        {},
+        {
+            "description": Str(),
+            "seeds": Int(1),
+            "algorithms": ListOf(Str()),
+            "tasks": ListOf(Str()),
+            "adopts": Str(),
+            "budgets": MapOf(_BUDGET),
+            "settings": MapOf(Anything()),
+            "static_episodes": Int(1),
+            "episodes_per_test_design": Int(1),
+            "variants": MapOf(_ARM),
+        },
+    )
+)
+"""budgets.toml: one table per preset (`Preset`), a budget per algorithm, an arm per variant."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +90,7 @@ class Preset:
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
-    adopts: str | None = None  # the preset whose cell is the base arm where it trained the base arm's config
+    adopts: str | None = None  # the preset of the base cells, where they trained the base arm's config
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -72,24 +103,22 @@ class Preset:
 
 
 def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
-    tables = tomllib.loads(Path(path).read_text())
+    tables = check(tomllib.loads(Path(path).read_text()), PRESETS_SCHEMA, path)
     presets = {}
     for name, table in tables.items():
-        unknown = sorted(set(table) - set(_PRESET_KEYS.split()))
-        if unknown:
-            raise ValueError(
-                f"{path}: [{name}] has unknown key(s) {unknown}; allowed: {', '.join(_PRESET_KEYS.split())}"
-            )
+        for algorithm, budget in table.get("budgets", {}).items():
+            if "env_steps" in budget and "episodes" in budget:
+                raise ValueError(f"{path}: {name}.budgets.{algorithm} gives env_steps and episodes; one or the other")
         where, tasks = f"{path}: [{name}.variants", table.get("tasks")
         variants = tuple(_variant(f"{where}.{k}]", k, v, tasks) for k, v in table.get("variants", {}).items())
-        presets[name] = preset = Preset(
+        presets[name] = Preset(
             name=name,
             description=table.get("description", ""),
-            seeds=int(table.get("seeds", 1)),
-            budgets={a: _budget(path, tables, name, a, b) for a, b in table.get("budgets", {}).items()},
+            seeds=table.get("seeds", 1),
+            budgets=table.get("budgets", {}),
             settings=table.get("settings", {}),
-            static_episodes=int(table.get("static_episodes", STATIC_EPISODES)),
-            episodes_per_test_design=int(table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN)),
+            static_episodes=table.get("static_episodes", STATIC_EPISODES),
+            episodes_per_test_design=table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN),
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
             variants=variants,
@@ -100,7 +129,11 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             raise ValueError(
                 f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)"
             )
-        if arms and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches) and preset.adopts:
+        if (
+            arms
+            and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches)
+            and "adopts" in table
+        ):
             raise ValueError(f"{path}: [{name}] adopts another preset's cells: its base arm may change nothing")
     for name, preset in presets.items():
         plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
@@ -109,46 +142,20 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
                 f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
                 f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}"
             )
+        if preset.adopts is not None:  # its arms train its base cells' budgets, unless it gives its own
+            theirs = {
+                algorithm: {**budget, "source": f"the {preset.adopts} preset's budget, {budget.get('source', '')}"}
+                for algorithm, budget in presets[preset.adopts].budgets.items()
+            }
+            presets[name] = dataclasses.replace(preset, budgets={**theirs, **preset.budgets})
     return presets
-
-
-def _budget(path, tables: dict, preset: str, algorithm: str, budget: dict) -> dict:
-    """A budget entry checked: `env_steps` (one number, or one per environment task) or `episodes`,
-    and a `source`; or `same_as = "PRESET.ALGORITHM"`, that entry's (a budget stated once)."""
-    where = f"{path}: [{preset}.budgets] {algorithm}"
-    if "same_as" in budget:
-        if set(budget) != {"same_as"}:
-            raise ValueError(f"{where} gives same_as and {sorted(set(budget) - {'same_as'})}; same_as stands alone")
-        other, _, learner = str(budget["same_as"]).partition(".")
-        target = tables.get(other, {}).get("budgets", {}).get(learner)
-        if not isinstance(target, dict) or "same_as" in target or not {"env_steps", "episodes"} & set(target):
-            raise ValueError(
-                f"{where}'s same_as must name, as PRESET.ALGORITHM, another entry with env_steps or episodes"
-            )
-        whose = f"the {other} preset's budget" if learner == algorithm else f"{learner}'s budget in the {other} preset"
-        steps = {k: v for k, v in target.items() if k in ("env_steps", "episodes")}
-        return {**steps, "source": f"{whose}, {target['source']}" if "source" in target else whose}
-    unknown = sorted(set(budget) - {"env_steps", "episodes", "source"})
-    if unknown or ("env_steps" in budget and "episodes" in budget):
-        raise ValueError(
-            f"{where} must give env_steps or episodes (and a source), or same_as"
-            + (f"; unknown key(s) {unknown}" if unknown else "")
-        )
-    per_task = budget.get("env_steps")
-    if isinstance(per_task, dict) and set(per_task) - set(TASKS):
-        raise ValueError(f"{where}'s env_steps names unknown task(s) {sorted(set(per_task) - set(TASKS))}")
-    return budget
 
 
 def _variant(where: str, name: str, table: dict, tasks) -> Variant:
     """An arm; its `tasks` default to its preset's."""
     table = {"tasks": tasks, **table} if tasks is not None else table
-    unknown = sorted(set(table) - _ARM_KEYS)
-    if unknown or "tasks" not in table:
-        raise ValueError(
-            f"{where} must give tasks (or its preset), and may give paper, switches, settings and evaluation"
-            + (f"; unknown key(s) {unknown}" if unknown else "")
-        )
+    if "tasks" not in table:
+        raise ValueError(f"{where} must give tasks (or its preset)")
     settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
     for key, options in (("settings", settings), ("evaluation", evaluation)):
         if sorted(set(options) & _PLANNED):

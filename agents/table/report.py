@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from agents.table import ablation, statistics
-from agents.table.files import budget_record, budget_text, copies, load_raw, refuse_links, seed_means
+from agents.table.files import budget_record, budget_text, copies, interval, load_raw, number, refuse_links, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
 from agents.training import schemas
@@ -119,10 +119,6 @@ def build(
     }
 
 
-def _f(value, digits: int = 3) -> str:
-    return "—" if value is None else f"{value:.{digits}f}"
-
-
 def _header(table: dict) -> list[str]:
     """What every preset's section shares: how the numbers were made, which keys scored them."""
     hand_keys = ", ".join(map(str, table.get("handcrafted_eval_seeds", []))) or "—"
@@ -165,7 +161,7 @@ def _reference_row(name: str, values: list) -> str:
     """A row without seeds: its numbers, and their IQM over the columns that have one."""
     reported = [v for v in values if v is not None]
     iqm = f"{statistics.iqm(reported):.3f} ({_columns(len(reported))})" if reported else "—"
-    return f"| {name} | " + " | ".join(_f(v) for v in values) + f" | {iqm} |"
+    return f"| {name} | " + " | ".join(number(v) for v in values) + f" | {iqm} |"
 
 
 def paper_base(table: dict, learner: str) -> str | None:
@@ -194,15 +190,12 @@ def _section(table: dict, description: str) -> list[str]:
     ]
     for learner, cells in table["learners"].items():
         iqm = table["iqm"].get(learner)
-        ours = [
-            f"{cells[c]['mean']:.3f} [{cells[c]['ci95'][0]:.3f}, {cells[c]['ci95'][1]:.3f}]" if c in cells else "—"
-            for c in columns
-        ]
+        ours = [interval(cells[c]["mean"], cells[c]["ci95"]) if c in cells else "—" for c in columns]
         iqm_text = (
             "—"
             if not iqm
             else (
-                f"{iqm['iqm']:.3f} [{iqm['ci95'][0]:.3f}, {iqm['ci95'][1]:.3f}]"
+                interval(iqm["iqm"], iqm["ci95"])
                 + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)")
             )
         )
@@ -214,7 +207,7 @@ def _section(table: dict, description: str) -> list[str]:
         lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
         lines.append(
             f"| {_paper_label(table, learner)} | "
-            + " | ".join(_f(table["paper_rows"][learner].get(c)) for c in columns)
+            + " | ".join(number(table["paper_rows"][learner].get(c)) for c in columns)
             + f" | {paper_iqm} |"
         )
     if not table["learners"]:
@@ -254,7 +247,7 @@ def _section(table: dict, description: str) -> list[str]:
         for learner, row in walls.items():
             lines.append(
                 f"| {learner} | "
-                + " | ".join(_f(None if row.get(c) is None else row[c] / 60, 1) for c in columns)
+                + " | ".join(number(None if row.get(c) is None else row[c] / 60, 1) for c in columns)
                 + " |"
             )
     return lines + [""]
@@ -342,17 +335,19 @@ def write_report(
     planned = copies(None if runs_dir is None else Path(runs_dir), results_dir, preset)
     pending = {destination: text for _, destination, text in planned}
     presets = load_presets()
-    found = sorted(
-        {p.name for p in (results_dir / "table").glob("*") if p.is_dir()} | ({preset} if planned else set()),
-        key=lambda n: (list(presets).index(n) if n in presets else len(presets), n),
-    ) or [preset]
+    folders = {p.name for p in (results_dir / "table").glob("*") if p.is_dir()}
+    if unknown := sorted(folders - set(presets)):
+        raise ValueError(
+            f"{results_dir / 'table'} holds cells of {unknown}, no preset of budgets.toml: move them out of the results"
+        )
+    found = [n for n in presets if n in folders or (n == preset and planned)] or [preset]
     hand_path = results_dir / "handcrafted.json"
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
     raws = {
-        n: ablation.with_adopted_base(load_raw(results_dir, n, pending), results_dir, presets.get(n), pending)
+        n: ablation.with_adopted_base(load_raw(results_dir, n, pending), results_dir, presets[n], pending)
         for n in found
     }
-    arms = {n: [v.name for v in presets[n].variants] if n in presets else [] for n in found}
+    arms = {n: [v.name for v in presets[n].variants] for n in found}
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
     for name in found:
         paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms[name] else f"table-{name}.png")
@@ -365,7 +360,7 @@ def write_report(
     tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
     for name in found:
         raw = raws[name]
-        if arms[name] or ablation.is_ablation(raw):
+        if arms[name]:
             figure_path = results_dir / ablation.curves_name(name)
             drawn = ablation.curves(raw, arms=arms[name], path=figure_path, preset=name)
             tables[name] = ablation.build(
