@@ -271,3 +271,39 @@ def test_the_cache_encodes_only_the_worlds_whose_design_changed():
     calls.clear()
     assert np.array_equal(np.asarray(networks.refresh_design_features(encode, new, new, refreshed)), expected(new))
     assert calls == []
+
+
+def test_a_rollouts_first_cache_holds_every_worlds_features_from_one_pass(monkeypatch):
+    """`first_design_cache` encodes the first step's designs in one pass, and acting from it gives
+    the outputs of the network that encodes every design; the step after it re-encodes no world
+    (the refresh finds none changed), and a world whose design changed is refreshed."""
+    env, params = make("2d-dynamic-sparse")
+    layout = ObsLayout.from_env(env, params)
+    network = networks.QNetwork(layout=layout, num_actions=env.num_actions, hidden_size=8)
+    obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 6), params)
+    frames = obs[None, :, None, :].astype(jnp.float32)  # (T=1, B=6, k=1, O)
+    carry, resets = network.initial_carry(6), jnp.ones((1, 6), bool)
+    variables = network.init(jax.random.key(1), carry, frames, resets)
+    changed = []
+    refresh = networks.refresh_design_features
+    monkeypatch.setattr(
+        networks,
+        "refresh_design_features",
+        lambda encode, designs, seen, features: (
+            changed.append(int(np.any(np.asarray(designs != seen).reshape(len(designs), -1), axis=1).sum())),
+            refresh(encode, designs, seen, features),
+        )[1],
+    )
+    cache = networks.first_design_cache(network, variables, carry, frames, resets)
+    assert changed == []  # one pass, not the refresh's chunks
+    direct = network.apply(variables, carry, frames, resets)[1]
+    cached, cache = networks.apply_with_design_cache(network, variables, cache, carry, frames, resets)
+    np.testing.assert_allclose(np.asarray(cached[1]), np.asarray(direct), rtol=1e-5, atol=1e-6)
+    assert changed == [0]
+    design = layout.env.design
+    other = frames.at[0, 2, 0, design].set(1.0 - frames[0, 2, 0, design])
+    cached, _ = networks.apply_with_design_cache(network, variables, cache, carry, other, resets)
+    np.testing.assert_allclose(
+        np.asarray(cached[1]), np.asarray(network.apply(variables, carry, other, resets)[1]), rtol=1e-5, atol=1e-6
+    )
+    assert changed == [0, 1]

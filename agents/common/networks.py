@@ -163,22 +163,19 @@ def apply_with_design_cache(network: nn.Module, variables, cache, *inputs, **kwa
     """`network.apply(variables, *inputs, **kwargs)` for one acting step, with the design
     features of the worlds whose design did not change taken from `cache`
     (`refresh_design_features`); returns `(outputs, cache)`. Start each rollout from
-    `empty_design_cache` (or `unseen_design_cache`), since the parameters, and so the features,
-    change between rollouts. A network without a design encoder gives `{}`."""
+    `first_design_cache`, since the parameters, and so the features, change between rollouts. A
+    network without a design encoder gives `{}`. An empty `cache` (`{}`) is filled: every
+    world's design encoded in one pass."""
     outputs, mutated = network.apply({**variables, DESIGN_CACHE: cache}, *inputs, mutable=[DESIGN_CACHE], **kwargs)
     return outputs, mutated.get(DESIGN_CACHE, {})
 
 
-def unseen_design_cache(shapes):
-    """A cache of the structure `shapes` (as `jax.eval_shape` gives it) that has seen no design
-    (NaN): the first step of a rollout encodes every world's."""
-    return jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes)
-
-
-def empty_design_cache(network: nn.Module, variables, *inputs):
-    """`unseen_design_cache` of `network` applied to `inputs`."""
-    _, shapes = jax.eval_shape(lambda: network.apply(variables, *inputs, mutable=[DESIGN_CACHE]))
-    return unseen_design_cache(shapes.get(DESIGN_CACHE, {}))
+def first_design_cache(network: nn.Module, variables, *inputs, **kwargs):
+    """The cache of a rollout's first step: every world's design in `inputs` encoded in one pass
+    (the rest of the network's outputs are unused, so XLA drops them). Why not an empty cache for
+    the first step: its loop would encode the whole batch a chunk at a time, a pass per chunk,
+    which costs a rollout of few steps (a replay learner's 8) more than the cache saves."""
+    return apply_with_design_cache(network, variables, {}, *inputs, **kwargs)[1]
 
 
 def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
@@ -232,9 +229,13 @@ class ObservationEncoder(nn.Module):
         one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
         if one_frame and lead[0] == 1 and self.is_mutable_collection(DESIGN_CACHE) and not self.is_initializing():
             current = design.reshape((lead[1],) + design.shape[-2:])
+            fresh = not self.has_variable(DESIGN_CACHE, "design")  # `first_design_cache`: one pass
             seen = self.variable(DESIGN_CACHE, "design", jnp.full, current.shape, jnp.nan, current.dtype)
             cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, (lead[1], self.hidden_size), jnp.float32)
-            cached.value = refresh_design_features(encoder, current, seen.value, cached.value)
+            if fresh:
+                cached.value = encoder(current)
+            else:
+                cached.value = refresh_design_features(encoder, current, seen.value, cached.value)
             seen.value = current
             return cached.value.reshape(lead + (self.hidden_size,))
         if one_frame:

@@ -41,7 +41,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import frames_with_history, unseen_design_cache
+from agents.common.networks import frames_with_history
 from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
 
@@ -352,12 +352,12 @@ class ReplayLearner:
             return (worlds, cache, key, env_steps + self.config.num_envs), (step, stats)
 
         # The design features of each world are kept from step to step (a dynamic task's design
-        # is constant for an episode) and encoded again where a world's design changes; the
-        # cache starts empty in each rollout, as the parameters changed since the last.
+        # is constant for an episode) and encoded again where a world's design changes; each
+        # rollout starts from its first step's, encoded in one pass (`first_design_cache`: acting
+        # with an empty cache, the action unused), as the parameters changed since the last.
         _, frames = self._acting_frames(state.worlds)
         keys = jax.random.split(state.key, self.acting_keys)
-        shapes = jax.eval_shape(lambda: self.act(state.params, state.worlds, frames, keys, state.env_steps, {})[2])
-        cache = unseen_design_cache(shapes)
+        cache = self.act(state.params, state.worlds, frames, keys, state.env_steps, {})[2]
         (worlds, _, key, env_steps), (steps, stats) = jax.lax.scan(
             body, (state.worlds, cache, state.key, state.env_steps), None, length=self.config.rollout_steps
         )

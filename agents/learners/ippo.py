@@ -38,7 +38,7 @@ from agents.common.networks import (
     ObservationEncoder,
     ScannedRNN,
     apply_with_design_cache,
-    empty_design_cache,
+    first_design_cache,
     mlp_head,
 )
 from agents.common.targets import gae, truncation_values
@@ -341,7 +341,7 @@ class IPPO:
 
         worlds = state.worlds
         first = self._robots_as_worlds(worlds.carry, self._network_inputs(worlds)[None], worlds.reset[None])
-        design_cache = empty_design_cache(self.network, state.params, *first)
+        design_cache = first_design_cache(self.network, state.params, *first)
         (worlds, _, key), (batch, stats) = jax.lax.scan(
             env_step, (worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )

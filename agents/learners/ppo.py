@@ -32,7 +32,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import ActorCritic, apply_with_design_cache, empty_design_cache
+from agents.common.networks import ActorCritic, apply_with_design_cache, first_design_cache
 from agents.common.targets import gae, truncation_values
 from agents.training.config import TrainConfig, option
 from snac_jax.policy import Policy
@@ -235,7 +235,7 @@ class PPO:
             return (worlds, design_cache, key), (transition, stats)
 
         inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
-        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        design_cache = first_design_cache(self.network, state.params, *inputs)
         (worlds, _, key), (batch, stats) = jax.lax.scan(
             env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )

@@ -36,7 +36,7 @@ import optax
 from flax import struct
 
 from agents.common.inputs import ObsLayout
-from agents.common.networks import LayerNormQNetwork, apply_with_design_cache, empty_design_cache
+from agents.common.networks import LayerNormQNetwork, apply_with_design_cache, first_design_cache
 from agents.common.safe_drops import allowed_actions, masked_q, random_allowed, require_obstacles
 from agents.common.targets import q_lambda, truncation_values
 from agents.training.config import TrainConfig, option
@@ -295,7 +295,7 @@ class PQN:
             return (worlds, design_cache, key), (transition, stats)
 
         inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
-        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        design_cache = first_design_cache(self.network, state.params, *inputs)
         (worlds, _, key), (batch, stats) = jax.lax.scan(
             env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )

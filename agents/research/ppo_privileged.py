@@ -40,7 +40,7 @@ from agents.common.networks import (
     ObservationEncoder,
     ScannedRNN,
     apply_with_design_cache,
-    empty_design_cache,
+    first_design_cache,
     mlp_head,
     scaled_init,
 )
@@ -240,7 +240,7 @@ class PrivilegedPPO(StrideCurriculum, PPO):
         worlds = state.worlds
         inputs = (worlds.carry, self._network_obs(worlds)[None], worlds.reset[None])
         privileged = _one_step(self.privileged_state(worlds.env_state, env_params))
-        design_cache = empty_design_cache(self.network, state.params, *inputs, privileged)
+        design_cache = first_design_cache(self.network, state.params, *inputs, privileged)
         (worlds, _, key), (batch, stats) = jax.lax.scan(
             env_step, (worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )

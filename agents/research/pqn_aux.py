@@ -18,7 +18,7 @@ from agents.common.networks import (
     ObservationEncoder,
     ScannedRNN,
     apply_with_design_cache,
-    empty_design_cache,
+    first_design_cache,
     scaled_init,
 )
 from agents.learners.pqn import PQN, PQNConfig, RunnerState, episode_stats, td_loss
@@ -158,7 +158,7 @@ class PQNAux(StrideCurriculum, PQN):
             return (worlds, design_cache, key), (transition, stats)
 
         inputs = (state.worlds.carry, self._network_obs(state.worlds)[None], state.worlds.reset[None])
-        design_cache = empty_design_cache(self.network, state.params, *inputs)
+        design_cache = first_design_cache(self.network, state.params, *inputs)
         (worlds, _, key), (batch, stats) = jax.lax.scan(
             env_step, (state.worlds, design_cache, state.key), None, length=self.config.rollout_steps
         )
