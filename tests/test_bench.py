@@ -323,3 +323,21 @@ def test_robustness_only_merges_its_cases_into_the_record_and_keeps_the_before_c
     assert [(r["what"], r["verdict"]) for r in record["results"]] == [("a", "good"), ("b", "good"), ("c", "good")]
     assert record["seconds"] == 60.0 and record["reruns"] == [{"only": "b", "cases": 2, "seconds": 5.0}]
     assert record["before"] == before and "| 1 | a | `snac x` | bad |" in (tmp_path / "robustness.md").read_text()
+
+
+@pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
+def test_acting_probe_times_each_way_of_reading_the_design_and_refuses_other_learners():
+    """`bench/acting_probe.py` prints one rate per run for the cache, the per-step encoding and
+    the unrefreshed cache, writes nothing, and refuses an on-policy learner in one line."""
+    script = ROOT / "bench" / "acting_probe.py"
+    before = _committed_results()
+    base = [sys.executable, str(script), "--algorithm", "dqn", "--task", "1d-dynamic", "--num-envs", "4"]
+    for design in ("cache", "every-step", "no-refresh"):
+        done = subprocess.run([*base, "--design", design, "--repeats", "1"], capture_output=True, text=True, cwd=ROOT)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert f"dqn 1d-dynamic (4 worlds, design: {design}): " in done.stdout and "env-steps/s acting" in done.stdout
+    done = subprocess.run(
+        [sys.executable, str(script), "--algorithm", "ppo", "--task", "1d-dynamic"], capture_output=True, text=True
+    )
+    assert done.returncode == 2 and "is not a replay learner" in done.stderr
+    assert _committed_results() == before
