@@ -54,7 +54,8 @@ def main() -> None:
         networks.refresh_design_features = lambda encode, designs, seen, features: features
 
     state = jax.jit(algorithm.init)(jax.random.key(0))
-    rollout = jax.jit(lambda s: algorithm._rollout(s, algorithm.env_params))
+    # donated, as the driver donates its state: else each call copies the replay buffer it returns
+    rollout = jax.jit(lambda s: algorithm._rollout(s, algorithm.env_params), donate_argnums=0)
     state, steps, _ = rollout(state)
     jax.block_until_ready(steps)
     times = []
