@@ -7,8 +7,8 @@ not refreshed at all, to tell what a dynamic column's acting step spends its tim
 
 `--design cache` (default): as the learner acts (`apply_with_design_cache`); `every-step`: the
 network applied without the cache, encoding every world's design at every step; `no-refresh`:
-the cached features read as they are, never refreshed (wrong features, for timing only: what
-acting costs without the design encoder). Prints one line; writes nothing. Median of `--repeats`
+the features cached at a rollout's first step read as they are, never refreshed (wrong features,
+for timing only: what acting costs with the encoder run once per rollout). Prints one line; writes nothing. Median of `--repeats`
 rollouts after a warm-up, on whatever device JAX picks.
 """
 
