@@ -138,11 +138,13 @@ class Rainbow(DQN):
         """`(carry, logits (T, B, A, atoms))`; with `key` the noisy layers draw fresh noise from it
         (one draw for the batch, or with `per_world` one per step and world), without it they are
         their mean."""
+        return self.network.apply(params, carry, frames, resets, **self._noise(key, per_world))
+
+    def _noise(self, key: jax.Array | None, per_world: bool) -> dict:
+        """The network's keyword arguments for a noise draw from `key` (none: the mean network)."""
         if key is None or not self.config.noisy:
-            return self.network.apply(params, carry, frames, resets)
-        return self.network.apply(
-            params, carry, frames, resets, noise=True, noise_per_world=per_world, rngs={"noise": key}
-        )
+            return {}
+        return {"noise": True, "noise_per_world": per_world, "rngs": {"noise": key}}
 
     def expected(self, logits: jax.Array) -> jax.Array:
         """Each action's expected return under its predicted distribution."""
@@ -168,7 +170,7 @@ class Rainbow(DQN):
         """Q-values under noise drawn for each world apart. Why: one draw for all worlds perturbs
         every world the same way, and at sigma0 = 0.1 that rarely changes the mean network's
         choice, so all worlds took the same action (bench/results/rainbow.md)."""
-        noise = {"noise": True, "noise_per_world": True, "rngs": {"noise": keys[0]}} if self.config.noisy else {}
+        noise = self._noise(keys[0], per_world=True)
         (carry, logits), cache = apply_with_design_cache(self.network, params, cache, carry, frames, resets, **noise)
         return (carry, self.expected(logits)), cache
 
