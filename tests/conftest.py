@@ -20,6 +20,11 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # No eviction (-1): jax's eviction reads every entry's access-time file, and a test that kills a
 # training process mid-write can leave an entry without one, after which every cache write warns.
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", "-1")
+# Computations run inline, not dispatched asynchronously: with async dispatch the CPU client can
+# hang for good on a host callback inside a jitted loop (jax-ml/jax#25861, open), and the tests'
+# spies (`jax.debug.callback`) and JaxMARL's IPPO script (`io_callback`) do that. The package
+# itself makes no callbacks, so its users' programs are not exposed.
+os.environ.setdefault("JAX_CPU_ENABLE_ASYNC_DISPATCH", "false")
 
 import jax  # noqa: E402  (after the variables above, which jax reads when it is imported)
 import pytest  # noqa: E402
@@ -28,6 +33,7 @@ for _name, _value in (
     ("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"]),
     ("jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])),
     ("jax_compilation_cache_max_size", int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"])),
+    ("jax_cpu_enable_async_dispatch", os.environ["JAX_CPU_ENABLE_ASYNC_DISPATCH"].lower() in ("1", "true")),
 ):
     jax.config.update(_name, _value)  # in case a plugin imported jax before this module
 
