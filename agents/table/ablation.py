@@ -19,7 +19,7 @@ from agents.table.files import adopted_base, budget_record, budget_text, interva
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import Preset, arm_changes
-from snac_jax.atomic import atomic_write
+from agents.training.plotting import pyplot, save_png
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
 
@@ -41,14 +41,12 @@ def with_adopted_base(raw: dict, results_dir: Path, preset: Preset, pending: dic
             path = record_path(results_dir, preset.adopts, algorithm, task)
             if (own := cells.get(f"{task}.{BASE}")) is not None:
                 own["own_copy"] = "adopted_from" in own["cell"]
-            if own is not None or not (path in pending or path.is_file()):
-                continue
-            record = read_raw(path, pending.get(path))
-            arms = [files for files in cells.values() if files["cell"]["task"] == task]
-            if all(adopted_base(record, files) for files in arms):
-                adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
-                adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
-                cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}}
+            elif path in pending or path.is_file():
+                record = read_raw(path, pending.get(path))
+                if all(adopted_base(record, files) for files in cells.values() if files["cell"]["task"] == task):
+                    adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
+                    adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
+                    cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}}
     return raw
 
 
@@ -57,9 +55,18 @@ def curves_name(preset: str) -> str:
     return f"table-{preset}-curves.png"
 
 
-def _arm_order(arms: list[str]):
-    """Sort key of arm names: the preset's order, then arms it does not name, by name."""
-    return lambda arm: (arms.index(arm) if arm in arms else len(arms), arm)
+def _arms(raw: dict, arms: list[str]) -> dict[tuple[str, str], dict[str, dict]]:
+    """(learner, task) -> arm -> its copied cell, in the order of `raw`; the arms in the preset's
+    order (`arms`), then arms it no longer names (their copies are still reported), by name."""
+    grouped: dict[tuple[str, str], dict[str, dict]] = {}
+    for algorithm, cells in raw.items():
+        for files in cells.values():
+            grouped.setdefault((algorithm, files["cell"]["task"]), {})[files["cell"]["variant"]] = files
+    order = {arm: index for index, arm in enumerate(arms)}
+    return {
+        key: {arm: found[arm] for arm in sorted(found, key=lambda arm: (order.get(arm, len(arms)), arm))}
+        for key, found in grouped.items()
+    }
 
 
 def build(
@@ -69,73 +76,58 @@ def build(
     paper: dict | None = None,
     preset: str = "",
     reps: int = statistics.DEFAULT_REPS,
-    bootstrap_seed: int = 0,
     curves: bool = False,
 ) -> dict[str, Any]:
-    """table.json's section of an ablation preset from its copied cells (`raw.load_raw`); `arms`:
-    the preset's arm names in the order the table lists them (arms it does not name follow, by
-    name); `curves`: whether the arms' learning-curve figure was drawn (`curves`). The paper's
-    values stand beside the learner it ablated (DRQN) only."""
+    """table.json's section of an ablation preset from its copied cells (`files.load_raw`);
+    `arms`: the preset's arm names in the order the table lists them; `curves`: whether the arms'
+    learning-curve figure was drawn. The paper's values stand beside the learner it ablated (DRQN)
+    only, not beside drqn-aux, which shares DRQN's paper row but is another learner."""
     paper = (load_paper_results() if paper is None else paper).get(PAPER_TABLE, {})
-    order = _arm_order(arms)
     learners: dict[str, dict] = {}
-    for algorithm, cells in raw.items():
-        ablated = algorithm == PAPER_LEARNER  # not drqn-aux, which shares DRQN's paper row but is another learner
-        by_task: dict[str, dict[str, dict]] = {}
-        for files in cells.values():
-            by_task.setdefault(files["cell"]["task"], {})[files["cell"]["variant"]] = files
-        for task, found in by_task.items():
-            base = found.get(BASE)
-            rows = {}
-            for arm in sorted(found, key=order):
-                files, scores = found[arm], seed_means(found[arm])
-                paper_arm = paper.get(task, {}).get(files["cell"]["paper_variant"], {}) if ablated else {}
-                row = {
-                    **statistics.cell_summary(scores, reps=reps, seed=bootstrap_seed),
-                    "paper_variant": files["cell"]["paper_variant"],
-                    "changes": arm_changes(
-                        files["cell"]["switches"], files["cell"].get("settings", {}), files["cell"].get("evaluation")
-                    ),
-                    "budget": budget_record([files]),
-                    "paper": paper_arm.get("avg"),
-                    "adopted_from": files["cell"].get("adopted_from"),
-                    **({"own_copy": True} if files.get("own_copy") else {}),
-                    **({"evaluation": files["cell"]["evaluation"]} if files["cell"].get("evaluation") else {}),
-                }
-                if arm != BASE:  # the paper's value of an arm is its change from the base
-                    # A change is read only against a base trained as long: an arm kept at a
-                    # smaller budget than a retrained base would show the budget, not the arm.
-                    comparable = base is not None and base["config"]["total_steps"] == files["config"]["total_steps"]
-                    row["delta"] = (
-                        statistics.difference_summary(scores, seed_means(base), reps=reps, seed=bootstrap_seed)
-                        if comparable
-                        else None
-                    )
-                rows[arm] = row
-            learners.setdefault(algorithm, {})[task] = rows
+    for (algorithm, task), found in _arms(raw, arms).items():
+        base, rows = found.get(BASE), {}
+        for arm, files in found.items():
+            cell, scores = files["cell"], seed_means(files)
+            theirs = paper.get(task, {}).get(cell["paper_variant"], {}) if algorithm == PAPER_LEARNER else {}
+            rows[arm] = {
+                **statistics.cell_summary(scores, reps=reps),
+                "paper_variant": cell["paper_variant"],
+                "changes": arm_changes(cell["switches"], cell.get("settings", {}), cell.get("evaluation")),
+                "budget": budget_record([files]),
+                "paper": theirs.get("avg"),  # the base arm's IoU, or another arm's change from the base
+                "adopted_from": cell.get("adopted_from"),
+                **({"own_copy": True} if files.get("own_copy") else {}),
+                **({"evaluation": cell["evaluation"]} if cell.get("evaluation") else {}),
+            }
+            if arm != BASE:
+                # A change is read only against a base trained as long: an arm kept at a smaller
+                # budget than a retrained base would show the budget, not the arm.
+                comparable = base is not None and base["config"]["total_steps"] == files["config"]["total_steps"]
+                delta = statistics.difference_summary(scores, seed_means(base), reps=reps) if comparable else None
+                rows[arm]["delta"] = delta
+        learners.setdefault(algorithm, {})[task] = rows
     return {
         "preset": preset,
         "kind": "ablation",
         "train_seed": TRAIN_SEED,
         "eval_seed": REPORT_EVAL_SEED,
-        "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": bootstrap_seed},
+        "bootstrap": statistics.bootstrap_record(reps),
         "ablation": learners,
         "curves": curves,
     }
 
 
-def _scored_otherwise(table: dict) -> bool:
-    """Whether an arm of the section acts with settings of its own when scored (`Variant.evaluation`)."""
-    return any(
-        row.get("evaluation")
-        for tasks in table["ablation"].values()
-        for rows in tasks.values()
-        for row in rows.values()
-    )
+def _rows(table: dict):
+    """(learner, task, arm, row) of every row of an ablation section, in order."""
+    for learner, tasks in table["ablation"].items():
+        for task, rows in tasks.items():
+            for arm, row in rows.items():
+                yield learner, task, arm, row
 
 
 def section(table: dict, description: str) -> list[str]:
     """table.md's section of an ablation preset."""
+    scored_otherwise = any(row.get("evaluation") for *_, row in _rows(table))
     lines = [
         f"## Preset `{table['preset']}`" + (f": {description}" if description else ""),
         "",
@@ -143,7 +135,7 @@ def section(table: dict, description: str) -> list[str]:
         + (
             '; an arm whose settings say "at evaluation" trains as the base arm (taking over its run) and its '
             "greedy policy acts with them when scored"
-            if _scored_otherwise(table)
+            if scored_otherwise
             else ""
         )
         + ". The paper's value of the base arm is its IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
@@ -160,31 +152,21 @@ def section(table: dict, description: str) -> list[str]:
         "| learner | task | arm (paper's name) | switches, settings | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
         "|---|---|---|---|---:|---:|---:|---:|",
     ]
-    for learner, tasks in table["ablation"].items():
-        for task, rows in tasks.items():
-            for arm, row in rows.items():
-                ours = interval(row["mean"], row["ci95"])
-                delta = "—" if row.get("delta") is None else interval(row["delta"]["delta"], row["delta"]["ci95"], True)
-                paper = (
-                    "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
-                )
-                paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
-                lines.append(
-                    f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
-                    f"{delta} | {paper} | {budget_text(row['budget'])} |"
-                )
-    adopted = [
-        f"{learner} on {task} ({arm}): `{row['adopted_from']}`"
-        + (
-            f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
-            if row.get("own_copy")
-            else ""
+    adopted = []
+    for learner, task, arm, row in _rows(table):
+        ours = interval(row["mean"], row["ci95"])
+        delta = "—" if row.get("delta") is None else interval(row["delta"]["delta"], row["delta"]["ci95"], True)
+        paper = "—" if row["paper"] is None else f"{row['paper']:+.3f}" if arm != BASE else f"{row['paper']:.3f}"
+        paper_name = f" ({row['paper_variant']})" if row["paper_variant"] else ""
+        lines.append(
+            f"| {learner} | {task} | {arm}{paper_name} | `{row['changes'] or '—'}` | {ours} | "
+            f"{delta} | {paper} | {budget_text(row['budget'])} |"
         )
-        for learner, tasks in table["ablation"].items()
-        for task, rows in tasks.items()
-        for arm, row in rows.items()
-        if row.get("adopted_from")
-    ]
+        if row.get("adopted_from"):
+            own = f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
+            adopted.append(
+                f"{learner} on {task} ({arm}): `{row['adopted_from']}`" + (own if row.get("own_copy") else "")
+            )
     if adopted:
         lines += [
             "",
@@ -206,24 +188,19 @@ def curves(raw: dict, *, arms: list[str], path: str | Path, preset: str = "") ->
     highest seed. The table scores the greedy policy once at the end; the curves show whether
     an arm's gap was there all along or opened late. Returns False (and writes nothing) where no
     copied cell kept its curve."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    order = _arm_order(arms)
-    panels: dict[tuple[str, str], dict[str, list[dict]]] = {}
-    for algorithm, cells in raw.items():
-        for files in cells.values():
-            if files.get("metrics"):
-                panels.setdefault((algorithm, files["cell"]["task"]), {})[files["cell"]["variant"]] = files["metrics"]
+    panels = {
+        key: {arm: files["metrics"] for arm, files in found.items() if files.get("metrics")}
+        for key, found in sorted(_arms(raw, arms).items())
+    }
+    panels = {key: found for key, found in panels.items() if found}
     if not panels:
         return False
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
-    for ax, ((algorithm, task), found) in zip(axes[0], sorted(panels.items())):
-        for colour, arm in enumerate(sorted(found, key=order)):
-            steps = np.array([r["env_steps"] for r in found[arm]], dtype=float)
-            iou = np.array([r["iou"] for r in found[arm]], dtype=float).reshape(len(steps), -1)  # (chunks, seeds)
+    for ax, ((algorithm, task), found) in zip(axes[0], panels.items()):
+        for colour, (arm, records) in enumerate(found.items()):
+            steps = np.array([r["env_steps"] for r in records], dtype=float)
+            iou = np.array([r["iou"] for r in records], dtype=float).reshape(len(steps), -1)  # (chunks, seeds)
             ax.plot(steps, iou.mean(axis=1), color=f"C{colour}", label=f"{arm} ({iou.shape[1]} seeds)")
             ax.fill_between(steps, iou.min(axis=1), iou.max(axis=1), color=f"C{colour}", alpha=0.2, linewidth=0)
         ax.set_title(f"{algorithm}, {task}", fontsize=10)
@@ -234,6 +211,5 @@ def curves(raw: dict, *, arms: list[str], path: str | Path, preset: str = "") ->
         ax.legend(loc="lower right", fontsize="small")
     fig.suptitle(f"snac table, preset {preset!r}: learning curves of the arms", fontsize=11)
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
-    plt.close(fig)
+    save_png(fig, path, dpi=100)
     return True

@@ -26,21 +26,22 @@ from agents.table.files import budget_record, budget_text, copies, interval, loa
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import load_presets
 from agents.training import schemas
-from snac_jax.atomic import atomic_write, atomic_write_json, atomic_write_text
+from agents.training.plotting import pyplot, save_png
+from snac_jax.atomic import atomic_write_json, atomic_write_text
 from snac_jax.evaluation import REPORT_EVAL_SEED, TUNING_EVAL_SEED
 from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, load_paper_results, paper_row
-
-BOOTSTRAP_SEED = 0
-
-
-def _column_tasks(column: str) -> tuple[str, ...]:
-    return PAPER_GROUPS.get(column, (column,))
 
 
 def _paper_method(algorithm: str) -> str | None:
     from agents.training.registry import ALGORITHMS, config_class
 
     return config_class(algorithm).paper_method if algorithm in ALGORITHMS else None
+
+
+def _paper_values(paper: dict, method: str | None) -> dict[str, float | None]:
+    """The paper's average IoU of `method` on every column (None where it reports none)."""
+    row = paper_row(paper, method)
+    return {column: row.get(column, {}).get("avg") for column in PAPER_TASKS}
 
 
 def build(
@@ -53,13 +54,14 @@ def build(
 ) -> dict[str, Any]:
     """table.json's content from the copied cells (`load_raw`)."""
     paper = load_paper_results() if paper is None else paper
-    learners, iqms, seed_matrix, paper_rows, paper_methods = {}, {}, {}, {}, {}
+    learners, iqms, paper_rows, paper_methods = {}, {}, {}, {}
     for algorithm, tasks in raw.items():
-        row = paper_row(paper, _paper_method(algorithm))
-        learners[algorithm] = {}
+        method = _paper_method(algorithm)
+        theirs = _paper_values(paper, method)
+        ours, per_column = {}, []
         for column in PAPER_TASKS:
-            cells = [tasks.get(task) for task in _column_tasks(column)]
-            if any(c is None for c in cells):
+            cells = [tasks.get(task) for task in PAPER_GROUPS.get(column, (column,))]
+            if None in cells:
                 continue
             per_task = [seed_means(c) for c in cells]
             if len({len(v) for v in per_task}) != 1:
@@ -67,30 +69,24 @@ def build(
                     f"{algorithm} {column}: its tasks have different seed counts {[len(v) for v in per_task]}"
                 )
             values = np.mean(per_task, axis=0)
-            learners[algorithm][column] = {
-                **statistics.cell_summary(values, reps=reps, seed=BOOTSTRAP_SEED),
-                "budget": budget_record(cells),
-                "paper": row.get(column, {}).get("avg"),
-            }
-            seed_matrix.setdefault(algorithm, []).append(values)
-        columns = learners[algorithm]
-        if columns:
+            summary = statistics.cell_summary(values, reps=reps)
+            ours[column] = {**summary, "budget": budget_record(cells), "paper": theirs[column]}
+            per_column.append(values)
+        if ours:
             # (seeds, columns) over the seed indices every column has: a column with five seeds
             # (a cheap one) beside columns with three adds its extra seeds to its cell, not to the IQM
-            common = min(len(v) for v in seed_matrix[algorithm])
-            scores = np.stack([v[:common] for v in seed_matrix[algorithm]], axis=1)
+            common = min(len(v) for v in per_column)
+            scores = np.stack([v[:common] for v in per_column], axis=1)
             # the paper's IQM over the columns ours has, so that the two compare
-            reported = [row[c]["avg"] for c in columns if row.get(c, {}).get("avg") is not None]
+            reported = [theirs[c] for c in ours if theirs[c] is not None]
             iqms[algorithm] = {
-                **statistics.iqm_summary(scores, reps=reps, seed=BOOTSTRAP_SEED),
-                "columns": list(columns),
+                **statistics.iqm_summary(scores, reps=reps),
+                "columns": list(ours),
                 "paper_iqm": statistics.iqm(reported) if reported else None,
                 "paper_columns": len(reported),
             }
-        paper_rows[algorithm] = {c: row.get(c, {}).get("avg") for c in PAPER_TASKS}
-        paper_methods[algorithm] = _paper_method(algorithm)
-    human = paper_row(paper, "human")
-    hand_paper = paper_row(paper, "handcrafted")
+        learners[algorithm], paper_rows[algorithm], paper_methods[algorithm] = ours, theirs, method
+    hand_paper, handcrafted = _paper_values(paper, "handcrafted"), handcrafted or {}
     hand = {
         column: {
             "mean": handcrafted[column]["mean"],
@@ -98,18 +94,18 @@ def build(
             "seeds": [handcrafted[column]["mean"]],
             "budget": None,
             "eval_seed": handcrafted[column].get("seed"),
-            "paper": hand_paper.get(column, {}).get("avg"),
+            "paper": hand_paper[column],
         }
         for column in PAPER_TASKS
-        if handcrafted and column in handcrafted
+        if column in handcrafted
     }
     return {
         "preset": preset,
         "columns": list(PAPER_TASKS),
         "train_seed": TRAIN_SEED,
         "eval_seed": REPORT_EVAL_SEED,
-        "bootstrap": {"reps": reps, "confidence": 0.95, "interval": "percentile", "seed": BOOTSTRAP_SEED},
-        "human": {column: {"paper": human.get(column, {}).get("avg")} for column in PAPER_TASKS},
+        "bootstrap": statistics.bootstrap_record(reps),
+        "human": {column: {"paper": value} for column, value in _paper_values(paper, "human").items()},
         "handcrafted": hand,
         "handcrafted_eval_seeds": sorted({h["eval_seed"] for h in hand.values()}, key=str),
         "learners": learners,
@@ -189,34 +185,23 @@ def _section(table: dict, description: str) -> list[str]:
         _reference_row("handcrafted (paper)", [table["handcrafted"].get(c, {}).get("paper") for c in columns]),
     ]
     for learner, cells in table["learners"].items():
-        iqm = table["iqm"].get(learner)
+        iqm, ours_iqm, paper_iqm = table["iqm"].get(learner), "—", "—"
+        if iqm:
+            some = "" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)"
+            ours_iqm = interval(iqm["iqm"], iqm["ci95"]) + some
+            if iqm["paper_iqm"] is not None:
+                paper_iqm = f"{iqm['paper_iqm']:.3f} (ours' {_columns(iqm['paper_columns'])})"
         ours = [interval(cells[c]["mean"], cells[c]["ci95"]) if c in cells else "—" for c in columns]
-        iqm_text = (
-            "—"
-            if not iqm
-            else (
-                interval(iqm["iqm"], iqm["ci95"])
-                + ("" if iqm["tasks"] == len(columns) else f" ({iqm['tasks']} of {len(columns)} columns)")
-            )
-        )
-        paper_iqm = (
-            f"{iqm['paper_iqm']:.3f} (ours' {_columns(iqm['paper_columns'])})"
-            if iqm and iqm["paper_iqm"] is not None
-            else "—"
-        )
-        lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {iqm_text} |")
-        lines.append(
-            f"| {_paper_label(table, learner)} | "
-            + " | ".join(number(table["paper_rows"][learner].get(c)) for c in columns)
-            + f" | {paper_iqm} |"
-        )
+        theirs = [number(table["paper_rows"][learner].get(c)) for c in columns]
+        lines.append(f"| **{learner}** (ours) | " + " | ".join(ours) + f" | {ours_iqm} |")
+        lines.append(f"| {_paper_label(table, learner)} | " + " | ".join(theirs) + f" | {paper_iqm} |")
     if not table["learners"]:
-        lines += [
+        return lines + [
             "",
             "No finished cells yet: `snac table --preset "
             f"{table['preset']} --dry-run` shows the plan, `snac table --preset {table['preset']}` runs it.",
+            "",
         ]
-        return lines + [""]
     lines += [
         "",
         "Env steps per seed (`*`: below the requested budget):",
@@ -225,17 +210,14 @@ def _section(table: dict, description: str) -> list[str]:
         "|---|---:|" + "---:|" * len(columns),
     ]
     for learner, cells in table["learners"].items():
-        seeds = sorted({len(v["seeds"]) for v in cells.values()})
-        lines.append(
-            f"| {learner} | {', '.join(map(str, seeds))} | "
-            + " | ".join(budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns)
-            + " |"
-        )
+        seeds = ", ".join(map(str, sorted({len(v["seeds"]) for v in cells.values()})))
+        budgets = [budget_text(cells[c]["budget"]) if c in cells else "—" for c in columns]
+        lines.append(f"| {learner} | {seeds} | " + " | ".join(budgets) + " |")
     walls = {
-        learner: {c: cell["budget"].get("training_wall_s") for c, cell in cells.items()}
+        learner: [cells[c]["budget"]["training_wall_s"] if c in cells else None for c in columns]
         for learner, cells in table["learners"].items()
     }
-    if any(w is not None for row in walls.values() for w in row.values()):
+    if any(w is not None for row in walls.values() for w in row):
         lines += [
             "",
             "Training wall time in minutes, every seed of a cell in one process (from the cell's "
@@ -245,11 +227,7 @@ def _section(table: dict, description: str) -> list[str]:
             "|---|" + "---:|" * len(columns),
         ]
         for learner, row in walls.items():
-            lines.append(
-                f"| {learner} | "
-                + " | ".join(number(None if row.get(c) is None else row[c] / 60, 1) for c in columns)
-                + " |"
-            )
+            lines.append(f"| {learner} | " + " | ".join(number(None if w is None else w / 60, 1) for w in row) + " |")
     return lines + [""]
 
 
@@ -265,29 +243,19 @@ def markdown(tables: dict[str, dict], descriptions: dict[str, str] | None = None
 
 def figure(table: dict, path: str | Path) -> None:
     """Every learner's per-column interval (mean and 95% CI), the paper's value as a marker."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     columns, learners = table["columns"], list(table["learners"])
     fig, axes = plt.subplots(2, 5, figsize=(17, 6.5), sharey=True)
     for ax, column in zip(axes.flat, columns):
         for x, learner in enumerate(learners):
             cell = table["learners"][learner].get(column)
-            if cell is not None:
-                low, high = cell["ci95"]
-                ax.errorbar(
-                    x,
-                    cell["mean"],
-                    yerr=[[cell["mean"] - low], [high - cell["mean"]]],
-                    fmt="o",
-                    color="C0",
-                    capsize=4,
-                    label="ours: mean, 95% CI" if x == 0 else None,
-                )
-                if cell["paper"] is not None:
-                    ax.plot(x, cell["paper"], "x", color="C3", markersize=8, mew=2, label="paper")
+            if cell is None:
+                continue
+            mean, (low, high) = cell["mean"], cell["ci95"]
+            label = "ours: mean, 95% CI" if x == 0 else None
+            ax.errorbar(x, mean, yerr=[[mean - low], [high - mean]], fmt="o", color="C0", capsize=4, label=label)
+            if cell["paper"] is not None:
+                ax.plot(x, cell["paper"], "x", color="C3", markersize=8, mew=2, label="paper")
         hand = table["handcrafted"].get(column)
         if hand is not None:
             ax.axhline(hand["mean"], color="0.5", linestyle="--", linewidth=1, label="handcrafted (ours)")
@@ -304,17 +272,10 @@ def figure(table: dict, path: str | Path) -> None:
             handles.setdefault(label, handle)
     fig.suptitle(f"snac table, preset {table['preset']!r}", y=0.99, fontsize=11)
     if handles:
-        fig.legend(
-            list(handles.values()),
-            list(handles),
-            loc="upper center",
-            bbox_to_anchor=(0.5, 0.955),
-            ncol=len(handles),
-            frameon=False,
-        )
+        legend = {"loc": "upper center", "bbox_to_anchor": (0.5, 0.955), "ncol": len(handles), "frameon": False}
+        fig.legend(list(handles.values()), list(handles), **legend)
     fig.tight_layout(rect=(0, 0, 1, 0.9))
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
+    save_png(fig, path, dpi=110)
 
 
 def write_report(
@@ -348,32 +309,28 @@ def write_report(
         for n in found
     }
     arms = {n: [v.name for v in presets[n].variants] for n in found}
+    figures = {n: results_dir / (ablation.curves_name(n) if arms[n] else f"table-{n}.png") for n in found}
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}
-    for name in found:
-        paths[f"png:{name}"] = results_dir / (ablation.curves_name(name) if arms[name] else f"table-{name}.png")
-    for path in paths.values():
+    for path in [*paths.values(), *figures.values()]:
         refuse_links(results_dir, path)
     if dry_run:
-        return {**{f"copy:{source}": destination for source, destination, _ in planned}, **paths}
+        copied = {f"copy:{source}": destination for source, destination, _ in planned}
+        return {**copied, **paths, **{f"png:{n}": path for n, path in figures.items()}}
     for path, text in pending.items():
         atomic_write_text(path, text)
-    tables, paths = {}, {"md": paths["md"], "json": paths["json"]}
+    tables = {}
     for name in found:
-        raw = raws[name]
-        if arms[name]:
-            figure_path = results_dir / ablation.curves_name(name)
-            drawn = ablation.curves(raw, arms=arms[name], path=figure_path, preset=name)
-            tables[name] = ablation.build(
-                raw, arms=arms[name], preset=name, reps=reps, bootstrap_seed=BOOTSTRAP_SEED, curves=drawn
-            )
+        if arms[name]:  # the arms' curves first: the section says whether they were drawn
+            drawn = ablation.curves(raws[name], arms=arms[name], path=figures[name], preset=name)
+            tables[name] = ablation.build(raws[name], arms=arms[name], preset=name, reps=reps, curves=drawn)
             if drawn:
-                paths[f"png:{name}-curves"] = figure_path
+                paths[f"png:{name}-curves"] = figures[name]
         else:
-            tables[name] = build(raw, handcrafted=handcrafted, preset=name, reps=reps)
+            tables[name] = build(raws[name], handcrafted=handcrafted, preset=name, reps=reps)
     atomic_write_text(paths["md"], markdown(tables, {n: p.description for n, p in presets.items()}))
     atomic_write_json(paths["json"], tables)
-    for name, table in tables.items():
-        if table.get("kind") != "ablation":
-            paths[f"png:{name}"] = results_dir / f"table-{name}.png"
-            figure(table, paths[f"png:{name}"])
+    for name in found:
+        if not arms[name]:
+            paths[f"png:{name}"] = figures[name]
+            figure(tables[name], figures[name])
     return paths

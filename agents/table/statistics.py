@@ -20,6 +20,9 @@ import numpy as np
 from scipy import stats
 
 DEFAULT_REPS = 10_000
+BOOTSTRAP_SEED = 0
+"""The rng seed of every interval the table reports, so that a page is rebuilt to the byte."""
+CONFIDENCE = 0.95
 
 
 def iqm(scores) -> float:
@@ -53,26 +56,30 @@ def stratified_bootstrap_ci(
     statistic: Callable[[np.ndarray], np.ndarray] = mean_of_runs,
     *,
     reps: int = DEFAULT_REPS,
-    confidence: float = 0.95,
-    seed: int = 0,
+    seed: int = BOOTSTRAP_SEED,
 ) -> tuple[float, float]:
     """The percentile interval of `statistic` under the stratified bootstrap (runs resampled
     within each task). `scores`: (runs, tasks), or (runs,) for a single task. The same `seed`
     gives the same interval."""
     scores = _as_runs_by_tasks(scores)
-    if reps < 1 or not 0 < confidence < 1:
-        raise ValueError(f"reps must be >= 1 and confidence in (0, 1), got {reps}, {confidence}")
+    if reps < 1:
+        raise ValueError(f"reps must be >= 1, got {reps}")
     runs, tasks = scores.shape
     rng = np.random.default_rng(seed)
     rows = rng.integers(0, runs, size=(reps, runs, tasks))
     resampled = scores[rows, np.arange(tasks)[None, None, :]]
     values = statistic(resampled)
-    alpha = (1 - confidence) / 2
+    alpha = (1 - CONFIDENCE) / 2
     low, high = np.percentile(values, [100 * alpha, 100 * (1 - alpha)])
     return float(low), float(high)
 
 
-def cell_summary(seed_scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+def bootstrap_record(reps: int) -> dict:
+    """How the table's intervals were made, as table.json records it."""
+    return {"reps": reps, "confidence": CONFIDENCE, "interval": "percentile", "seed": BOOTSTRAP_SEED}
+
+
+def cell_summary(seed_scores, *, reps: int = DEFAULT_REPS, seed: int = BOOTSTRAP_SEED) -> dict:
     """One cell of the table: the mean over seeds, its 95% bootstrap interval across seeds and
     the per-seed values."""
     values = _as_runs_by_tasks(seed_scores)[:, 0]
@@ -83,7 +90,7 @@ def cell_summary(seed_scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dic
     }
 
 
-def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = BOOTSTRAP_SEED) -> dict:
     """One learner over tasks: the IQM of its (runs, tasks) scores and its 95% stratified
     bootstrap interval."""
     scores = _as_runs_by_tasks(scores)
@@ -95,7 +102,7 @@ def iqm_summary(scores, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
     }
 
 
-def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int = 0) -> dict:
+def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int = BOOTSTRAP_SEED) -> dict:
     """An ablation's effect: the mean over seeds of `scores` minus that of `baseline`, with the
     95% percentile interval of the difference when each side's seeds are resampled on their own.
     No pairing is assumed: the arms share training seeds, but in different worlds they diverge

@@ -25,15 +25,27 @@ def best_rl_result(task: str, paper: dict | None = None) -> tuple[str, float] | 
     return max(scores, key=lambda s: s[1]) if scores else None
 
 
-def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> None:
-    """Write the learning curve of `records` (metrics.jsonl lines) to `path` atomically."""
+def pyplot():
+    """matplotlib's pyplot on the Agg backend: every figure here is written to a file, never shown."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def save_png(fig, path: str | Path, dpi: int) -> None:
+    """Write `fig` to `path` atomically as a PNG, then close it."""
     from snac_jax.atomic import atomic_write
 
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    pyplot().close(fig)
+
+
+def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> None:
+    """Write the learning curve of `records` (metrics.jsonl lines) to `path` atomically."""
+    plt = pyplot()
     steps = np.array([r["env_steps"] for r in records], dtype=float)
     fig, (ax_iou, ax_return) = plt.subplots(1, 2, figsize=(11, 4))
     for name, ax, label in (("iou", ax_iou, "mean final IoU"), ("return", ax_return, "mean episode return")):
@@ -51,5 +63,4 @@ def plot_curve(records: list[dict], task: str, title: str, path: str | Path) -> 
     ax_iou.legend(loc="lower right", fontsize="small")
     fig.suptitle(title)
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
-    plt.close(fig)
+    save_png(fig, path, dpi=100)
