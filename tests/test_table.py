@@ -38,10 +38,10 @@ def _run_cli(argv: list[str]) -> int:
 
 def test_paper_columns_expand_to_environment_tasks():
     assert expand_tasks(["1d-static", "1d-static-sin", "2d-static-dense"]) == [
-        ("1d-static", "1d-static-sin"),
-        ("1d-static", "1d-static-gauss"),
-        ("1d-static", "1d-static-step"),
-        ("2d-static-dense", "2d-static-dense"),
+        "1d-static-sin",
+        "1d-static-gauss",
+        "1d-static-step",
+        "2d-static-dense",
     ]
     with pytest.raises(ValueError, match="unknown task"):
         expand_tasks(["4d-static"])

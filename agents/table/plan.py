@@ -36,6 +36,7 @@ from agents.training import checkpoint, schemas
 from agents.training.config import TrainConfig
 from agents.training.registry import make_config, tuned_source
 from snac_jax.evaluation import REPORT_EVAL_SEED
+from snac_jax.paper import paper_column
 from snac_jax.tasks import task_spec
 
 TRAIN_SEED = 1
@@ -88,7 +89,6 @@ def requested_budget(preset: Preset, config: TrainConfig) -> tuple[int, str]:
 @dataclasses.dataclass
 class Cell:
     algorithm: str
-    column: str
     task: str
     directory: Path
     config: TrainConfig  # its total_steps: the budget, env steps per seed
@@ -117,13 +117,13 @@ class Cell:
         if self.variant is not None:
             arm = {"variant": self.variant.name, "paper_variant": self.variant.paper}
             arm |= {"switches": self.variant.switches, "settings": self.variant.settings}
-            if self.evaluation:
-                arm |= {"evaluation": self.evaluation, "adopted_from": _name(self.base_run)}
+            if self.evaluation:  # the run it scored again, `<preset>/<algorithm>/<cell>`
+                arm |= {"evaluation": self.evaluation, "adopted_from": "/".join(self.base_run.parts[-3:])}
         steps = self.config.total_steps
         return {
             "preset": self.preset.name,
             "algorithm": self.algorithm,
-            "column": self.column,
+            "column": paper_column(self.task),
             "task": self.task,
             # `requested` above `env_steps`: a record of the former wall-time cap (the report's `*`)
             "budget": {"env_steps": steps, "requested": steps, "source": self.budget_source},
@@ -133,21 +133,16 @@ class Cell:
         }
 
 
-def _name(path: Path | None) -> str:
-    """`<preset>/<algorithm>/<cell>` of a cell's directory or raw copy."""
-    return "/".join([*path.parts[-3:-1], path.name.removesuffix(".json")])
-
-
 def settings_differ(cell: Cell, config: TrainConfig) -> list[str]:
     """The settings in which a run made with `config` differs from the cell's."""
     stored, wanted = config.to_json(), cell.config.to_json()
     return sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
 
 
-def _ours(cell: Cell) -> bool:
-    """Whether the cell's directory holds a config.json with the cell's settings."""
+def _trained_like(cell: Cell, directory: Path) -> bool:
+    """Whether `directory` holds a config.json with the cell's settings."""
     try:
-        return not settings_differ(cell, checkpoint.read_config(cell.directory))
+        return not settings_differ(cell, checkpoint.read_config(directory))
     except (OSError, ValueError):
         return False
 
@@ -157,8 +152,7 @@ def cell_state(cell: Cell) -> None:
     directory, episodes = cell.directory, expected_episodes(cell.task, cell.preset.protocol)
     if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
         raise ValueError(f"{directory} is not a directory (a link or a file), where a cell of the table goes")
-    last = checkpoint.latest_chunk(directory)
-    ours = _ours(cell)
+    last, ours = checkpoint.latest_chunk(directory), _trained_like(cell, directory)
     if last is not None and not ours:
         stored, wanted = checkpoint.read_config(directory), cell.config.to_json()
         changes = ", ".join(
@@ -191,14 +185,11 @@ def _check_new(cell: Cell, ours: bool) -> None:
     its first checkpoint (trained again from the start), or, for an evaluation arm, its own
     scoring cut short; anything else is refused: the table deletes nothing it did not make."""
     directory = cell.directory
-    if directory.is_dir():
-        checkpoint.check_lock_file(directory)
-    entries = (
-        sorted(p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE) if directory.is_dir() else []
-    )
-    if not entries:
+    if not directory.is_dir():
         return
-    if ours and cell.evaluation and not (directory / checkpoint.CHECKPOINT_DIR).exists():
+    checkpoint.check_lock_file(directory)
+    entries = sorted(p.name for p in directory.iterdir() if p.name != checkpoint.LOCK_FILE)
+    if not entries or (ours and cell.evaluation and not (directory / checkpoint.CHECKPOINT_DIR).exists()):
         return
     if ours and set(entries) <= RESTARTABLE:
         if checkpoint.read_metrics_lines(directory / checkpoint.METRICS_FILE):
@@ -229,13 +220,11 @@ def adopted_record(cell: Cell, results_dir: Path | None) -> Path | None:
 def estimate(cell: Cell) -> None:
     """Seconds of training left, and where the figure comes from: a started run's own rate (its
     metrics.jsonl); None for a cell not started, as nothing else measures its rate."""
-    if cell.status in ("done", "adopted"):
-        cell.estimate_s = 0.0
-        cell.estimate_from = (
-            "finished"
-            if cell.status == "done"
-            else f"the {cell.preset.adopts} preset's cell {cell.base_run}, finished with the same settings"
-        )
+    if cell.status == "done":
+        cell.estimate_s, cell.estimate_from = 0.0, "finished"
+    elif cell.status == "adopted":
+        adopted = f"the {cell.preset.adopts} preset's cell {cell.base_run}, finished with the same settings"
+        cell.estimate_s, cell.estimate_from = 0.0, adopted
     elif cell.evaluation:
         cell.estimate_s, cell.estimate_from = None, f"scores {cell.base_run} again: unknown"
     elif not cell.metrics or cell.metrics[-1]["wall_s"] <= 0:
@@ -255,7 +244,7 @@ def make_plan(
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
     its config, budget, status and estimate. `results_dir`: the record, where an adopted base arm
     may be finished."""
-    runs_dir, algorithms, variants = Path(runs_dir), list(dict.fromkeys(algorithms)), preset.variants
+    runs_dir, variants = Path(runs_dir), preset.variants
     if arms is not None:
         names = [v.name for v in preset.variants]
         unknown = [a for a in arms if a not in names]
@@ -265,22 +254,18 @@ def make_plan(
             raise ValueError(f"preset {preset.name!r} {wrong}; its arms: {its}")
         variants = tuple(v for v in preset.variants if v.name in arms)
     cells = []
-    for algorithm in algorithms:
-        for column, task in expand_tasks(tasks):
+    for algorithm in dict.fromkeys(algorithms):
+        for task in expand_tasks(tasks):
             for variant in [v for v in variants if task in v.tasks] if variants else [None]:
                 arm = {} if variant is None else {**variant.settings, "switches": variant.switches}
-                overrides = {
-                    **preset.overrides(algorithm),
-                    "seeds": seeds or preset.seeds,
-                    "seed": TRAIN_SEED,
-                    "switches": "",
-                    **arm,
-                }
+                overrides = {**preset.overrides(algorithm), "seeds": seeds or preset.seeds, "seed": TRAIN_SEED}
+                overrides = {**overrides, "switches": "", **arm}
                 steps, source = requested_budget(preset, make_config(algorithm, task, **overrides))
                 config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
                 name = task if variant is None else f"{task}.{variant.name}"
-                directory = runs_dir / preset.name / algorithm / name
-                cells.append(Cell(algorithm, column, task, directory, config, source, preset, variant))
+                cells.append(
+                    Cell(algorithm, task, runs_dir / preset.name / algorithm / name, config, source, preset, variant)
+                )
     if variants and not cells:
         chosen = "arm" if arms is None else "arm named in --arms"
         listing = "; ".join(f"{v.name}: {', '.join(v.tasks)}" for v in variants)
@@ -299,7 +284,8 @@ def make_plan(
         if cell.evaluation and cell.status != "done":
             own = runs_dir / preset.name / cell.algorithm / f"{cell.task}.{BASE_ARM}"
             cell.base_run = own if adopted is None else runs_dir / preset.adopts / cell.algorithm / cell.task
-            if (cell.algorithm, cell.task) not in training and not _has_run(cell, cell.base_run):
+            started = checkpoint.latest_chunk(cell.base_run) is not None and _trained_like(cell, cell.base_run)
+            if (cell.algorithm, cell.task) not in training and not started:
                 raise ValueError(
                     f"arm {cell.variant.name!r} of preset {preset.name!r} scores the base arm's run again: "
                     f"no run of it with checkpoints and this arm's config is at {cell.base_run}; train it first "
@@ -307,15 +293,6 @@ def make_plan(
                 )
         estimate(cell)
     return cells
-
-
-def _has_run(cell: Cell, directory: Path) -> bool:
-    """Whether `directory` holds a run with checkpoints trained with the cell's config."""
-    try:
-        config = checkpoint.read_config(directory)
-        return checkpoint.latest_chunk(directory) is not None and not settings_differ(cell, config)
-    except (OSError, ValueError):
-        return False
 
 
 def duration(seconds: float | None) -> str:
@@ -340,28 +317,22 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
         f"{'algorithm':<10} {'task':<{width}} {'env steps/seed':>24} {'seeds':>5} {'status':<9} {'estimate':>13}  estimate from",
     ]
     for c in cells:
-        status = (
-            f"{c.done_steps / max(c.total_steps, 1):.0%} done"
-            if c.status == "partial"
-            else c.status.replace("adopted", "adopt")
-        )
+        done = f"{c.done_steps / max(c.total_steps, 1):.0%} done"
+        status = done if c.status == "partial" else c.status.replace("adopted", "adopt")
         lines.append(
-            f"{c.algorithm:<10} {c.directory.name:<{width}} {steps_text(c.config.total_steps):>24} {c.config.seeds:>5} {status:<9} "
-            f"{duration(c.estimate_s):>13}  {c.estimate_from}"
+            f"{c.algorithm:<10} {c.directory.name:<{width}} {steps_text(c.config.total_steps):>24} {c.config.seeds:>5} "
+            f"{status:<9} {duration(c.estimate_s):>13}  {c.estimate_from}"
         )
     lines += ["", "budgets:", *(f"  {s}" for s in dict.fromkeys(f"{c.algorithm}: {c.budget_source}" for c in cells))]
     counts = {s: sum(c.status == s for c in cells) for s in ("new", "adopted", "partial", "done")}
     known = sum(c.estimate_s for c in cells if c.estimate_s is not None)
     unknown = sum(c.estimate_s is None for c in cells)
-    total = duration(known) if not unknown else f"at least {duration(known)}" if known > 0 else "unknown"
-    note = (
-        f"; {unknown} {'cell' if unknown == 1 else 'cells'} of unknown time" + (" not counted" if known > 0 else "")
-        if unknown
-        else ""
-    )
+    total, note = duration(known), ""
+    if unknown:  # a sum of no estimates is no estimate; with some, a lower bound
+        total = f"at least {total}" if known > 0 else "unknown"
+        note = f"; {unknown} {'cell' if unknown == 1 else 'cells'} of unknown time" + (
+            " not counted" if known > 0 else ""
+        )
     adopted = f"{counts['adopted']} adopted, " if counts["adopted"] else ""
-    lines += [
-        "",
-        f"total estimate: {total} ({counts['new']} new, {adopted}{counts['partial']} partial, {counts['done']} done{note})",
-    ]
-    return "\n".join(lines)
+    counted = f"{counts['new']} new, {adopted}{counts['partial']} partial, {counts['done']} done{note}"
+    return "\n".join([*lines, "", f"total estimate: {total} ({counted})"])

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from snac_jax.evaluation import EPISODES_PER_TEST_DESIGN, STATIC_EPISODES
-from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS, paper_column
+from snac_jax.paper import PAPER_GROUPS, PAPER_TASKS
 from snac_jax.schema import Anything, Either, Int, ListOf, MapOf, Object, Str, check
 from snac_jax.tasks import TASKS, parse_switches
 
@@ -166,23 +166,20 @@ def _variant(where: str, name: str, table: dict, tasks) -> Variant:
         raise ValueError(f"{where}: an arm with evaluation settings scores the base arm's run: no settings or switches")
     try:
         parse_switches(table.get("switches", ""))
-        tasks = tuple(task for _, task in expand_tasks(table["tasks"]))
+        tasks = tuple(expand_tasks(table["tasks"]))
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
     return Variant(name, table.get("paper", ""), table.get("switches", ""), tasks, settings, evaluation)
 
 
-def expand_tasks(names) -> list[tuple[str, str]]:
-    """(paper column, environment task) pairs of paper columns (`1d-static`: its three shapes)
-    or environment task ids, in order, without repeats."""
-    pairs = []
+def expand_tasks(names) -> list[str]:
+    """The environment tasks of paper columns (`1d-static`: its three shapes) or environment task
+    ids, in order, without repeats."""
+    tasks = []
     for name in names:
-        if name in PAPER_GROUPS:
-            pairs += [(name, task) for task in PAPER_GROUPS[name]]
-        elif name in TASKS:
-            pairs.append((paper_column(name), name))
-        else:
+        if name not in PAPER_GROUPS and name not in TASKS:
             raise ValueError(
                 f"unknown task {name!r}; allowed: {', '.join(PAPER_TASKS)} or an environment task ({', '.join(TASKS)})"
             )
-    return list(dict.fromkeys(pairs))
+        tasks += PAPER_GROUPS.get(name, (name,))
+    return list(dict.fromkeys(tasks))
