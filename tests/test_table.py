@@ -681,7 +681,7 @@ def test_an_ablations_base_arm_is_read_from_the_preset_it_adopts(tmp_path, monke
         return base.status
 
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    three = dataclasses.replace(source.preset, static_episodes=3)
+    three = dataclasses.replace(source.preset, protocol={**source.preset.protocol, "static_episodes": 3})
     for changes, preset, kwargs in [
         (dict(seeds=3), source.preset, dict(means=(0.5, 0.6, 0.7))),
         (dict(total_steps=1024), source.preset, {}),  # a smaller budget: the ablation's arms train 2048

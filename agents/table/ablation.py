@@ -9,6 +9,7 @@ base with the interval of that difference (`statistics.difference_summary`).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ from agents.table import statistics
 from agents.table.files import adopted_base, budget_record, budget_text, interval, read_raw, record_path, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
-from agents.table.presets import Preset, arm_changes
+from agents.table.presets import Preset
 from agents.training.plotting import pyplot, save_png
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
@@ -48,6 +49,15 @@ def with_adopted_base(raw: dict, results_dir: Path, preset: Preset, pending: dic
                     adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
                     cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}}
     return raw
+
+
+def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
+    """An arm's changes as the table prints them: switches, settings, then evaluation-only settings."""
+    return ", ".join(
+        ([switches] if switches else [])
+        + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
+        + [f"{k}={json.dumps(v)} at evaluation" for k, v in sorted((evaluation or {}).items())]
+    )
 
 
 def curves_name(preset: str) -> str:

@@ -7,7 +7,6 @@ typo in the file fails before any training."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -69,15 +68,6 @@ class Variant:
     evaluation: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
-    """An arm's changes as the table prints them: switches, settings, then evaluation-only settings."""
-    return ", ".join(
-        ([switches] if switches else [])
-        + [f"{k}={json.dumps(v)}" for k, v in sorted(settings.items())]
-        + [f"{k}={json.dumps(v)} at evaluation" for k, v in sorted((evaluation or {}).items())]
-    )
-
-
 @dataclasses.dataclass(frozen=True)
 class Preset:
     name: str
@@ -85,8 +75,7 @@ class Preset:
     seeds: int
     budgets: dict[str, dict[str, Any]]
     settings: dict[str, Any]
-    static_episodes: int = STATIC_EPISODES
-    episodes_per_test_design: int = EPISODES_PER_TEST_DESIGN
+    protocol: dict[str, int]  # the episode counts each cell is scored over (`snac_jax.evaluation`)
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
@@ -97,57 +86,51 @@ class Preset:
         shared = {k: v for k, v in self.settings.items() if not isinstance(v, dict)}
         return {**shared, **self.settings.get(algorithm, {})}
 
-    @property
-    def protocol(self) -> dict[str, int]:
-        return {"static_episodes": self.static_episodes, "episodes_per_test_design": self.episodes_per_test_design}
-
 
 def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
-    tables = check(tomllib.loads(Path(path).read_text()), PRESETS_SCHEMA, path)
     presets = {}
-    for name, table in tables.items():
+    for name, table in check(tomllib.loads(Path(path).read_text()), PRESETS_SCHEMA, path).items():
         for algorithm, budget in table.get("budgets", {}).items():
             if "env_steps" in budget and "episodes" in budget:
                 raise ValueError(f"{path}: {name}.budgets.{algorithm} gives env_steps and episodes; one or the other")
-        where, tasks = f"{path}: [{name}.variants", table.get("tasks")
-        variants = tuple(_variant(f"{where}.{k}]", k, v, tasks) for k, v in table.get("variants", {}).items())
+        where = f"{path}: [{name}.variants"
+        arms = {k: _variant(f"{where}.{k}]", k, v, table.get("tasks")) for k, v in table.get("variants", {}).items()}
+        if arms and BASE_ARM not in arms:
+            raise ValueError(f"{where}] needs an arm named base (every other arm is reported against it)")
+        base = arms.get(BASE_ARM)
+        if base is not None and (base.evaluation or base.settings or base.switches) and "adopts" in table:
+            raise ValueError(f"{path}: [{name}] adopts another preset's cells: its base arm may change nothing")
+        protocol = {
+            "static_episodes": table.get("static_episodes", STATIC_EPISODES),
+            "episodes_per_test_design": table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN),
+        }
         presets[name] = Preset(
             name=name,
             description=table.get("description", ""),
             seeds=table.get("seeds", 1),
             budgets=table.get("budgets", {}),
             settings=table.get("settings", {}),
-            static_episodes=table.get("static_episodes", STATIC_EPISODES),
-            episodes_per_test_design=table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN),
+            protocol=protocol,
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
-            variants=variants,
+            variants=tuple(arms.values()),
             adopts=table.get("adopts"),
         )
-        arms = {v.name: v for v in variants}
-        if arms and BASE_ARM not in arms:
-            raise ValueError(
-                f"{path}: [{name}.variants] needs an arm named base (every other arm is reported against it)"
-            )
-        if (
-            arms
-            and (arms[BASE_ARM].evaluation or arms[BASE_ARM].settings or arms[BASE_ARM].switches)
-            and "adopts" in table
-        ):
-            raise ValueError(f"{path}: [{name}] adopts another preset's cells: its base arm may change nothing")
     for name, preset in presets.items():
+        if preset.adopts is None:
+            continue
         plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
-        if preset.adopts is not None and preset.adopts not in plain:
+        if preset.adopts not in plain:
             raise ValueError(
                 f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
                 f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}"
             )
-        if preset.adopts is not None:  # its arms train its base cells' budgets, unless it gives its own
-            theirs = {
-                algorithm: {**budget, "source": f"the {preset.adopts} preset's budget, {budget.get('source', '')}"}
-                for algorithm, budget in presets[preset.adopts].budgets.items()
-            }
-            presets[name] = dataclasses.replace(preset, budgets={**theirs, **preset.budgets})
+        # its arms train its base cells' budgets, unless it gives its own
+        theirs = {
+            algorithm: {**budget, "source": f"the {preset.adopts} preset's budget, {budget.get('source', '')}"}
+            for algorithm, budget in presets[preset.adopts].budgets.items()
+        }
+        presets[name] = dataclasses.replace(preset, budgets={**theirs, **preset.budgets})
     return presets
 
 
@@ -158,7 +141,7 @@ def _variant(where: str, name: str, table: dict, tasks) -> Variant:
         raise ValueError(f"{where} must give tasks (or its preset)")
     settings, evaluation = table.get("settings", {}), table.get("evaluation", {})
     for key, options in (("settings", settings), ("evaluation", evaluation)):
-        if sorted(set(options) & _PLANNED):
+        if set(options) & _PLANNED:
             raise ValueError(
                 f"{where}: {key} may not set {sorted(set(options) & _PLANNED)}: the plan sets {', '.join(sorted(_PLANNED))}"
             )
