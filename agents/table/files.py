@@ -32,7 +32,7 @@ def expected_episodes(task: str, protocol: dict[str, int]) -> int:
     return protocol["static_episodes"]
 
 
-def eval_problem(results: dict, seeds: int, episodes: int | None, seed: int) -> str | None:
+def eval_problem(results: dict, seeds: int, episodes: int, seed: int) -> str | None:
     """Why a schema-checked eval.json is not a finished result of a cell (one row per training
     seed, scored with the evaluation key `seed` over `episodes` episodes each), or None."""
     if len(results) != seeds:
@@ -40,7 +40,7 @@ def eval_problem(results: dict, seeds: int, episodes: int | None, seed: int) -> 
     for name, row in results.items():
         if row["seed"] != seed:
             return f"['{name}'].seed is {row['seed']}, the cell is scored with evaluation key {seed}"
-        if episodes is not None and row["episodes"] != episodes:
+        if row["episodes"] != episodes:
             return f"['{name}'].episodes is {row['episodes']}, the cell's protocol has {episodes}"
     return None
 
@@ -59,9 +59,8 @@ def _check_parts(path: Path, config, cell: dict, results: dict) -> None:
     for key, value in (("algorithm", config.algorithm), ("task", config.task)):
         if cell[key] != value:
             raise ValueError(f"{path}: cell: {key} is {cell[key]!r}, its config has {value!r}")
-    arm = [k for k in ("variant", "paper_variant", "switches") if k in cell]
-    if arm and len(arm) != 3:
-        missing = sorted({"variant", "paper_variant", "switches"} - set(arm))
+    missing = sorted({"variant", "paper_variant", "switches"} - set(cell))
+    if 0 < len(missing) < 3:
         raise ValueError(f"{path}: cell: an arm's cell needs variant, paper_variant and switches; {missing} missing")
     own, name = cell["task"] + (f".{cell['variant']}" if "variant" in cell else ""), path.name.removesuffix(RAW_SUFFIX)
     if name != own or path.parent.name != cell["algorithm"]:
@@ -223,15 +222,12 @@ def seed_means(files: dict) -> list[float]:
 def budget_record(cells: list[dict]) -> dict[str, Any]:
     """The budget of one or more cells (a column's shapes): env steps per seed per task, the
     budget requested, why, and the training wall time from their curves (None where not kept)."""
-    budgets = [c["cell"]["budget"] for c in cells]
-    walls = (
-        None if any(not c.get("metrics") for c in cells) else round(sum(c["metrics"][-1]["wall_s"] for c in cells), 1)
-    )
+    kept = all(c.get("metrics") for c in cells)
     return {
         "env_steps_per_seed": {c["config"]["task"]: c["config"]["total_steps"] for c in cells},
-        "requested_per_seed": {c["config"]["task"]: b["requested"] for c, b in zip(cells, budgets)},
-        "source": "; ".join(dict.fromkeys(b["source"] for b in budgets)),
-        "training_wall_s": walls,
+        "requested_per_seed": {c["config"]["task"]: c["cell"]["budget"]["requested"] for c in cells},
+        "source": "; ".join(dict.fromkeys(c["cell"]["budget"]["source"] for c in cells)),
+        "training_wall_s": round(sum(c["metrics"][-1]["wall_s"] for c in cells), 1) if kept else None,
     }
 
 

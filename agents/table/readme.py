@@ -29,41 +29,28 @@ def _cell(cell: dict | None, paper: float | None) -> str:
     return text + ("" if paper is None else f" ({paper:.3f})")
 
 
-def _budgets(cells: dict) -> str:
-    """The distinct budgets of a row's cells, in column order (`*`: below the budget requested)."""
-    return ", ".join(dict.fromkeys(budget_text(c["budget"]) for c in cells.values())) or "—"
-
-
 def learner_table(tables: dict[str, dict]) -> str:
     """The markdown table of every learner row of every (non-ablation) preset in `tables`."""
     tables = {name: t for name, t in tables.items() if t.get("kind") != "ablation"}
     if not tables:
         return "No finished cells yet."
     first = next(iter(tables.values()))
-    columns = first["columns"]
+    columns, hand = first["columns"], first["handcrafted"]
+    handcrafted = [f"{hand[c]['mean']:.3f} ({number(hand[c]['paper'])})" if c in hand else "—" for c in columns]
     lines = [
         "| learner (preset) | env steps per seed | " + " | ".join(columns) + " |",
         "|---|---|" + "---:|" * len(columns),
         "| human (paper) | | " + " | ".join(number(first["human"][c]["paper"]) for c in columns) + " |",
-        "| handcrafted, ours (paper) | | "
-        + " | ".join(
-            _cell(None, None)
-            if c not in first["handcrafted"]
-            else f"{first['handcrafted'][c]['mean']:.3f} ({number(first['handcrafted'][c]['paper'])})"
-            for c in columns
-        )
-        + " |",
+        "| handcrafted, ours (paper) | | " + " | ".join(handcrafted) + " |",
     ]
     for preset, table in tables.items():
         for learner, cells in table["learners"].items():
-            paper = table["paper_rows"][learner]
-            base = paper_base(table, learner)
+            base, paper = paper_base(table, learner), table["paper_rows"][learner]
             note = "" if base is None else f"; brackets: the paper's {base}"
-            lines.append(
-                f"| {learner} ({preset} preset{note}) | {_budgets(cells)} | "
-                + " | ".join(_cell(cells.get(c), paper.get(c)) for c in columns)
-                + " |"
-            )
+            # the distinct budgets of the row's cells, in column order
+            budgets = ", ".join(dict.fromkeys(budget_text(c["budget"]) for c in cells.values())) or "—"
+            row = [_cell(cells.get(c), paper.get(c)) for c in columns]
+            lines.append(f"| {learner} ({preset} preset{note}) | {budgets} | " + " | ".join(row) + " |")
     return "\n".join(lines)
 
 
