@@ -53,24 +53,15 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def plan_from_args(args: argparse.Namespace):
-    from agents.table.plan import make_plan
-    from agents.table.presets import load_presets
-    from agents.training.registry import ALGORITHMS
-    from snac_jax.paper import PAPER_TASKS
-
-    preset = load_presets()[args.preset]
-    algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
-    tasks = args.tasks or list(preset.tasks or PAPER_TASKS)
-    return make_plan(preset, algorithms, tasks, args.seeds, args.runs_dir, args.arms, args.results_dir)
-
-
 def run(args: argparse.Namespace) -> int:
-    from agents.table.plan import format_plan
+    from agents.table.plan import format_plan, make_plan
+    from agents.table.presets import load_presets
     from agents.table.readme import replace_block, write_readme
     from agents.table.report import write_report
     from agents.table.run import run_cells
     from agents.training import checkpoint
+    from agents.training.registry import ALGORITHMS
+    from snac_jax.paper import PAPER_TASKS
 
     given_runs_dir, args.runs_dir = args.runs_dir is not None, args.runs_dir or DEFAULT_RUNS_DIR
     if args.readme is not None:
@@ -102,12 +93,15 @@ def run(args: argparse.Namespace) -> int:
             paths["readme"] = write_readme(args.readme, json.loads(paths["json"].read_text()))
         print("\n".join(f"wrote {path}" for path in paths.values()))
         return 0
-    if args.dry_run:
-        print(format_plan(plan_from_args(args), args.runs_dir))
-        return 0
-    checkpoint.check_lock_file(args.runs_dir / args.preset)  # a `snac table` at work here: refused before the plan
-    cells = plan_from_args(args)
+    if not args.dry_run:
+        checkpoint.check_lock_file(args.runs_dir / args.preset)  # a `snac table` at work here: refused before the plan
+    preset = load_presets()[args.preset]
+    algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
+    tasks = args.tasks or list(preset.tasks or PAPER_TASKS)
+    cells = make_plan(preset, algorithms, tasks, args.seeds, args.runs_dir, args.arms, args.results_dir)
     print(format_plan(cells, args.runs_dir), flush=True)
+    if args.dry_run:
+        return 0
     finished = run_cells(cells, progress=not args.no_progress, num_devices=args.devices)  # under that lock
     print(
         f"{finished} of {len(cells)} cells finished; `snac table --preset {args.preset} --report` writes the table",

@@ -7,7 +7,6 @@ skipped. An arm with `evaluation` settings trains nothing: it scores the base ar
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 from agents.table.files import CELL_FILE, CURVE_FILE
 from agents.table.plan import Cell, cell_state, scoring_config
@@ -23,7 +22,8 @@ def run_cell(
     tests' stand-in for a killed run, can leave it unfinished). The cell's directory is locked
     (another process on it is refused), and where it stands is read again under the lock."""
     from agents.training.cli import evaluate_run
-    from agents.training.driver import chunk_sizes, train
+    from agents.training.driver import chunk_sizes, read_metrics, train
+    from agents.training.plotting import plot_curve
     from agents.training.registry import build_algorithm
     from agents.training.trained import load_trained
     from snac_jax import devices
@@ -50,21 +50,16 @@ def run_cell(
         atomic_write_json(cell.directory / CELL_FILE, cell.record())
         last = len(chunk_sizes(cell.config.num_updates, cell.config.chunks)) - 1
         if not cell.evaluation and checkpoint.latest_chunk(cell.directory) != last:
-            cell.status = "partial"
+            records = checkpoint.read_metrics_lines(cell.directory / checkpoint.METRICS_FILE)
+            cell.status, cell.done_steps = "partial", (records[-1]["env_steps"] if records else 0)
             return False
-        _plot_curve(cell)
-        algorithm = build_algorithm(scoring_config(algorithm.config, cell.evaluation)) if cell.evaluation else algorithm
+        title = f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)"
+        plot_curve(read_metrics(cell.directory), cell.task, title, cell.directory / CURVE_FILE)
+        if cell.evaluation:
+            algorithm = build_algorithm(scoring_config(algorithm.config, cell.evaluation))
         evaluate_run(algorithm, state, cell.directory, None, seed=REPORT_EVAL_SEED, counts=cell.preset.protocol)
-    cell.status = "done"
+    cell.status, cell.done_steps = "done", cell.total_steps
     return True
-
-
-def _plot_curve(cell: Cell) -> None:
-    from agents.training.driver import read_metrics
-    from agents.training.plotting import plot_curve
-
-    title = f"{cell.algorithm} on {cell.task} ({cell.preset.name} preset)"
-    plot_curve(read_metrics(cell.directory), cell.task, title, cell.directory / CURVE_FILE)
 
 
 def run_cells(
@@ -87,11 +82,8 @@ def run_cells(
                     continue
                 bar.set_postfix_str(f"cell {index + 1}/{len(cells)}: {cell.algorithm} {cell.task}")
                 before = cell.done_steps
-                kwargs = {"progress": progress, "stop_after_chunks": stop_after_chunks, "num_devices": num_devices}
-                finished = run_cell(cell, **kwargs)
-                records = checkpoint.read_metrics_lines(Path(cell.directory) / checkpoint.METRICS_FILE)
-                steps = cell.total_steps if finished else (records[-1]["env_steps"] if records else 0)
-                bar.update((steps - before) * cell.config.seeds)
+                run_cell(cell, progress=progress, stop_after_chunks=stop_after_chunks, num_devices=num_devices)
+                bar.update((cell.done_steps - before) * cell.config.seeds)
         finally:
             bar.close()
     return sum(c.status in ("done", "adopted") for c in cells)
