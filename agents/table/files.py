@@ -8,7 +8,6 @@ a `ValueError` naming the file and the field, never left out."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -130,25 +129,16 @@ def adopted_base(record: dict, arm: dict) -> bool:
     return same and scored
 
 
-def _finite(value: Any) -> Any:
-    """`value` with every float that is not finite as None (a curve is strict JSON)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    return value
-
-
 def raw_text(files: dict) -> str:
     """A cell's raw copy as written: {"cell", "config", "eval", "curve"} indented, each curve
-    record on one line."""
+    record on one line as metrics.jsonl holds it."""
     parts = [
         f'  "{name}": ' + json.dumps(files[name], indent=2, allow_nan=False).replace("\n", "\n  ")
         for name in ("cell", "config", "eval")
     ]
-    curve = ",\n".join("    " + json.dumps(_finite(r), allow_nan=False) for r in files["metrics"])
+    from agents.training.driver import metrics_line  # strict JSON: a curve's non-finite values as null
+
+    curve = ",\n".join("    " + metrics_line(r).rstrip("\n") for r in files["metrics"])
     parts.append('  "curve": ' + (f"[\n{curve}\n  ]" if curve else "[]"))
     return "{\n" + ",\n".join(parts) + "\n}\n"
 
