@@ -1,17 +1,12 @@
-"""`snac table --report`: the benchmark table from the finished cells.
-
-Each finished cell's small files (`config.json`, `eval.json`, `cell.json`, its curve
-`metrics.jsonl`; never checkpoints) are copied from the runs directory into one file,
-`bench/results/table/<preset>/<algorithm>/<task>[.<arm>].json` (`agents.table.files`), and the
-table is computed from those copies only, so it can be rebuilt from the repository:
-`bench/results/table.md` and `table.json` (every preset found there, one section each) and
-`table-<preset>.png`. An ablation preset's section is `agents.table.ablation`'s.
+"""`snac table --report`: the benchmark table from the record alone (`agents.table.files`: one
+raw copy per finished cell, so that every page can be rebuilt from the repository): table.md and
+table.json, one section per preset found there, and `table-<preset>.png`. An ablation preset's
+section is `agents.table.ablation`'s.
 
 A column's per-seed value is that seed's protocol mean on the task; for `1d-static`, the mean
 over the three shapes of the same seed index. A cell shows the mean over seeds with its 95%
 bootstrap interval across seeds; a learner's IQM pools its runs of every finished column (the seed
-indices every column has), with a
-stratified bootstrap interval (`agents.table.statistics`).
+indices every column has), with a stratified bootstrap interval (`agents.table.statistics`).
 """
 
 from __future__ import annotations
