@@ -160,16 +160,13 @@ def refuse_links(root: Path, path: Path) -> None:
 
 
 def copies(runs_dir: Path | None, results_dir: Path, preset: str) -> list[tuple[Path, Path, str]]:
-    """(cell directory, raw copy path, its text) of every finished cell of `preset` under `runs_dir` (one holding
-    an eval.json), each read back and checked first."""
+    """(cell directory, raw copy path, its text) of every finished cell of `preset` under
+    `runs_dir` (one holding an eval.json), each read back and checked first."""
     if runs_dir is None:
         return []
     if not runs_dir.is_dir():
-        raise ValueError(
-            f"--runs-dir {runs_dir} "
-            + ("is a file, not a directory of runs" if runs_dir.exists() else "does not exist")
-            + "; give the directory `snac table` trained in"
-        )
+        what = "is a file, not a directory of runs" if runs_dir.exists() else "does not exist"
+        raise ValueError(f"--runs-dir {runs_dir} {what}; give the directory `snac table` trained in")
     source, target = runs_dir / preset, results_dir / "table" / preset
     if source.is_dir() and target.is_dir() and source.resolve() == target.resolve():
         raise ValueError(f"--runs-dir {runs_dir} is the report's own copy under {results_dir / 'table'}")
