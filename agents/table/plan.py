@@ -258,8 +258,13 @@ def make_plan(
         for task in expand_tasks(tasks):
             for variant in [v for v in variants if task in v.tasks] if variants else [None]:
                 arm = {} if variant is None else {**variant.settings, "switches": variant.switches}
-                overrides = {**preset.overrides(algorithm), "seeds": seeds or preset.seeds, "seed": TRAIN_SEED}
-                overrides = {**overrides, "switches": "", **arm}
+                overrides = {
+                    **preset.overrides(algorithm),
+                    "seeds": seeds or preset.seeds,
+                    "seed": TRAIN_SEED,
+                    "switches": "",
+                    **arm,
+                }
                 steps, source = requested_budget(preset, make_config(algorithm, task, **overrides))
                 config = make_config(algorithm, task, **{**overrides, "total_steps": steps})
                 name = task if variant is None else f"{task}.{variant.name}"
