@@ -16,7 +16,16 @@ from typing import Any
 import numpy as np
 
 from agents.table import statistics
-from agents.table.files import adopted_base, budget_record, budget_text, interval, read_raw, record_path, seed_means
+from agents.table.files import (
+    PAGE_TEXT,
+    adopted_base,
+    budget_record,
+    budget_text,
+    interval,
+    read_raw,
+    record_path,
+    seed_means,
+)
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import Preset
@@ -138,22 +147,11 @@ def _rows(table: dict):
 def section(table: dict, description: str) -> list[str]:
     """table.md's section of an ablation preset."""
     scored_otherwise = any(row.get("evaluation") for *_, row in _rows(table))
+    evaluation = PAGE_TEXT["ablation_evaluation"] if scored_otherwise else ""
     lines = [
         f"## Preset `{table['preset']}`" + (f": {description}" if description else ""),
         "",
-        "Each arm trains and is scored with its switches (SPEC §9) and trains with its learner settings"
-        + (
-            '; an arm whose settings say "at evaluation" trains as the base arm (taking over its run) and its '
-            "greedy policy acts with them when scored"
-            if scored_otherwise
-            else ""
-        )
-        + ". The paper's value of the base arm is its IoU, of every other arm its change from the base (the paper's ablation table, average IoU). "
-        "Δ: ours minus our base, with the 95% bootstrap interval of the difference (each arm's seeds "
-        "resampled on their own). With three to five seeds per arm a percentile bootstrap interval is narrow: "
-        "for two arms of three normal draws and no true difference it holds 0 only about four times in "
-        "five, so read a Δ as an effect only where it is large against the seeds' spread. No Δ (—) where "
-        "the base has no cell yet or trained another number of env steps than the arm.",
+        PAGE_TEXT["ablation"].format(evaluation=evaluation),
         "",
     ]
     if not table["ablation"]:
@@ -173,22 +171,12 @@ def section(table: dict, description: str) -> list[str]:
             f"{delta} | {paper} | {budget_text(row['budget'])} |"
         )
         if row.get("adopted_from"):
-            own = f" (read from this preset's own copy, `{task}.{arm}.json`, the run as it was adopted)"
-            adopted.append(
-                f"{learner} on {task} ({arm}): `{row['adopted_from']}`" + (own if row.get("own_copy") else "")
-            )
+            own = PAGE_TEXT["own_copy"].format(name=f"{task}.{arm}") if row.get("own_copy") else ""
+            adopted.append(f"{learner} on {task} ({arm}): `{row['adopted_from']}`" + own)
     if adopted:
-        lines += [
-            "",
-            "Arms that adopted another preset's finished run with the same config.json (`adopts` in "
-            "budgets.toml) instead of training it again: " + "; ".join(adopted) + ".",
-        ]
+        lines += ["", PAGE_TEXT["adopted"].format(arms="; ".join(adopted))]
     if table.get("curves"):
-        lines += [
-            "",
-            f"Learning curves of the arms: `{curves_name(table['preset'])}` (sampled training IoU, "
-            "the mean over seeds and a band from the lowest to the highest seed).",
-        ]
+        lines += ["", PAGE_TEXT["curves"].format(name=curves_name(table["preset"]))]
     return lines + [""]
 
 

@@ -8,6 +8,7 @@ a `ValueError` naming the file and the field, never left out."""
 from __future__ import annotations
 
 import json
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,8 @@ RAW_SUFFIX = ".json"
 RAW_COPY_MAX_BYTES = 8 * 2**20
 """The largest raw copy the report reads or writes, so that a huge file under a cell's name is
 refused before it takes the machine's memory (the largest committed copy is 26 kB)."""
+PAGE_TEXT = tomllib.loads((Path(__file__).parent / "pages.toml").read_text())
+"""The fixed prose of the pages the report writes, by name, with the {fields} it fills in."""
 
 
 def expected_episodes(task: str, protocol: dict[str, int]) -> int:
