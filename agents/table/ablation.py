@@ -16,16 +16,7 @@ from typing import Any
 import numpy as np
 
 from agents.table import statistics
-from agents.table.files import (
-    PAGE_TEXT,
-    adopted_base,
-    budget_record,
-    budget_text,
-    interval,
-    read_raw,
-    record_path,
-    seed_means,
-)
+from agents.table.files import PAGE_TEXT, adopted_base, budget_record, budget_text, interval, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
 from agents.table.presets import Preset
@@ -48,15 +39,14 @@ def with_adopted_base(raw: dict, results_dir: Path, preset: Preset, pending: dic
     base = next(v for v in preset.variants if v.name == BASE)
     for algorithm, cells in raw.items():
         for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
-            path = record_path(results_dir, preset.adopts, algorithm, task)
             if (own := cells.get(f"{task}.{BASE}")) is not None:
                 own["own_copy"] = "adopted_from" in own["cell"]
-            elif path in pending or path.is_file():
-                record = read_raw(path, pending.get(path))
-                if all(adopted_base(record, files) for files in cells.values() if files["cell"]["task"] == task):
-                    adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
-                    adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
-                    cells[f"{task}.{BASE}"] = {**record, "cell": {**record["cell"], **adopted}}
+                continue
+            arms = [files for files in cells.values() if files["cell"]["task"] == task]
+            if (found := adopted_base(results_dir, preset.adopts, algorithm, task, arms, pending)) is not None:
+                adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
+                adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
+                cells[f"{task}.{BASE}"] = {**found[1], "cell": {**found[1]["cell"], **adopted}}
     return raw
 
 

@@ -27,8 +27,6 @@ from agents.table.files import (
     adopted_base,
     eval_is_valid,
     expected_episodes,
-    read_raw,
-    record_path,
     steps_text,
 )
 from agents.table.presets import BASE_ARM, Preset, Variant, expand_tasks
@@ -211,10 +209,10 @@ def adopted_record(cell: Cell, results_dir: Path | None) -> Path | None:
     cell (`files.adopted_base`); else None."""
     if results_dir is None:
         return None
-    path = record_path(results_dir, cell.preset.adopts, cell.algorithm, cell.task)
     scored = {"eval_seed": REPORT_EVAL_SEED, "protocol": cell.preset.protocol, "settings": cell.variant.settings}
     arm = {"config": cell.config.to_json(), "cell": scored}
-    return path if path.is_file() and adopted_base(read_raw(path), arm) else None
+    found = adopted_base(results_dir, cell.preset.adopts, cell.algorithm, cell.task, [arm])
+    return None if found is None else found[0]
 
 
 def estimate(cell: Cell) -> None:
