@@ -1,16 +1,14 @@
-"""The plan of `snac table`: the grid's cells, what each trains and where it stands, before
-anything starts.
+"""The plan of `snac table`: the grid's cells (`agents.table.presets`), what each trains and
+where it stands, before anything starts.
 
-A cell is (algorithm, task, env-step budget, arm overrides, seeds), trained as one
-`agents.training.driver.train` call with its seeds vmapped, in `<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`,
-then scored with the reporting protocol. Its directory says where it stands: `done` (a finished
-eval.json, with or without checkpoints), `partial` (checkpoints: resumed), or `new` (empty, or
-only what its own start left before a first checkpoint). A run there with other settings is
-refused, never trained over (another budget included).
+A cell trains as one `agents.training.driver.train` call with its seeds vmapped, in
+`<runs-dir>/<preset>/<algorithm>/<task>[.<arm>]/`, then is scored with the reporting protocol. Its
+directory says where it stands: `done` (a finished eval.json, with or without checkpoints),
+`partial` (checkpoints: resumed), or `new` (empty, or only what its own start left before a first
+checkpoint). A run there with other settings is refused, never trained over (another budget included).
 
-An ablation names its base cell: a preset that `adopts` another has no cell of its own for a base
-arm whose config that preset's cell trained, as its copy in the record says (`files.adopted_base`,
-the report's rule too): the base arm is that cell (`adopted`). An arm with `evaluation` settings
+An ablation's base arm whose config the `adopts` preset's cell in the record trained is that cell
+(`adopted`, by `files.adopted_base`, the report's rule too). An arm with `evaluation` settings
 trains nothing: it scores the base arm's run again (the adopted preset's run where the base arm
 is adopted, else its own).
 """
@@ -327,7 +325,6 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
             f"{status:<9} {duration(c.estimate_s):>13}  {c.estimate_from}"
         )
     lines += ["", "budgets:", *(f"  {s}" for s in dict.fromkeys(f"{c.algorithm}: {c.budget_source}" for c in cells))]
-    counts = {s: sum(c.status == s for c in cells) for s in ("new", "adopted", "partial", "done")}
     known = sum(c.estimate_s for c in cells if c.estimate_s is not None)
     unknown = sum(c.estimate_s is None for c in cells)
     total, note = duration(known), ""
@@ -336,6 +333,6 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
         note = f"; {unknown} {'cell' if unknown == 1 else 'cells'} of unknown time" + (
             " not counted" if known > 0 else ""
         )
-    adopted = f"{counts['adopted']} adopted, " if counts["adopted"] else ""
-    counted = f"{counts['new']} new, {adopted}{counts['partial']} partial, {counts['done']} done{note}"
+    counts = {s: sum(c.status == s for c in cells) for s in ("new", "adopted", "partial", "done")}
+    counted = ", ".join(f"{n} {s}" for s, n in counts.items() if n or s != "adopted") + note
     return "\n".join([*lines, "", f"total estimate: {total} ({counted})"])

@@ -110,9 +110,7 @@ def difference_summary(scores, baseline, *, reps: int = DEFAULT_REPS, seed: int 
     scores, baseline = _as_runs_by_tasks(scores)[:, 0], _as_runs_by_tasks(baseline)[:, 0]
     if reps < 1:
         raise ValueError(f"reps must be >= 1, got {reps}")
-    rng = np.random.default_rng(seed)
-    resampled = scores[rng.integers(0, len(scores), size=(reps, len(scores)))].mean(axis=1) - baseline[
-        rng.integers(0, len(baseline), size=(reps, len(baseline)))
-    ].mean(axis=1)
-    low, high = np.percentile(resampled, [2.5, 97.5])
+    rng = np.random.default_rng(seed)  # the arm's seeds resampled first, then the base's
+    arm, base = (v[rng.integers(0, len(v), size=(reps, len(v)))].mean(axis=1) for v in (scores, baseline))
+    low, high = np.percentile(arm - base, [2.5, 97.5])
     return {"delta": float(scores.mean() - baseline.mean()), "ci95": [float(low), float(high)]}
