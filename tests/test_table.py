@@ -1,5 +1,5 @@
 """`snac table`: the plan and its estimates, the statistics (against hand-computed values), the
-aggregation into table.json / table.md, an ablation's base arm read from the preset it adopts, and
+aggregation into table.json / table.md, an ablation's base arm copied from another preset, and
 (slow) the smoke preset run, interrupted, resumed, skipped and reported."""
 
 from __future__ import annotations
@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -325,10 +324,11 @@ def test_ablation_report_by_hand():
     )
     assert "| drqn | 2d-static-dense | base (base) | `—` | 0.600 [0.500, 0.700] | — | 0.772 | 1k |" in text
     assert "## Preset `ablation`: test" in markdown({"ablation": table}, {"ablation": "test"})
-    assert "adopted" not in text
+    assert "another cell trained" not in text
     raw["drqn"]["2d-static-dense.base"]["cell"]["adopted_from"] = "paper/drqn/2d-static-dense"
     text = "\n".join(ablation.section(ablation.build(raw, arms=["base", "gps"], preset="ablation", reps=200), "test"))
-    assert "instead of training it again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
+    assert "Arms whose run another cell trained: " in text
+    assert "scored that run again: drqn on 2d-static-dense (base): `paper/drqn/2d-static-dense`." in text
 
 
 def test_an_arm_trained_another_number_of_steps_than_its_base_has_no_delta():
@@ -385,12 +385,6 @@ def test_ablation_presets_are_checked_when_loaded(tmp_path):
     )
     with pytest.raises(ValueError, match="no arm of preset 'ablation' runs on 1d-dynamic"):
         make_plan(PRESETS["ablation"], ["drqn"], ["1d-dynamic"], None, tmp_path)
-    _refused(
-        tmp_path / "adopts.toml",
-        base.replace("seeds = 1", 'seeds = 1\nadopts = "nope"'),
-        r"\[a\] adopts 'nope'; it can adopt the runs of another preset without arms",
-    )
-    _refused(tmp_path / "self.toml", base.replace("seeds = 1", 'seeds = 1\nadopts = "a"'), r"\[a\] adopts 'a'")
 
 
 def test_a_budget_per_environment_task(tmp_path):
@@ -496,17 +490,16 @@ def test_an_arm_with_an_unknown_key_or_setting_is_refused(tmp_path):
 
 
 def _abl(**changes):
-    """An ablation of the smoke preset on 1d-static-sin whose base arm is the smoke preset's cell."""
+    """An ablation of the smoke preset on 1d-static-sin: its base arm and a gps arm."""
     arms = (
         Variant(name="base", paper="base", switches="", tasks=("1d-static-sin", "1d-static-gauss")),
         Variant(name="gps", paper="+gps", switches="gps=true", tasks=("1d-static-sin",)),
     )
-    return dataclasses.replace(PRESETS["smoke"], **{"name": "abl", "variants": arms, "adopts": "smoke", **changes})
+    return dataclasses.replace(PRESETS["smoke"], **{"name": "abl", "variants": arms, **changes})
 
 
 @pytest.mark.slow  # two tiny trainings, a resume and four evaluations: ~1 min on a loaded 2-core CPU
 def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, monkeypatch):
-    from agents.table import report
     from agents.table import run as table_run
     from agents.table.report import write_report
     from agents.training import checkpoint
@@ -519,7 +512,6 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
 
     cells = make_plan(smoke, ["ppo"], ["1d-static-sin", "1d-static-gauss"], None, runs)
     assert [c.status for c in cells] == ["done", "partial"] and cells[1].done_steps == 2048 // 4
-    assert make_plan(_abl(), ["ppo"], ["1d-static-gauss"], None, runs)[0].status == "new"  # its base unfinished
     assert "25% done" in format_plan(cells, runs) and "this run's metrics.jsonl" in cells[1].estimate_from
     before = (cells[0].directory / "eval.json").stat().st_mtime_ns
     calls = []
@@ -555,29 +547,6 @@ def test_smoke_grid_interrupted_resumed_skipped_and_reported(tmp_path, capsys, m
         assert record["config"] == json.loads((source / "config.json").read_text())
         assert record["curve"] == checkpoint.read_metrics_lines(source / "metrics.jsonl")
     assert "## Preset `smoke`" in paths["md"].read_text() and paths["png:smoke"].stat().st_size > 0
-
-    # The ablation's base arm is the smoke cell in the record: adopted, nothing trained or copied for it.
-    assert make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs)[0].status == "new"  # no record read
-    base, gps = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, results_dir=results)
-    assert (base.status, base.base_run, gps.status) == (
-        "adopted",
-        results / "table/smoke/ppo/1d-static-sin.json",
-        "new",
-    )
-    printed = format_plan([base, gps], runs)
-    assert "adopt " in printed and "(1 new, 1 adopted, " in printed and base.estimate_s == 0.0
-    calls.clear()
-    assert table_run.run_cell(base, progress=False) and calls == [] and not base.directory.exists()
-    # A base whose budget alone differs is not the smoke cell: it trains as the ablation's own.
-    longer = _abl(name="abl2", settings={**smoke.settings, "total_steps": 4096})
-    assert make_plan(longer, ["ppo"], ["1d-static-sin"], None, runs, ["base"], results)[0].status == "new"
-    # The report reads the base row from the smoke preset's copy.
-    assert table_run.run_cells([gps], progress=False) == 1
-    monkeypatch.setattr(report, "load_presets", lambda: {**load_presets(), "abl": _abl()})
-    paths = write_report("abl", runs, results, reps=200)
-    assert sorted(p.name for p in (results / "table" / "abl" / "ppo").iterdir()) == ["1d-static-sin.gps.json"]
-    rows = json.loads(paths["json"].read_text())["abl"]["ablation"]["ppo"]["1d-static-sin"]
-    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["gps"]["delta"] is not None
 
 
 @pytest.mark.slow  # three tiny trainings and six evaluations
@@ -669,89 +638,37 @@ def test_a_hand_made_record_gives_the_expected_rows_and_marks_a_budget_below_its
     )
 
 
-def test_an_ablations_base_arm_is_read_from_the_preset_it_adopts(tmp_path, monkeypatch):
-    """The base arm of an ablation that adopts another preset is that preset's cell: planned as
-    adopted where its copy in the record has the base arm's config (seeds, protocol, reporting key
-    and budget included), and read from there by the report, unless the ablation holds a base copy
-    of its own; a copy with another config is no base (no Δ)."""
+def test_an_ablations_base_arm_is_its_own_copy_naming_the_run_it_was_copied_from(tmp_path, monkeypatch):
+    """The report reads an ablation's base row from the ablation's own folder (a copy of another
+    preset's cell names it in `adopted_from`, and the page says so); where the ablation has no
+    base copy, no other preset's cell stands in for it: no base row, no Δ."""
     runs, results = tmp_path / "runs", tmp_path / "results"
-
-    def base_status(preset=None, results_dir=results):
-        [base] = make_plan(preset or _abl(), ["ppo"], ["1d-static-sin"], None, runs, ["base"], results_dir)
-        return base.status
-
     [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    three = dataclasses.replace(source.preset, protocol={**source.preset.protocol, "static_episodes": 3})
-    for changes, preset, kwargs in [
-        (dict(seeds=3), source.preset, dict(means=(0.5, 0.6, 0.7))),
-        (dict(total_steps=1024), source.preset, {}),  # a smaller budget: the ablation's arms train 2048
-        ({}, three, dict(episodes=3)),
-        ({}, source.preset, dict(seed=TUNING_EVAL_SEED)),
-    ]:
-        config = dataclasses.replace(source.config, **changes)
-        write_record(results, dataclasses.replace(source, config=config, preset=preset), **kwargs)
-        assert base_status() == "new", (changes, kwargs)
     path = write_record(results, source)
-    assert base_status() == "adopted" and base_status(results_dir=None) == "new"  # the record not read
-    [base] = make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, ["base"], results)
-    row = next(line for line in format_plan([base], runs).splitlines() if "1d-static-sin.base" in line)
-    assert row.split()[4:10] == ["adopt", "0", "min", "00", "s", "the"] and str(path) in row
-
     _gps_arm_copy(results, path)
     rows = _abl_report(results, monkeypatch)
-    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.6)
-    assert rows["gps"]["delta"]["delta"] == pytest.approx(0.0) and "own_copy" not in rows["base"]
-    assert not (results / "table" / "abl" / "ppo" / "1d-static-sin.base.json").exists()  # nothing copied
-    assert "`smoke/ppo/1d-static-sin`." in (results / "table.md").read_text()
-    # A base copy of the ablation's own (the run its arms were measured against) wins.
+    assert list(rows) == ["gps"] and rows["gps"]["delta"] is None
     own = json.loads(path.read_text())
     own["cell"].update(preset="abl", variant="base", paper_variant="base", switches="", settings={})
     own["cell"]["adopted_from"] = "smoke/ppo/1d-static-sin"
     own["eval"] = {k: {**v, "mean": 0.3, "min": 0.1, "ci95": [0.25, 0.35]} for k, v in own["eval"].items()}
-    own_path = results / "table" / "abl" / "ppo" / "1d-static-sin.base.json"
-    own_path.write_text(json.dumps(own))
+    (results / "table" / "abl" / "ppo" / "1d-static-sin.base.json").write_text(json.dumps(own))
     rows = _abl_report(results, monkeypatch)
-    assert rows["base"]["own_copy"] and rows["base"]["mean"] == pytest.approx(0.3)
-    assert "(read from this preset's own copy, `1d-static-sin.base.json`" in (results / "table.md").read_text()
-    # Without it, a record trained with another config is no base: no base row, no Δ.
-    own_path.unlink()
-    changed = json.loads(path.read_text())
-    changed["config"]["learning_rate"] *= 2
-    path.write_text(json.dumps(changed))
-    rows = _abl_report(results, monkeypatch)
-    assert list(rows) == ["gps"] and rows["gps"]["delta"] is None
+    assert rows["base"]["adopted_from"] == "smoke/ppo/1d-static-sin" and rows["base"]["mean"] == pytest.approx(0.3)
+    assert rows["gps"]["delta"]["delta"] == pytest.approx(0.6 - 0.3)
+    assert "(base): `smoke/ppo/1d-static-sin`." in (results / "table.md").read_text()
 
 
-@pytest.mark.parametrize(
-    "damage, field",
-    [
-        (lambda text: text[:-20], "not valid JSON"),
-        (lambda text: text.replace('"mean": 0.5', '"mean": 1.5'), r"eval\['1d-static-sin \(seed 0\)'\].mean"),
-    ],
-)
-def test_a_damaged_record_of_an_adopted_base_is_refused_naming_the_file(tmp_path, damage, field):
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], ["1d-static-sin"], None, runs)
-    path = write_record(results, source)
-    path.write_text(damage(path.read_text()))
-    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*" + field):
-        make_plan(_abl(), ["ppo"], ["1d-static-sin"], None, runs, arms=["base"], results_dir=results)
-    assert not runs.exists()
-
-
-def test_the_cli_finds_an_adopted_base_under_results_dir(tmp_path, capsys):
-    """landmark-action's pqn-belief base arm is the beyond preset's cell: planned as adopted from
-    the record under --results-dir when --runs-dir keeps no run of it; its other arm trains."""
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["beyond"], ["pqn-belief"], ["2d-static-sparse"], None, runs)
-    path = write_record(results, source, means=(0.5, 0.6, 0.7), episodes=source.preset.protocol["static_episodes"])
+def test_the_cli_plans_an_ablations_base_arm_as_its_own_cell(tmp_path, capsys):
+    """landmark-action's pqn-belief arms, its base included, are cells of its own at the beyond
+    preset's budget on the sparse 2D tasks; a dry run writes nothing."""
+    runs = tmp_path / "runs"
     argv = ["--preset", "landmark-action", "--algorithms", "pqn-belief", "--tasks", "2d-static-sparse"]
-    argv += ["--runs-dir", str(runs), "--dry-run"]
-    assert _run_cli([*argv, "--results-dir", str(results)]) == 0
+    assert _run_cli([*argv, "--runs-dir", str(runs), "--dry-run"]) == 0
     out = capsys.readouterr().out
-    row = next(line for line in out.splitlines() if "2d-static-sparse.base" in line)
-    assert row.split()[:5] == ["pqn-belief", "2d-static-sparse.base", "20M", "3", "adopt"]
-    assert f"the beyond preset's cell {path}, finished" in row
-    assert "(1 new, 1 adopted, 0 partial, 0 done" in out
-    assert _run_cli([*argv, "--results-dir", str(tmp_path / "elsewhere")]) == 0
-    assert " adopt " not in capsys.readouterr().out and not runs.exists()
+    rows = [line.split()[:5] for line in out.splitlines() if line.startswith("pqn-belief")]
+    assert rows == [
+        ["pqn-belief", "2d-static-sparse.base", "20M", "3", "new"],
+        ["pqn-belief", "2d-static-sparse.landmark-action", "20M", "3", "new"],
+    ]
+    assert "(2 new, 0 partial, 0 done" in out and not runs.exists()

@@ -15,7 +15,7 @@ from agents.table import ablation
 from agents.table.plan import make_plan, scoring_config
 from agents.table.presets import Variant, load_presets
 from snac_jax.evaluation import REPORT_EVAL_SEED
-from tests.table_cells import cell_files, write_record
+from tests.table_cells import cell_files
 
 PRESETS = load_presets()
 SMOKE_TASK = "1d-static-sin"
@@ -35,10 +35,9 @@ def _scored_again(**evaluation) -> Variant:
 
 
 def _abl(evaluation: dict) -> object:
-    """An ablation of the smoke preset whose base arm is the smoke cell, and an arm scored acting
-    with `evaluation`."""
+    """An ablation of the smoke preset: its base arm, and an arm scored acting with `evaluation`."""
     arms = (Variant(name="base", paper="base", switches="", tasks=(SMOKE_TASK,)), _scored_again(**evaluation))
-    return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms, adopts="smoke")
+    return dataclasses.replace(PRESETS["smoke"], name="abl", variants=arms)
 
 
 def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_mask(tmp_path):
@@ -58,7 +57,7 @@ def test_the_safe_drops_arm_at_evaluation_trains_as_the_base_and_acts_with_the_m
 
 
 def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
-    head = '[beyond]\nseeds = 1\n[a]\nseeds = 1\nadopts = "beyond"\nalgorithms = ["pqn"]\n'
+    head = '[a]\nseeds = 1\nalgorithms = ["pqn"]\n'
     base = '[a.variants.base]\ntasks = ["2d-static-dense"]\n'
     arm = '[a.variants.b]\ntasks = ["2d-static-dense"]\n'
     for name, text, message in [
@@ -72,13 +71,12 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
             head + base + arm + 'evaluation = { safe_drops = true }\nswitches = "obstacles=true"\n',
             "no settings or switches",
         ),
+        ("base scored", head + base + "evaluation = { safe_drops = true }\n", "the base arm trains the run"),
         (
             "planned",
             head + base + arm + "evaluation = { seeds = 2 }\n",
             r"evaluation may not set \['seeds'\]: the plan sets seed, seeds, switches, task, total_steps$",
         ),
-        ("base settings", head + base + "settings = { gamma = 0.9 }\n" + arm, "its base arm may change nothing"),
-        ("base scored", head + base + "evaluation = { safe_drops = true }\n", "its base arm may change nothing"),
     ]:
         (tmp_path / f"{name}.toml").write_text(text)
         with pytest.raises(ValueError, match=message):
@@ -100,18 +98,18 @@ def test_an_arm_scored_otherwise_is_checked_when_loaded_and_planned(tmp_path):
         make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, tmp_path)
 
 
-def test_a_raw_copy_is_no_run_for_an_arm_that_scores_the_policy_again(tmp_path, gamma_acts):
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
-    path = write_record(results, source)
-    [base] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results, arms=["base"])
-    assert (base.status, base.base_run) == ("adopted", path)
+def test_an_arm_that_scores_the_policy_again_needs_its_base_arms_run(tmp_path, gamma_acts):
+    """Planned without its base arm, it is refused where no run of the base arm is there (the
+    record's copy of a cell holds no checkpoint to score); planned with it, it waits for it."""
+    runs = tmp_path / "runs"
     with pytest.raises(
         ValueError,
         match=r"arm 'acting' of preset 'abl' scores the base arm's run again: .* train it first "
-        r"\(snac table --preset smoke --tasks 1d-static-sin\) or leave the arm out \(--arms\)",
+        r"\(snac table --preset abl --tasks 1d-static-sin\) or leave the arm out \(--arms\)",
     ):
-        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results)
+        make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, arms=["acting"])
+    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs)
+    assert (base.status, acting.status, acting.base_run) == ("new", "new", base.directory)
 
 
 def test_a_finished_cell_scored_with_other_settings_is_refused(tmp_path, gamma_acts):
@@ -197,13 +195,10 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     from agents.training import checkpoint
     from agents.training.trained import load_trained
 
-    runs, results = tmp_path / "runs", tmp_path / "results"
-    [source] = make_plan(PRESETS["smoke"], ["ppo"], [SMOKE_TASK], None, runs)
-    assert table_run.run_cell(source, progress=False)
-    record = write_record(results, source)  # the base cell in the record: the base arm is adopted
-    base, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, results_dir=results)
-    assert (base.status, base.base_run, acting.base_run) == ("adopted", record, source.directory)
-    assert "again: unknown" in acting.estimate_from
+    runs = tmp_path / "runs"
+    source, acting = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs)
+    assert table_run.run_cell(source, progress=False)  # the base arm, whose run the other arm scores
+    assert acting.base_run == source.directory and "again: unknown" in acting.estimate_from
 
     scored, trained = [], []
     real_evaluate = agents.training.cli.evaluate_run
@@ -219,7 +214,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     with pytest.raises(KeyboardInterrupt):
         table_run.run_cell(acting, progress=False)
     assert not (acting.directory / "eval.json").exists()
-    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, ["acting"], results)
+    [acting] = make_plan(_abl({"gamma": 0.5}), ["ppo"], [SMOKE_TASK], None, runs, ["acting"])
     assert acting.status == "new"  # its scoring cut short: scored again
     assert table_run.run_cell(acting, progress=False)
     # Never trained: the base run's params, scored with gamma 0.5, beside its metrics.
@@ -233,7 +228,7 @@ def test_an_arm_scored_otherwise_takes_over_the_run_and_scores_its_params_acting
     _, trained_state, _ = load_trained(source.directory)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(trained_state.params)))
     cell = json.loads((acting.directory / "cell.json").read_text())
-    assert (cell["evaluation"], cell["adopted_from"]) == ({"gamma": 0.5}, "smoke/ppo/1d-static-sin")
+    assert (cell["evaluation"], cell["adopted_from"]) == ({"gamma": 0.5}, "abl/ppo/1d-static-sin.base")
     evals = json.loads((acting.directory / "eval.json").read_text())
     assert {r["seed"] for r in evals.values()} == {REPORT_EVAL_SEED}
     assert json.loads((acting.directory / "config.json").read_text()) == source.config.to_json()  # as it trained

@@ -16,38 +16,15 @@ from typing import Any
 import numpy as np
 
 from agents.table import statistics
-from agents.table.files import PAGE_TEXT, adopted_base, budget_record, budget_text, interval, seed_means
+from agents.table.files import PAGE_TEXT, budget_record, budget_text, interval, seed_means
 from agents.table.plan import TRAIN_SEED
 from agents.table.presets import BASE_ARM as BASE
-from agents.table.presets import Preset
 from agents.training.plotting import pyplot, save_png
 from snac_jax.evaluation import REPORT_EVAL_SEED
 from snac_jax.paper import load_paper_results
 
 PAPER_TABLE = "ablation_drqn"
 PAPER_LEARNER = "drqn"  # the paper's ablation table is DRQN's
-
-
-def with_adopted_base(raw: dict, results_dir: Path, preset: Preset, pending: dict[Path, str]) -> dict:
-    """`raw` (`files.load_raw`, the copies of `preset`) with the base arm of each (learner, task)
-    that has other arms but no base copy of its own read from the copy of the preset it `adopts`
-    (`pending`: copies about to be written), where that cell is every arm's base
-    (`files.adopted_base`); else the base has no cell. A base copy of its own that names the run
-    it adopted is marked `own_copy` (the run as it was adopted, which its arms were measured against)."""
-    if preset.adopts is None or not preset.variants:
-        return raw
-    base = next(v for v in preset.variants if v.name == BASE)
-    for algorithm, cells in raw.items():
-        for task in sorted({files["cell"]["task"] for files in cells.values()} & set(base.tasks)):
-            if (own := cells.get(f"{task}.{BASE}")) is not None:
-                own["own_copy"] = "adopted_from" in own["cell"]
-                continue
-            arms = [files for files in cells.values() if files["cell"]["task"] == task]
-            if (found := adopted_base(results_dir, preset.adopts, algorithm, task, arms, pending)) is not None:
-                adopted = {"variant": BASE, "paper_variant": base.paper, "switches": "", "settings": {}}
-                adopted["adopted_from"] = f"{preset.adopts}/{algorithm}/{task}"
-                cells[f"{task}.{BASE}"] = {**found[1], "cell": {**found[1]["cell"], **adopted}}
-    return raw
 
 
 def arm_changes(switches: str, settings: dict[str, Any], evaluation: dict[str, Any] | None = None) -> str:
@@ -105,7 +82,6 @@ def build(
                 "budget": budget_record([files]),
                 "paper": theirs.get("avg"),  # the base arm's IoU, or another arm's change from the base
                 "adopted_from": cell.get("adopted_from"),
-                **({"own_copy": True} if files.get("own_copy") else {}),
                 **({"evaluation": cell["evaluation"]} if cell.get("evaluation") else {}),
             }
             if arm != BASE:
@@ -150,7 +126,7 @@ def section(table: dict, description: str) -> list[str]:
         "| learner | task | arm (paper's name) | switches, settings | ours: IoU [95% CI] | ours: Δ vs base [95% CI] | paper: IoU or Δ | env steps/seed |",
         "|---|---|---|---|---:|---:|---:|---:|",
     ]
-    adopted = []
+    copied = []
     for learner, task, arm, row in _rows(table):
         ours = interval(row["mean"], row["ci95"])
         delta = "—" if row.get("delta") is None else interval(row["delta"]["delta"], row["delta"]["ci95"], True)
@@ -161,10 +137,9 @@ def section(table: dict, description: str) -> list[str]:
             f"{delta} | {paper} | {budget_text(row['budget'])} |"
         )
         if row.get("adopted_from"):
-            own = PAGE_TEXT["own_copy"].format(name=f"{task}.{arm}") if row.get("own_copy") else ""
-            adopted.append(f"{learner} on {task} ({arm}): `{row['adopted_from']}`" + own)
-    if adopted:
-        lines += ["", PAGE_TEXT["adopted"].format(arms="; ".join(adopted))]
+            copied.append(f"{learner} on {task} ({arm}): `{row['adopted_from']}`")
+    if copied:
+        lines += ["", PAGE_TEXT["copied"].format(arms="; ".join(copied))]
     if table.get("curves"):
         lines += ["", PAGE_TEXT["curves"].format(name=curves_name(table["preset"]))]
     return lines + [""]

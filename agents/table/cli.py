@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     preset = load_presets()[args.preset]
     algorithms = args.algorithms or list(preset.algorithms or ALGORITHMS)
     tasks = args.tasks or list(preset.tasks or PAPER_TASKS)
-    cells = make_plan(preset, algorithms, tasks, args.seeds, args.runs_dir, args.arms, args.results_dir)
+    cells = make_plan(preset, algorithms, tasks, args.seeds, args.runs_dir, args.arms)
     print(format_plan(cells, args.runs_dir), flush=True)
     if args.dry_run:
         return 0

@@ -120,28 +120,6 @@ def read_raw(path: Path, text: str | None = None) -> dict[str, Any]:
     return {"config": config.to_json(), "eval": record["eval"], "cell": record["cell"], "metrics": record["curve"]}
 
 
-def adopted_base(
-    results_dir: Path, preset: str, algorithm: str, task: str, arms: list[dict], pending: dict[Path, str] | None = None
-) -> tuple[Path, dict] | None:
-    """The record's copy of `preset`'s cell (`algorithm`, `task`) and its path (`read_raw`;
-    `pending`: copies about to be written, read in their place) where it is the base cell of every
-    one of an ablation's `arms` ({"config", "cell"} each): the same config but for the arm's own
-    changes (its switches and settings), scored with the same key and protocol; else None. The one
-    rule by which the plan adopts a base arm and the report reads it."""
-    path, pending = record_path(results_dir, preset, algorithm, task), pending or {}
-    if path not in pending and not path.is_file():
-        return None
-    record = read_raw(path, pending.get(path))
-    for arm in arms:
-        changed = {"switches", *arm["cell"].get("settings", {})}
-        config, other = record["config"], arm["config"]
-        if any(config.get(k) != other.get(k) for k in (set(config) | set(other)) - changed):
-            return None
-        if any(record["cell"][k] != arm["cell"][k] for k in ("eval_seed", "protocol")):
-            return None
-    return path, record
-
-
 def raw_text(files: dict) -> str:
     """A cell's raw copy as written: {"cell", "config", "eval", "curve"} indented, each curve
     record on one line as metrics.jsonl holds it."""

@@ -7,10 +7,7 @@ directory says where it stands: `done` (a finished eval.json, with or without ch
 `partial` (checkpoints: resumed), or `new` (empty, or only what its own start left before a first
 checkpoint). A run there with other settings is refused, never trained over (another budget included).
 
-An ablation's base arm whose config the `adopts` preset's cell in the record trained is that cell
-(`adopted`, by `files.adopted_base`, the report's rule too). An arm with `evaluation` settings
-trains nothing: it scores the base arm's run again (the adopted preset's run where the base arm
-is adopted, else its own).
+An ablation's arm with `evaluation` settings trains nothing: it scores its base arm's run again.
 """
 
 from __future__ import annotations
@@ -22,7 +19,6 @@ from typing import Any
 from agents.table.files import (
     CELL_FILE,
     EVAL_FILE,
-    adopted_base,
     eval_is_valid,
     expected_episodes,
     steps_text,
@@ -91,12 +87,12 @@ class Cell:
     budget_source: str  # why that budget
     preset: Preset
     variant: Variant | None = None  # an ablation's arm: the cell's directory is <task>.<arm>
-    status: str = "new"  # new | partial | done | adopted
+    status: str = "new"  # new | partial | done
     done_steps: int = 0  # per seed, from the run's metrics
     estimate_s: float | None = None
     estimate_from: str = ""
     metrics: list[dict] = dataclasses.field(default_factory=list)
-    base_run: Path | None = None  # adopted: the other preset's cell; an evaluation arm: the run it scores
+    base_run: Path | None = None  # an evaluation arm: the base arm's run it scores
 
     @property
     def evaluation(self) -> dict[str, Any]:
@@ -202,25 +198,11 @@ def _check_new(cell: Cell, ours: bool) -> None:
     )
 
 
-def adopted_record(cell: Cell, results_dir: Path | None) -> Path | None:
-    """The record's copy of the `adopts` preset's cell (alg, task) where it is this base arm's
-    cell (`files.adopted_base`); else None."""
-    if results_dir is None:
-        return None
-    scored = {"eval_seed": REPORT_EVAL_SEED, "protocol": cell.preset.protocol, "settings": cell.variant.settings}
-    arm = {"config": cell.config.to_json(), "cell": scored}
-    found = adopted_base(results_dir, cell.preset.adopts, cell.algorithm, cell.task, [arm])
-    return None if found is None else found[0]
-
-
 def estimate(cell: Cell) -> None:
     """Seconds of training left, and where the figure comes from: a started run's own rate (its
     metrics.jsonl); None for a cell not started, as nothing else measures its rate."""
     if cell.status == "done":
         cell.estimate_s, cell.estimate_from = 0.0, "finished"
-    elif cell.status == "adopted":
-        adopted = f"the {cell.preset.adopts} preset's cell {cell.base_run}, finished with the same settings"
-        cell.estimate_s, cell.estimate_from = 0.0, adopted
     elif cell.evaluation:
         cell.estimate_s, cell.estimate_from = None, f"scores {cell.base_run} again: unknown"
     elif not cell.metrics or cell.metrics[-1]["wall_s"] <= 0:
@@ -234,12 +216,9 @@ def estimate(cell: Cell) -> None:
         )
 
 
-def make_plan(
-    preset: Preset, algorithms, tasks, seeds: int | None, runs_dir, arms=None, results_dir=None
-) -> list[Cell]:
+def make_plan(preset: Preset, algorithms, tasks, seeds: int | None, runs_dir, arms=None) -> list[Cell]:
     """Every cell of the grid (algorithms x tasks, x an ablation's arms, or the `arms` named), with
-    its config, budget, status and estimate. `results_dir`: the record, where an adopted base arm
-    may be finished."""
+    its config, budget, status and estimate."""
     runs_dir, variants = Path(runs_dir), preset.variants
     if arms is not None:
         names = [v.name for v in preset.variants]
@@ -273,24 +252,19 @@ def make_plan(
         raise ValueError(f"no {chosen} of preset {preset.name!r} runs on {', '.join(tasks)}; their tasks: {listing}")
     training = set()  # (algorithm, task) whose base arm this plan trains
     for cell in cells:
-        base = cell.variant is not None and cell.variant.name == BASE_ARM
-        adopted = adopted_record(cell, results_dir) if preset.adopts and (base or cell.evaluation) else None
         if cell.evaluation:
             scoring_config(cell.config, cell.evaluation)  # an option the learner refuses fails before training
         cell_state(cell)
-        if cell.status == "new" and base and adopted is not None:
-            cell.status, cell.base_run = "adopted", adopted
-        if base and cell.status in ("new", "partial"):
+        if cell.variant is not None and cell.variant.name == BASE_ARM and cell.status in ("new", "partial"):
             training.add((cell.algorithm, cell.task))
         if cell.evaluation and cell.status != "done":
-            own = runs_dir / preset.name / cell.algorithm / f"{cell.task}.{BASE_ARM}"
-            cell.base_run = own if adopted is None else runs_dir / preset.adopts / cell.algorithm / cell.task
+            cell.base_run = runs_dir / preset.name / cell.algorithm / f"{cell.task}.{BASE_ARM}"
             started = checkpoint.latest_chunk(cell.base_run) is not None and _trained_like(cell, cell.base_run)
             if (cell.algorithm, cell.task) not in training and not started:
                 raise ValueError(
                     f"arm {cell.variant.name!r} of preset {preset.name!r} scores the base arm's run again: "
                     f"no run of it with checkpoints and this arm's config is at {cell.base_run}; train it first "
-                    f"(snac table --preset {preset.adopts or preset.name} --tasks {cell.task}) or leave the arm out (--arms)"
+                    f"(snac table --preset {preset.name} --tasks {cell.task}) or leave the arm out (--arms)"
                 )
         estimate(cell)
     return cells
@@ -319,7 +293,7 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
     ]
     for c in cells:
         done = f"{c.done_steps / max(c.total_steps, 1):.0%} done"
-        status = done if c.status == "partial" else c.status.replace("adopted", "adopt")
+        status = done if c.status == "partial" else c.status
         lines.append(
             f"{c.algorithm:<10} {c.directory.name:<{width}} {steps_text(c.config.total_steps):>24} {c.config.seeds:>5} "
             f"{status:<9} {duration(c.estimate_s):>13}  {c.estimate_from}"
@@ -333,6 +307,5 @@ def format_plan(cells: list[Cell], runs_dir: str | Path) -> str:
         note = f"; {unknown} {'cell' if unknown == 1 else 'cells'} of unknown time" + (
             " not counted" if known > 0 else ""
         )
-    counts = {s: sum(c.status == s for c in cells) for s in ("new", "adopted", "partial", "done")}
-    counted = ", ".join(f"{n} {s}" for s, n in counts.items() if n or s != "adopted") + note
+    counted = ", ".join(f"{sum(c.status == s for c in cells)} {s}" for s in ("new", "partial", "done")) + note
     return "\n".join([*lines, "", f"total estimate: {total} ({counted})"])

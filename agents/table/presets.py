@@ -1,8 +1,7 @@
 """The presets of `snac table` (`budgets.toml`): what each cell of a grid trains and how it is
 scored. A cell is (algorithm, task, env-step budget, arm overrides, seeds); an ablation preset's
-arms (`variants`) are overrides of one base arm, whose cell may be another preset's (`adopts`: its
-base cells, whose budgets its arms train too). Read once and checked against one schema, so that a
-typo in the file fails before any training."""
+arms (`variants`) are overrides of its own base arm. Read once and checked against one schema, so
+that a typo in the file fails before any training."""
 
 from __future__ import annotations
 
@@ -42,7 +41,6 @@ PRESETS_SCHEMA = MapOf(
             "seeds": Int(1),
             "algorithms": ListOf(Str()),
             "tasks": ListOf(Str()),
-            "adopts": Str(),
             "budgets": MapOf(_BUDGET),
             "settings": MapOf(Anything()),
             "static_episodes": Int(1),
@@ -79,7 +77,6 @@ class Preset:
     algorithms: tuple[str, ...] | None = None  # the grid's defaults (None: every algorithm, every column)
     tasks: tuple[str, ...] | None = None
     variants: tuple[Variant, ...] = ()  # an ablation's arms; empty: one cell per (algorithm, task)
-    adopts: str | None = None  # the preset of the base cells, where they trained the base arm's config
 
     def overrides(self, algorithm: str) -> dict[str, Any]:
         """The preset's settings for `algorithm`: the shared ones, then the algorithm's own."""
@@ -97,9 +94,8 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
         arms = {k: _variant(f"{where}.{k}]", k, v, table.get("tasks")) for k, v in table.get("variants", {}).items()}
         if arms and BASE_ARM not in arms:
             raise ValueError(f"{where}] needs an arm named base (every other arm is reported against it)")
-        base = arms.get(BASE_ARM)
-        if base is not None and (base.evaluation or base.settings or base.switches) and "adopts" in table:
-            raise ValueError(f"{path}: [{name}] adopts another preset's cells: its base arm may change nothing")
+        if arms.get(BASE_ARM) and arms[BASE_ARM].evaluation:
+            raise ValueError(f"{where}.base]: the base arm trains the run the other arms are measured against")
         protocol = {
             "static_episodes": table.get("static_episodes", STATIC_EPISODES),
             "episodes_per_test_design": table.get("episodes_per_test_design", EPISODES_PER_TEST_DESIGN),
@@ -114,23 +110,7 @@ def load_presets(path: str | Path = BUDGETS_FILE) -> dict[str, Preset]:
             algorithms=tuple(table["algorithms"]) if "algorithms" in table else None,
             tasks=tuple(table["tasks"]) if "tasks" in table else None,
             variants=tuple(arms.values()),
-            adopts=table.get("adopts"),
         )
-    for name, preset in presets.items():
-        if preset.adopts is None:
-            continue
-        plain = sorted(n for n, p in presets.items() if n != name and not p.variants)
-        if preset.adopts not in plain:
-            raise ValueError(
-                f"{path}: [{name}] adopts {preset.adopts!r}; it can adopt the runs of another preset "
-                f"without arms (its cells are named by the task alone): {', '.join(plain) or 'none'}"
-            )
-        # its arms train its base cells' budgets, unless it gives its own
-        theirs = {
-            algorithm: {**budget, "source": f"the {preset.adopts} preset's budget, {budget.get('source', '')}"}
-            for algorithm, budget in presets[preset.adopts].budgets.items()
-        }
-        presets[name] = dataclasses.replace(preset, budgets={**theirs, **preset.budgets})
     return presets
 
 

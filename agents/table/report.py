@@ -281,10 +281,7 @@ def write_report(
     found = [n for n in presets if n in folders or (n == preset and planned)] or [preset]
     hand_path = results_dir / "handcrafted.json"
     handcrafted = schemas.load(hand_path, schemas.EVAL_JSON) if hand_path.is_file() else None
-    raws = {
-        n: ablation.with_adopted_base(load_raw(results_dir, n, pending), results_dir, presets[n], pending)
-        for n in found
-    }
+    raws = {n: load_raw(results_dir, n, pending) for n in found}
     arms = {n: [v.name for v in presets[n].variants] for n in found}
     figures = {n: results_dir / (ablation.curves_name(n) if arms[n] else f"table-{n}.png") for n in found}
     paths = {"md": results_dir / "table.md", "json": results_dir / "table.json"}

@@ -1,7 +1,6 @@
 """Running the plan of `snac table`: each new or partial cell is one `agents.training.driver.train`
 call (a started one resumes from its last checkpoint), then its learning curve and the reporting
-protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished and adopted cells are
-skipped. An arm with `evaluation` settings trains nothing: it scores the base arm's finished run
+protocol (`REPORT_EVAL_SEED`) on every seed's greedy policy. Finished cells are skipped. An arm with `evaluation` settings trains nothing: it scores the base arm's finished run
 (`Cell.base_run`) again, acting with them, beside a copy of that run's config and curve."""
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ def run_cell(
     from agents.training.trained import load_trained
     from snac_jax import devices
 
-    if cell.status in ("done", "adopted"):
+    if cell.status == "done":
         return True
     with checkpoint.lock_run(cell.directory):
         cell_state(cell)
@@ -78,7 +77,7 @@ def run_cells(
         bar = tqdm(total=total, initial=done, unit="step", unit_scale=True, desc=f"table {name}", disable=not progress)
         try:
             for index, cell in enumerate(cells):
-                if cell.status in ("done", "adopted"):
+                if cell.status == "done":
                     continue
                 bar.set_postfix_str(f"cell {index + 1}/{len(cells)}: {cell.algorithm} {cell.task}")
                 before = cell.done_steps
@@ -86,4 +85,4 @@ def run_cells(
                 bar.update((cell.done_steps - before) * cell.config.seeds)
         finally:
             bar.close()
-    return sum(c.status in ("done", "adopted") for c in cells)
+    return sum(c.status == "done" for c in cells)
