@@ -47,7 +47,7 @@ alone, so it stays a position estimate rather than whatever the TD error would b
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import flax.linen as nn
 import jax
@@ -187,14 +187,6 @@ class PQNBeliefConfig(AuxiliaryOptions, PQNConfig):
     algorithm: ClassVar[str] = "pqn-belief"
     paper_method: ClassVar[str] = "pqn"
     tuned_as: ClassVar[str] = "pqn"
-    # the ingredients the table's ablations tried and the row did not keep (bench/results/beyond.md)
-    retired_options: ClassVar[dict[str, Any]] = {
-        "brick_map": False,
-        "brick_evidence": 1.0,
-        "brick_occupancy": False,
-        "todo_compass": False,
-    }
-    retired_where: ClassVar[str] = "removed after commit e438acd; its results are on bench/results/beyond.md"
 
     position_coef: float = option(
         5e-3,

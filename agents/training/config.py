@@ -128,11 +128,6 @@ class TrainConfig:
     # options that change only how a trained policy acts, not its parameters, its world or its
     # training alone: what a table arm may switch on when scored (`Variant.evaluation`)
     acting_options: ClassVar[tuple[str, ...]] = ()
-    # options the algorithm no longer has, each at the value that switched its ingredient off: a
-    # run's config.json made before their removal may hold them so (`without_retired_options`)
-    retired_options: ClassVar[dict[str, Any]] = {}
-    # where the removed options' code and results stay, for the refusal of a run that used them
-    retired_where: ClassVar[str] = ""
 
     task: str = option("1d-static-sin", "the task to train on", cli=False)
     total_steps: int = option(2_000_000, "env steps per seed", low=1)
@@ -236,20 +231,6 @@ class TrainConfig:
 
     def to_json(self) -> dict[str, Any]:
         return {"algorithm": self.algorithm, **dataclasses.asdict(self)}
-
-
-def without_retired_options(cls: type[TrainConfig], data: dict[str, Any]) -> dict[str, Any]:
-    """A config.json's settings `data` for `cls` without its retired options held off. Why: runs
-    made before an ingredient left the code record its option switched off, and they are today's
-    recipe; a run that switched it on is not, so it is refused in one line rather than rebuilt as
-    something it never trained."""
-    for name, off in cls.retired_options.items():
-        if name in data and data[name] != off:
-            raise ValueError(
-                f"config.json sets {name}={data[name]!r}, an option {cls.algorithm} no longer has "
-                f"({cls.retired_where}); only {name}={off!r} (off) is read"
-            )
-    return {k: v for k, v in data.items() if k not in cls.retired_options}
 
 
 def save_config(config: TrainConfig, path) -> None:

@@ -16,7 +16,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from agents.training.config import TrainConfig, without_retired_options
+from agents.training.config import TrainConfig
 from snac_jax.tasks import TASKS
 
 TUNED_DIR = Path(__file__).parents[1] / "tuned"
@@ -174,7 +174,6 @@ def config_from_json(data: dict[str, Any]) -> TrainConfig:
     data = dict(data)
     data.pop("swept", None)
     cls = config_class(data.pop("algorithm", None))
-    data = without_retired_options(cls, data)
     fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - fields)
     if unknown:

@@ -81,7 +81,6 @@ class _ConfigJson(Spec):
         specs = field_specs(cls)
         fields = {name: Str(TASKS) if name == "task" else _Declared(spec) for name, spec in specs.items()}
         fields[SWEPT] = ListOf(Str(tuple(specs)))  # a sweep's: the settings its arms set (agents.training.sweep)
-        fields |= {name: Anything() for name in cls.retired_options}  # their values: `config_from_json`'s
         unknown = sorted(set(value) - set(fields) - {"algorithm"})
         if unknown:
             where = f" in {field}" if field else ""
