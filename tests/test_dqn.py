@@ -64,6 +64,47 @@ def her_1d():
     return agent, state
 
 
+@pytest.fixture(scope="module")
+def dqn_updates():
+    """A DQN run stepped one jitted update at a time (one program for the target network's
+    schedule and the tiny run alike): the agent, the states before and after each update, and
+    the updates' metrics stacked."""
+    agent = _agent(
+        "dqn",
+        "1d-static-gauss",
+        frame_stack=3,
+        n_step=2,
+        target_update_interval=3,
+        total_steps=7 * 64,
+        buffer_size=8 * 40,
+        max_steps=20,
+    )
+    states = [jax.jit(agent.init)(jax.random.key(0))]
+    update = jax.jit(lambda s: agent.update(s, agent.env_params))
+    metrics = []
+    for _ in range(7):
+        state, info = update(states[-1])
+        states.append(state)
+        metrics.append(jax.device_get(info))
+    return agent, states, jax.tree.map(lambda *x: np.stack(x), *metrics)
+
+
+@pytest.fixture(scope="module")
+def drqn_run():
+    """A plain DRQN run (no double Q, no dueling heads) on 9-step episodes; its buffer has wrapped around."""
+    agent = _agent(
+        "drqn",
+        "2d-static-sparse",
+        double_q=False,
+        dueling=False,
+        total_steps=6 * 64,
+        buffer_size=8 * 30,
+        max_steps=9,
+    )
+    state, metrics = _run(agent, 6)
+    return agent, state, jax.device_get(metrics)
+
+
 # --- pure pieces -------------------------------------------------------------------------------------
 
 
@@ -106,18 +147,21 @@ def test_loss_matches_hand_computation_with_double_q_an_episode_end_and_a_mask()
     # after reward_scale 2.
     rewards = column(0.5, 0.2)
 
-    loss, info = agent.loss(online, target, batch, None, rewards, jnp.ones((rows, 2)))
+    # Jitted (one program per config, not one per operation); the config is read when it traces.
+    jitted_loss = lambda: jax.jit(lambda mask: agent.loss(online, target, batch, None, rewards, mask))
+    loss_of = jitted_loss()
+    loss, info = loss_of(jnp.ones((rows, 2)))
     # Window 0: the online network picks action 1 at the next step (3 > 1; not its choice 2 at the
     # learning step), the target network
     # values it 2: y = 1 + 0.5 * 2 = 2; Q(s, 0) = 0.5, error 1.5, Huber (delta 1) 1.5 - 0.5 = 1.
     # Window 1: the episode ends: y = 0.4; Q(s, 2) = 0, error 0.4, Huber 0.4^2 / 2 = 0.08.
     np.testing.assert_allclose(loss, (1.0 + 0.08) / 2, rtol=1e-6)
     np.testing.assert_allclose(info["q_mean"], (0.5 + 0.0) / 2, rtol=1e-6)
-    loss, _ = agent.loss(online, target, batch, None, rewards, column(1, 0))  # window 1 masked out
+    loss, _ = loss_of(column(1, 0))  # window 1 masked out
     np.testing.assert_allclose(loss, 1.0, rtol=1e-6)
     # Without double Q the target network's own maximum 5: y = 3.5, error 3, Huber 3 - 0.5 = 2.5.
     agent.config = dataclasses.replace(agent.config, double_q=False)
-    loss, _ = agent.loss(online, target, batch, None, rewards, jnp.ones((rows, 2)))
+    loss, _ = jitted_loss()(jnp.ones((rows, 2)))
     np.testing.assert_allclose(loss, (2.5 + 0.08) / 2, rtol=1e-6)
 
 
@@ -132,7 +176,7 @@ def test_stacked_frames_are_zero_before_the_episode_start():
 
 
 def _check_windows_keep_episodes_apart(agent, state, key):
-    batch = jax.device_get(agent.buffer.sample(state.buffer, key).experience)
+    batch = jax.device_get(jax.jit(agent.buffer.sample)(state.buffer, key).experience)
     counter = batch.obs[..., agent.layout.window_size + 1].astype(int)  # N_s of each observation
     reset, done = batch.reset, batch.done
     # A new episode inside a window always carries a reset flag exactly after the step that ended
@@ -152,9 +196,8 @@ def test_sampled_sequences_never_mix_episodes_without_a_reset_flag(her_1d):
         np.testing.assert_array_equal(batch.episode[:, 1:] - batch.episode[:, :-1], batch.reset[:, 1:].astype(int))
 
 
-def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart():
-    agent = _agent("drqn", total_steps=6 * 64, buffer_size=8 * 30, max_steps=9)
-    state, _ = _run(agent, 6)
+def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart(drqn_run):
+    agent, state, _ = drqn_run
     assert bool(state.buffer.is_full)
     _check_windows_keep_episodes_apart(agent, state, jax.random.key(7))
 
@@ -164,9 +207,12 @@ def test_burn_in_steps_carry_no_gradient(her_1d):
     batch, obs, rewards, mask = jax.jit(agent.sample)(state, jax.random.key(3))
     burn_in, first_trained = agent.burn_in, agent.config.context  # rows: previous step, burn-in, trained
     assert agent.layout.num_actions and first_trained == 1 + burn_in, "the fixture should read the previous step"
-    # Jitted: op by op, the loss and its gradient compile some 300 small programs.
-    loss = jax.jit(lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0])
-    grad = np.asarray(jax.jit(jax.grad(loss))(obs))
+    # Jitted, the loss and its gradient as one program (op by op they compile some 300 small ones).
+    loss_and_grad = jax.jit(
+        jax.value_and_grad(lambda o: agent.loss(state.params, state.target_params, batch, o, rewards, mask)[0])
+    )
+    loss = lambda o: loss_and_grad(o)[0]
+    grad = np.asarray(loss_and_grad(obs)[1])
     assert np.abs(grad[: first_trained - 1]).max() == 0.0
     # The last burn-in observation reaches the first trained step only as its previous window.
     assert np.abs(grad[first_trained - 1, ..., agent.layout.window_size :]).max() == 0.0
@@ -180,27 +226,49 @@ def test_burn_in_steps_carry_no_gradient(her_1d):
 # --- hindsight ------------------------------------------------------------------------------------------
 
 
-def _replay(env, params, design, max_bricks, actions, strides):
-    """Rewards of replaying `actions` with `strides` from reset on `design` (its budget kept)."""
-    params = params.replace(
-        designs=jnp.asarray(design, jnp.int16)[None],
-        design_max_bricks=jnp.asarray([max_bricks], jnp.int32),
-        design_volume=jnp.asarray([int(np.sum(design))], jnp.int32),
-    )
-    _, state = env.reset_to_design(jax.random.key(0), params, 0)
-    rewards = []
-    for action, stride in zip(actions, strides):
-        _, state, reward, _, _ = env.step_with_stride(state, int(action), int(stride), params)
-        rewards.append(float(reward))
-    return np.asarray(rewards), state
+def _replayer(env, length):
+    """`replay(params, design, max_bricks, actions, strides)`: the rewards of replaying `actions`
+    with `strides` from reset on `design` (its budget kept), and the state after them. Jitted, one
+    program per environment (op by op, the steps compile some ninety small ones): the episode is
+    padded to the window's `length`, and the state stays as it was past its end."""
+
+    def replay(params, design, max_bricks, actions, strides, steps):
+        params = params.replace(
+            designs=design.astype(jnp.int16)[None],
+            design_max_bricks=max_bricks.astype(jnp.int32)[None],
+            design_volume=jnp.sum(design).astype(jnp.int32)[None],
+        )
+        _, state = env.reset_to_design(jax.random.key(0), params, 0)
+
+        def step(state, inputs):
+            t, action, stride = inputs
+            _, after, reward, _, _ = env.step_with_stride(state, action, stride, params)
+            on = t < steps
+            return jax.tree.map(lambda a, b: jnp.where(on, a, b), after, state), reward
+
+        state, rewards = jax.lax.scan(step, state, (jnp.arange(length), actions, strides))
+        return rewards, state
+
+    jitted = jax.jit(replay)
+
+    def run(params, design, max_bricks, actions, strides):
+        steps = len(actions)
+        pad = lambda x, fill: np.concatenate([np.asarray(x, np.int32), np.full(length - steps, fill, np.int32)])
+        rewards, state = jitted(
+            params, jnp.asarray(design), jnp.asarray(max_bricks), pad(actions, 0), pad(strides, 1), steps
+        )
+        return np.asarray(rewards)[:steps], state
+
+    return run
 
 
 def _check_relabelled_rewards_equal_replay(agent, state, key):
     env, cfg = agent.env, agent.env.config
-    batch, obs, rewards, mask = jax.device_get(agent.sample(state, key))
+    batch, obs, rewards, mask = jax.device_get(jax.jit(agent.sample)(state, key))
     batch = jax.tree.map(lambda x: np.asarray(x).swapaxes(0, 1), batch)  # back to (S, L)
     obs, rewards, mask = (np.asarray(x).swapaxes(0, 1) for x in (obs, rewards, mask))
     ring = jax.device_get(state.worlds.final_grids)
+    _replay = _replayer(env, batch.reward.shape[1])
     checked = 0
     for s in range(batch.reward.shape[0]):
         starts = np.flatnonzero(batch.reset[s])
@@ -230,12 +298,12 @@ def _check_relabelled_rewards_equal_replay(agent, state, key):
                 max_bricks = int(make_params(design[None], task_spec(cfg.task_id).dim).design_max_bricks[0])
             actions, strides = batch.action[s, steps], batch.stride[s, steps]
             # The environment's own rewards and final grid come back from a replay on the design...
-            original, final_state = _replay(env, agent.env_params, design, max_bricks, actions, strides)
+            original, final_state = _replay(agent.env_params, design, max_bricks, actions, strides)
             np.testing.assert_array_equal(original, batch.reward[s, steps])
             (pr, pc), (h, w) = cfg.pad, cfg.plan_shape
             np.testing.assert_array_equal(np.asarray(final_state.grid)[pr : pr + h, pc : pc + w], final_grid)
             # ... and the relabelled rewards equal a replay against the final grid as the design.
-            relabelled, _ = _replay(env, agent.env_params, final_grid, max_bricks, actions, strides)
+            relabelled, _ = _replay(agent.env_params, final_grid, max_bricks, actions, strides)
             np.testing.assert_array_equal(rewards[s, steps], relabelled)
             assert mask[s, steps].all()
             checked += 1
@@ -282,14 +350,11 @@ def test_hindsight_rewards_use_the_environment_reward():
 # --- target network, runs, resume, errors ---------------------------------------------------------
 
 
-def test_target_network_updates_on_schedule():
-    agent = _agent("dqn", total_steps=64 * 8, target_update_interval=3, buffer_size=8 * 20)
-    state = jax.jit(agent.init)(jax.random.key(0))
-    update = jax.jit(lambda s: agent.update(s, agent.env_params))
+def test_target_network_updates_on_schedule(dqn_updates):
+    agent, states, _ = dqn_updates
+    assert agent.config.target_update_interval == 3 and agent.config.first_learning_update() == 1
     same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
-    for _ in range(7):
-        previous = state
-        state, _ = update(state)
+    for previous, state in zip(states[:-1], states[1:]):
         step = int(state.gradient_step)
         assert step == int(previous.gradient_step) + 1
         assert not same(state.params, previous.params)
@@ -322,20 +387,33 @@ def test_annealed_learning_rate_decays_linearly_over_the_runs_gradient_steps():
     assert np.all(np.asarray(step(annealed, 3)) != 0)
 
 
+def _tiny_drqn_her_2d_dynamic():
+    agent = _agent("drqn-her", "2d-dynamic-dense", total_steps=4 * 64, buffer_size=8 * 40, max_steps=20)
+    state, metrics = _run(agent, 4)
+    return agent, state, metrics
+
+
 @pytest.mark.parametrize(
-    "algorithm,task,options",
+    "run",
     [
-        ("dqn", "1d-static-gauss", dict(frame_stack=3, n_step=2)),
-        ("drqn", "2d-static-sparse", dict(double_q=False, dueling=False)),
-        pytest.param("drqn-her", "2d-dynamic-dense", {}, marks=pytest.mark.slow),
+        "dqn",  # 1d-static-gauss, frame_stack 3, n-step 2: the shared `dqn_updates` run
+        "drqn",  # 2d-static-sparse, no double Q, no dueling heads: the shared `drqn_run`
+        pytest.param("drqn-her", marks=pytest.mark.slow),  # 2d-dynamic-dense
     ],
 )
-def test_tiny_run_of_each_agent_completes(algorithm, task, options):
-    agent = _agent(algorithm, task, total_steps=4 * 64, buffer_size=8 * 40, max_steps=20, **options)
-    state, metrics = _run(agent, 4)
-    assert metrics["loss"].shape == (4,)
+def test_tiny_run_of_each_agent_completes(run, request):
+    if run == "dqn":
+        agent, states, metrics = request.getfixturevalue("dqn_updates")
+        state = states[-1]
+    elif run == "drqn":
+        agent, state, metrics = request.getfixturevalue("drqn_run")
+    else:
+        agent, state, metrics = _tiny_drqn_her_2d_dynamic()
+    updates = int(state.update)
+    assert metrics["loss"].shape == (updates,) and updates > 1
     assert np.all(np.isfinite(metrics["loss"])) and np.all(np.isfinite(metrics["q_mean"]))
-    assert int(state.gradient_step) == 4 - int((agent.config.sample_length - 1) // 8)  # learning waits for one window
+    # Learning waits for one window.
+    assert int(state.gradient_step) == updates - int((agent.config.sample_length - 1) // 8)
     assert int(metrics["episodes"].sum()) > 0
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
