@@ -69,16 +69,17 @@ def test_categorical_projection_matches_hand_computation():
     ]
     returns = jnp.array([c[0] for c in cases])
     discounts = jnp.array([c[1] for c in cases])
-    projected = categorical_projection(support, jnp.broadcast_to(p, (len(cases), 5)), returns, discounts)
+    # Jitted, here and below: one program (op by op, some twenty).
+    projected = jax.jit(categorical_projection)(support, jnp.broadcast_to(p, (len(cases), 5)), returns, discounts)
     np.testing.assert_allclose(projected, [c[2] for c in cases], atol=1e-6)
 
 
 def test_projection_onto_the_papers_support_keeps_mass_and_unclipped_means():
-    support = jnp.linspace(-5.0, 35.0, 101)
-    probs = jax.nn.softmax(jax.random.normal(jax.random.key(0), (6, 101)))
-    returns = jnp.array([0.0, 1.0, -0.3, 2.2, 0.7, 0.1])
-    discounts = jnp.array([0.5, 0.6, 0.7, 0.4, 0.0, 0.3])  # keeps r + d z inside [-5, 35]
-    projected = categorical_projection(support, probs, returns, discounts)
+    support = np.linspace(-5.0, 35.0, 101, dtype=np.float32)
+    probs = np.asarray(jax.jit(lambda key: jax.nn.softmax(jax.random.normal(key, (6, 101))))(jax.random.key(0)))
+    returns = np.array([0.0, 1.0, -0.3, 2.2, 0.7, 0.1], np.float32)
+    discounts = np.array([0.5, 0.6, 0.7, 0.4, 0.0, 0.3], np.float32)  # keeps r + d z inside [-5, 35]
+    projected = np.asarray(jax.jit(categorical_projection)(support, probs, returns, discounts))
     np.testing.assert_allclose(projected.sum(-1), 1.0, rtol=1e-5)
     # Splitting each atom's mass linearly between its neighbours keeps the mean: r + d E[Z].
     np.testing.assert_allclose(projected @ support, returns + discounts * (probs @ support), rtol=1e-4, atol=1e-4)
@@ -105,10 +106,16 @@ def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
         max_length_time_axis=4,
         priority_exponent=0.5,
     )
-    state = buffer.init(jnp.zeros(()))
-    state = buffer.add(state, jnp.arange(4.0)[None])
-    state = buffer.set_priorities(state, jnp.arange(4), jnp.array([1.0, 4.0, 9.0, 16.0]))
-    sample = buffer.sample(state, jax.random.key(0))
+
+    @jax.jit  # one program (op by op, the buffer's operations compile about a hundred)
+    def sample_and_weigh(key):
+        state = buffer.init(jnp.zeros(()))
+        state = buffer.add(state, jnp.arange(4.0)[None])
+        state = buffer.set_priorities(state, jnp.arange(4), jnp.array([1.0, 4.0, 9.0, 16.0]))
+        sample = buffer.sample(state, key)
+        return sample, importance_weights(sample.probabilities, 0.4), importance_weights(sample.probabilities, 1.0)
+
+    sample, weights_04, weights_1 = sample_and_weigh(jax.random.key(0))
     # Priority exponent 0.5: p^0.5 = 1, 2, 3, 4 of total 10, so P = 0.1, 0.2, 0.3, 0.4 for the N = 4 items.
     P = np.array([0.1, 0.2, 0.3, 0.4])
     np.testing.assert_allclose(sample.probabilities, P[sample.indices], rtol=1e-6)
@@ -118,10 +125,10 @@ def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
     # over the largest (item 0's): 1, 0.7579, 0.6444, 0.5743.
     w = (4 * P) ** -0.4
     expected = (w / w.max())[sample.indices]
-    np.testing.assert_allclose(importance_weights(sample.probabilities, 0.4), expected, rtol=1e-5)
+    np.testing.assert_allclose(weights_04, expected, rtol=1e-5)
     np.testing.assert_allclose(importance_weights(jnp.asarray(P), 0.4), [1.0, 0.7579, 0.6444, 0.5743], atol=1e-4)
     # beta = 1 (the end of training) fully corrects: w = P(0) / P(i) = 1, 1/2, 1/3, 1/4.
-    np.testing.assert_allclose(importance_weights(sample.probabilities, 1.0), (0.1 / P)[sample.indices], rtol=1e-5)
+    np.testing.assert_allclose(weights_1, (0.1 / P)[sample.indices], rtol=1e-5)
     # A window drawn at probability 0 (no longer valid) gets no weight.
     np.testing.assert_allclose(importance_weights(jnp.array([0.0, 0.1, 0.4]), 1.0), [0.0, 1.0, 0.25])
 
@@ -129,50 +136,49 @@ def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
 def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
     layer = NoisyDense(6, sigma0=0.5)
     x = jnp.ones((2, 4))  # two identical rows
-    params = layer.init(jax.random.key(0), x)["params"]
+    params = jax.jit(layer.init)(jax.random.key(0), x)["params"]
     # Fortunato et al.'s factorised init: mu ~ U(+-1/sqrt(fan_in)), sigma = sigma0 / sqrt(fan_in).
     assert np.abs(params["kernel"]).max() <= 0.5 and np.abs(params["bias"]).max() <= 0.5
     np.testing.assert_allclose(params["sigma_kernel"], 0.25)
     np.testing.assert_allclose(params["sigma_bias"], 0.25)
-    mean = layer.apply({"params": params}, x)
+    mean = jax.jit(layer.apply)({"params": params}, x)
     np.testing.assert_allclose(mean, x @ params["kernel"] + params["bias"], rtol=1e-6)
     noisy = NoisyDense(6, sigma0=0.5, noise=True)
-    a = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(1)})
-    again = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(1)})
-    b = noisy.apply({"params": params}, x, rngs={"noise": jax.random.key(2)})
+    apply_noisy = jax.jit(lambda x, key: noisy.apply({"params": params}, x, rngs={"noise": key}))
+    a, again, b = (apply_noisy(x, jax.random.key(k)) for k in (1, 1, 2))
     np.testing.assert_array_equal(a, again)  # the noise is the rng's, nothing else
     assert not np.allclose(a, b) and not np.allclose(a, mean)
     np.testing.assert_array_equal(a[0], a[1])  # one draw per forward pass, shared by its rows
     # The noise has mean zero: averaged over many draws the output approaches the mean network's.
-    draws = jax.vmap(lambda k: noisy.apply({"params": params}, x[:1], rngs={"noise": k}))(
-        jax.random.split(jax.random.key(3), 4000)
-    )
+    draws = jax.jit(jax.vmap(lambda k: apply_noisy(x[:1], k)))(jax.random.split(jax.random.key(3), 4000))
     np.testing.assert_allclose(draws.mean(0)[0], mean[0], atol=0.05)
 
 
 def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
     layer = NoisyDense(6, sigma0=0.5)
-    params = {"params": layer.init(jax.random.key(0), jnp.ones((1, 1, 4)))["params"]}
+    params = {"params": jax.jit(layer.init)(jax.random.key(0), jnp.ones((1, 1, 4)))["params"]}
     params["params"]["sigma_bias"] = jnp.linspace(0.1, 0.6, 6)  # away from the init, so the bias noise shows
     shared, per_row = NoisyDense(6, sigma0=0.5, noise=True), NoisyDense(6, sigma0=0.5, noise=True, per_row=True)
     # One row, same key: the same draws, so x (mu + sigma e_in e_out^T) + mu_b + sigma_b e_out computed as
     # one kernel and as x mu + ((x e_in) sigma + sigma_b) e_out must agree.
     x = jax.random.normal(jax.random.key(1), (1, 1, 4))
     rngs = {"noise": jax.random.key(2)}
+    # Jitted, one program per layer and input shape (op by op, some fifty small ones).
+    apply_per_row = jax.jit(lambda x: per_row.apply(params, x, rngs=rngs))
     np.testing.assert_allclose(
-        per_row.apply(params, x, rngs=rngs), shared.apply(params, x, rngs=rngs), rtol=1e-5, atol=1e-6
+        apply_per_row(x), jax.jit(lambda x: shared.apply(params, x, rngs=rngs))(x), rtol=1e-5, atol=1e-6
     )
     # Identical rows (3 steps x 4 worlds, with an axis in between as the frame stack has): each
     # (step, world) draws its own noise, broadcast over the axis in between.
     x = jnp.ones((3, 4, 2, 4))
-    out = per_row.apply(params, x, rngs=rngs)
+    out = apply_per_row(x)
     assert out.shape == (3, 4, 2, 6)
     assert len({tuple(np.round(np.asarray(r), 6)) for r in out[:, :, 0].reshape(12, 6)}) == 12
     np.testing.assert_array_equal(out[:, :, 0], out[:, :, 1])
     with pytest.raises(ValueError, match="per_row noise needs inputs"):
         per_row.apply(params, jnp.ones((4, 4)), rngs=rngs)
-    draws = per_row.apply(params, jnp.ones((1, 4000, 4)), rngs=rngs)
-    np.testing.assert_allclose(draws[0].mean(0), layer.apply(params, jnp.ones((1, 1, 4)))[0, 0], atol=0.05)
+    draws = apply_per_row(jnp.ones((1, 4000, 4)))
+    np.testing.assert_allclose(draws[0].mean(0), jax.jit(layer.apply)(params, jnp.ones((1, 1, 4)))[0, 0], atol=0.05)
 
 
 # --- runs ----------------------------------------------------------------------------------------------
@@ -222,7 +228,9 @@ def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an
         done=column(0, 1).astype(bool),
     )
     weights = jnp.array([1.0, 0.5])  # the rewards are learned from as 1 and 2 (reward_scale 2)
-    loss, (info, priority) = agent.loss(None, None, batch, weights, None, None)
+    # Jitted: one program per config, which the loss reads when it traces (op by op, about a hundred).
+    loss_of = lambda: jax.jit(lambda: agent.loss(None, None, batch, weights, None, None))()
+    loss, (info, priority) = loss_of()
     # Window 0: 1 + 0.5 z over (1/2, 1/2, 0) = 1 (1/2), 1.5 (1/2, split 1/4 / 1/4 onto atoms 1 and
     # 2): target (0, 3/4, 1/4); the taken action 0 predicts (1/4, 1/2, 1/4):
     # KL = 3/4 ln(3/4 / 1/2) + 1/4 ln(1/4 / 1/4) = 0.75 ln 1.5 = 0.304099.
@@ -234,13 +242,13 @@ def test_loss_and_priorities_match_hand_computation_with_weights_double_q_and_an
 
     # The cross-entropy priority adds the target's entropy: 3/4 ln 4/3 + 1/4 ln 4 = 0.562335 for window 0.
     agent.config = dataclasses.replace(agent.config, cross_entropy_priority=True)
-    _, (_, priority) = agent.loss(None, None, batch, weights, None, None)
+    _, (_, priority) = loss_of()
     np.testing.assert_allclose(priority, kl + [0.75 * np.log(4 / 3) + 0.25 * np.log(4.0), 0.0], rtol=1e-5)
 
     # Without double Q the target network's own greedy action 0 is read: 1 + 0.5 * 2 = 2, target
     # (0, 0, 1), and window 0's KL becomes ln 4.
     agent.config = dataclasses.replace(agent.config, cross_entropy_priority=False, double_q=False)
-    loss, (_, priority) = agent.loss(None, None, batch, weights, None, None)
+    loss, (_, priority) = loss_of()
     np.testing.assert_allclose(priority, [np.log(4.0), np.log(2.0)], rtol=1e-5)
     np.testing.assert_allclose(loss, (np.log(4.0) + 0.5 * np.log(2.0)) / 2, rtol=1e-5)
 
@@ -319,17 +327,24 @@ def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
 def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     agent, state, _ = trained_1d
     policy = agent.policy(state.params)
-    obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+    obs, _ = jax.jit(agent.env.reset)(jax.random.key(0), agent.env_params)
     memory = policy.init(jax.random.key(0), None)
-    actions = {int(policy.act(policy.params, memory, obs, jax.random.key(k))[0]) for k in range(5)}
+    act = jax.jit(policy.act)  # one program (op by op, some eighty)
+    actions = {int(act(policy.params, memory, obs, jax.random.key(k))[0]) for k in range(5)}
     assert len(actions) == 1  # the acting key draws nothing
-    frames = agent.layout.acting_inputs(obs, memory)[None, None, None]
-    carry = agent.network.initial_carry(1)
-    _, logits = agent.network.apply(state.params, carry, frames, jnp.ones((1, 1), bool))
-    assert actions == {int(jnp.argmax(agent.expected(logits)[0, 0]))}
+
+    @jax.jit
+    def mean_and_noisy_q(params, obs, memory):
+        frames = agent.layout.acting_inputs(obs, memory)[None, None, None]
+        carry = agent.network.initial_carry(1)
+        _, logits = agent.network.apply(params, carry, frames, jnp.ones((1, 1), bool))
+        _, noisy_q = agent.q_values(params, carry, frames, jnp.ones((1, 1), bool), jax.random.key(1))
+        return agent.expected(logits), noisy_q
+
+    mean_q, noisy_q = mean_and_noisy_q(state.params, obs, memory)
+    assert actions == {int(jnp.argmax(mean_q[0, 0]))}
     # While the acting network's noise does move the Q-values.
-    _, noisy_q = agent.q_values(state.params, carry, frames, jnp.ones((1, 1), bool), jax.random.key(1))
-    assert not np.allclose(noisy_q, agent.expected(logits))
+    assert not np.allclose(noisy_q, mean_q)
 
 
 @pytest.mark.slow  # over 10 s on the 2-core CPU: `pytest -m slow` (CI runs both)
