@@ -59,18 +59,8 @@ def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
         ]
     )[:, :, None, :]  # (2, T=3, S=1, A=2)
     log_probs = jnp.broadcast_to(HALF, (3, 1, 2))
-    values = soft_values(q_target, log_probs, ALPHA)
-    # V(row 1) = 0.5 * (min(4, 3) + 1) + 0.5 * (min(2, 6) + 1) = 0.5 * 4 + 0.5 * 3 = 3.5
-    np.testing.assert_allclose(values[1, 0], 3.5, rtol=1e-6)
-
     rewards = jnp.array([1.0, 2.0, 4.0])[:, None]
     dones = jnp.array([False, True, False])[:, None]
-    targets = n_step_targets(rewards, dones, values, 0.5, n=1, length=2)
-    # y0 = 1 + 0.5 * V(row 1) = 1 + 0.5 * 3.5 = 2.75; y1 = 2 (terminal: row 2's 1000 never counts)
-    np.testing.assert_allclose(targets[:, 0], [2.75, 2.0], rtol=1e-6)
-    # Two steps of reward from row 0: 1 + 0.5 * 2, then the episode's end cuts the bootstrap.
-    np.testing.assert_allclose(n_step_targets(rewards, dones, values, 0.5, n=2, length=1)[0, 0], 2.0)
-
     q = jnp.array(
         [
             [[0.0, 3.75], [4.0, 0.0]],  # critic 1, rows 0 and 1
@@ -78,12 +68,29 @@ def test_soft_value_and_critic_loss_match_hand_computation_with_a_terminal():
         ]
     )[:, :, None, :]
     actions = jnp.array([1, 0])[:, None]
+
+    @jax.jit  # one program (op by op, some fifty)
+    def compute():
+        values = soft_values(q_target, log_probs, ALPHA)
+        targets = n_step_targets(rewards, dones, values, 0.5, n=1, length=2)
+        losses = [critic_loss(q, actions, targets, mask) for mask in (jnp.ones((2, 1)), jnp.array([[0.0], [1.0]]))]
+        grad = jax.grad(critic_loss, argnums=2)(q, actions, targets, jnp.ones((2, 1)))
+        return values, targets, n_step_targets(rewards, dones, values, 0.5, n=2, length=1), losses, grad
+
+    values, targets, two_step, (loss, masked_loss), grad = compute()
+    # V(row 1) = 0.5 * (min(4, 3) + 1) + 0.5 * (min(2, 6) + 1) = 0.5 * 4 + 0.5 * 3 = 3.5
+    np.testing.assert_allclose(values[1, 0], 3.5, rtol=1e-6)
+
+    # y0 = 1 + 0.5 * V(row 1) = 1 + 0.5 * 3.5 = 2.75; y1 = 2 (terminal: row 2's 1000 never counts)
+    np.testing.assert_allclose(targets[:, 0], [2.75, 2.0], rtol=1e-6)
+    # Two steps of reward from row 0: 1 + 0.5 * 2, then the episode's end cuts the bootstrap.
+    np.testing.assert_allclose(two_step[0, 0], 2.0)
+
     # row 0, action 1: (3.75 - 2.75)^2 + (2.25 - 2.75)^2 = 1 + 0.25 = 1.25
     # row 1, action 0: (4 - 2)^2 + (0 - 2)^2 = 4 + 4 = 8
-    np.testing.assert_allclose(critic_loss(q, actions, targets, jnp.ones((2, 1))), (1.25 + 8) / 2, rtol=1e-6)
-    np.testing.assert_allclose(critic_loss(q, actions, targets, jnp.array([[0.0], [1.0]])), 8.0, rtol=1e-6)
+    np.testing.assert_allclose(loss, (1.25 + 8) / 2, rtol=1e-6)
+    np.testing.assert_allclose(masked_loss, 8.0, rtol=1e-6)
     # The targets are held fixed.
-    grad = jax.grad(critic_loss, argnums=2)(q, actions, targets, jnp.ones((2, 1)))
     assert not np.any(grad)
 
 
@@ -95,28 +102,40 @@ def test_actor_loss_matches_hand_computation_and_moves_only_the_policy():
             [[4.0, 1.0], [6.0, 8.0]],  # critic 2
         ]
     )
+
+    @jax.jit  # one program (op by op, some forty)
+    def compute():
+        losses = (
+            actor_loss(log_probs[:1], q[:, :1], ALPHA, jnp.ones(1)),
+            actor_loss(log_probs[1:], q[:, 1:], 0.0, jnp.ones(1)),
+            actor_loss(log_probs, q, 0.0, jnp.ones(2)),
+        )
+        return losses, jax.grad(actor_loss, argnums=(0, 1, 2))(log_probs, q, ALPHA, jnp.ones(2))
+
+    (one, two, both), (grad_log_probs, grad_q, grad_alpha) = compute()
     # state 0, alpha = 1/ln 2: min Q = (3, 1); 0.5 * (-1 - 3) + 0.5 * (-1 - 1) = -2 - 1 = -3
-    np.testing.assert_allclose(actor_loss(log_probs[:1], q[:, :1], ALPHA, jnp.ones(1)), -3.0, rtol=1e-6)
+    np.testing.assert_allclose(one, -3.0, rtol=1e-6)
     # state 1, alpha = 0: min Q = (4, 8); -(0.75 * 4 + 0.25 * 8) = -(3 + 2) = -5
-    np.testing.assert_allclose(actor_loss(log_probs[1:], q[:, 1:], 0.0, jnp.ones(1)), -5.0, rtol=1e-6)
+    np.testing.assert_allclose(two, -5.0, rtol=1e-6)
     # both states with alpha = 0: state 0 gives -(0.5 * 3 + 0.5 * 1) = -2, mean (-2 - 5) / 2 = -3.5
-    np.testing.assert_allclose(actor_loss(log_probs, q, 0.0, jnp.ones(2)), -3.5, rtol=1e-6)
-    grad_q, grad_alpha = jax.grad(actor_loss, argnums=(1, 2))(log_probs, q, ALPHA, jnp.ones(2))
+    np.testing.assert_allclose(both, -3.5, rtol=1e-6)
     assert not np.any(grad_q) and float(grad_alpha) == 0.0
-    assert np.any(jax.grad(actor_loss)(log_probs, q, ALPHA, jnp.ones(2)))
+    assert np.any(grad_log_probs)
 
 
 def test_temperature_loss_matches_hand_computation_and_moves_only_alpha():
     log_probs = jnp.stack([HALF, jnp.log(jnp.array([0.75, 0.25]))])
     # H(1/2, 1/2) = ln 2 = 0.693147; H(3/4, 1/4) = 0.75 * 0.287682 + 0.25 * 1.386294 = 0.562335
     # target 0.6: gaps 0.093147 and -0.037665, mean 0.027741; times log alpha = 2: 0.055482
-    loss = temperature_loss(jnp.asarray(2.0), log_probs, 0.6, jnp.ones(2))
+    # One program (op by op, a few): the loss and its gradients in log alpha and in the log-probabilities.
+    loss_and_grads = jax.jit(jax.value_and_grad(temperature_loss, argnums=(0, 1)))
+    loss, (grad, grad_log_probs) = loss_and_grads(jnp.asarray(2.0), log_probs, 0.6, jnp.ones(2))
     np.testing.assert_allclose(loss, 0.055482, rtol=1e-4)
     # Its gradient is the mean gap: > 0 while the policy is more random than the target, so a
     # descent step lowers alpha; with only the (3/4, 1/4) state it is < 0 and raises alpha.
-    np.testing.assert_allclose(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.ones(2)), 0.027741, rtol=1e-4)
-    assert float(jax.grad(temperature_loss)(2.0, log_probs, 0.6, jnp.array([0.0, 1.0]))) < 0
-    assert not np.any(jax.grad(temperature_loss, argnums=1)(2.0, log_probs, 0.6, jnp.ones(2)))
+    np.testing.assert_allclose(grad, 0.027741, rtol=1e-4)
+    assert float(loss_and_grads(jnp.asarray(2.0), log_probs, 0.6, jnp.array([0.0, 1.0]))[1][0]) < 0
+    assert not np.any(grad_log_probs)
 
 
 def test_the_learners_loss_combines_the_three_by_hand():
@@ -150,7 +169,9 @@ def test_the_learners_loss_combines_the_three_by_hand():
     )  # action 0 at the learning row
     rewards = jnp.full((rows, 1), 9.0).at[c].set(0.5)  # learned from as 1 (reward_scale 2)
 
-    total, info = agent.loss(params, target, batch, obs, rewards, jnp.ones((rows, 1)))
+    # Jitted, one program for both batches below (op by op, over a hundred).
+    loss = jax.jit(lambda batch: agent.loss(params, target, batch, obs, rewards, jnp.ones((rows, 1))))
+    total, info = loss(batch)
     # alpha = 2. V(next) = sum_a 1/3 (min Q - 2 ln 1/3) = (3 + 3 + 9) / 3 + 2 ln 3 = 7.197225;
     # y = 1 + 0.5 * 7.197225 = 4.598612. Critics at action 0: (5 - y)^2 + (3 - y)^2 = 2.716672.
     # Actor: 1/2 (2 ln 1/2 - 3) + 2 * 1/4 (2 ln 1/4 - 0) = -2.193147 - 1.386294 = -3.579441.
@@ -162,22 +183,31 @@ def test_the_learners_loss_combines_the_three_by_hand():
     np.testing.assert_allclose([info["alpha"], info["entropy"], info["q_mean"]], [2.0, 1.039721, 3.0], rtol=1e-5)
     # The episode ends at the learning row: y = 1, critics (5 - 1)^2 + (3 - 1)^2 = 20.
     ended = batch.replace(done=batch.done.at[c].set(True))
-    np.testing.assert_allclose(
-        agent.loss(params, target, ended, obs, rewards, jnp.ones((rows, 1)))[1]["critic_loss"], 20.0, rtol=1e-6
-    )
+    np.testing.assert_allclose(loss(ended)[1]["critic_loss"], 20.0, rtol=1e-6)
 
 
 # --- the learner --------------------------------------------------------------------------------------
 
 
-def test_sac_trains_a_few_updates_with_finite_losses_and_polyak_targets():
+@pytest.fixture(scope="module")
+def one_update_chunks():
+    """A SAC agent (tau 0.25) and its training chunk of one update, jitted once, with a record
+    of the loss's traces: the runs below all call this one program."""
     agent = _agent(tau=0.25)
-    state = jax.jit(agent.init)(jax.random.key(0))
+    traces = []
+    loss = agent.loss
+    agent.loss = lambda *args: (traces.append(1), loss(*args))[1]
+    chunk = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 1))
+    return agent, chunk, traces, jax.jit(agent.init)(jax.random.key(0))
+
+
+def test_sac_trains_a_few_updates_with_finite_losses_and_polyak_targets(one_update_chunks):
+    agent, chunk, _, state = one_update_chunks
     critics = state.params["critic"]["params"]["VmapActionHead_0"]["Dense_0"]["kernel"]
     assert not np.array_equal(critics[0], critics[1]), "the twin critics start apart"
     assert _same(state.target_params, state.params["critic"])
 
-    after, _ = jax.jit(lambda s: agent.update(s, agent.env_params))(state)
+    after, _ = chunk(state)
     assert int(after.gradient_step) == 1
     # One gradient step: each target moves a quarter of the way to its critic.
     expected = jax.tree.map(lambda t, p: 0.75 * t + 0.25 * p, state.target_params, after.params["critic"])
@@ -186,21 +216,22 @@ def test_sac_trains_a_few_updates_with_finite_losses_and_polyak_targets():
     for part in ("actor", "critic", "log_alpha"):
         assert not _same(after.params[part], state.params[part]), part
 
-    state, metrics = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 4))(after)
+    state, runs = after, []
+    for _ in range(4):
+        state, metrics = chunk(state)
+        runs.append(jax.device_get(metrics))
+    metrics = jax.tree.map(lambda *x: np.concatenate(x), *runs)
     for name in ("loss", "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean"):
-        assert metrics[name].shape == (4,) and np.all(np.isfinite(metrics[name])), name
+        assert runs[0][name].shape == (1,) and metrics[name].shape == (4,), name
+        assert np.all(np.isfinite(metrics[name])), name
     assert np.all(metrics["entropy"] <= math.log(agent.env.num_actions) + 1e-6)
     assert int(state.gradient_step) == 5 and int(metrics["episodes"].sum()) > 0
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
-def test_a_chunk_compiles_once():
-    agent = _agent()
-    traces = []
-    loss = agent.loss
-    agent.loss = lambda *args: (traces.append(1), loss(*args))[1]
-    chunk = jax.jit(lambda s: agent.train_chunk(s, agent.env_params, 2))
-    state, _ = chunk(jax.jit(agent.init)(jax.random.key(0)))
+def test_a_chunk_compiles_once(one_update_chunks):
+    agent, chunk, traces, state = one_update_chunks
+    state, _ = chunk(state)
     first = len(traces)
     state, _ = chunk(state)
     state, _ = chunk(state)
@@ -215,15 +246,25 @@ def test_greedy_policy_is_the_argmax_of_the_actors_logits():
     params["actor"]["params"]["Dense_0"]["kernel"] *= 300.0
     policy = agent.policy(params)
     env, env_params = agent.env, agent.env_params
-    obs, env_state = env.reset(jax.random.key(2), env_params)
-    policy_state = policy.init(jax.random.key(3), None)
     layout = agent.layout
-    for t in range(6):
-        action, new_state = policy.act(params, policy_state, obs, jax.random.key(t))
-        logits = agent.actor.apply(params["actor"], layout.acting_inputs(obs, policy_state))
-        assert int(action) == int(jnp.argmax(logits))
-        obs, env_state, _, _, _, _ = env.step(jax.random.key(10 + t), env_state, action, env_params)
-        policy_state = new_state
+
+    @jax.jit  # six steps of an episode as one program (op by op, some seventy)
+    def episode(params):
+        obs, env_state = env.reset(jax.random.key(2), env_params)
+
+        def step(carry, keys):
+            obs, env_state, policy_state = carry
+            action, new_state = policy.act(params, policy_state, obs, keys[0])
+            logits = agent.actor.apply(params["actor"], layout.acting_inputs(obs, policy_state))
+            obs, env_state, _, _, _, _ = env.step(keys[1], env_state, action, env_params)
+            return (obs, env_state, new_state), (action, jnp.argmax(logits))
+
+        keys = jnp.stack([jax.vmap(jax.random.key)(jnp.arange(6)), jax.vmap(jax.random.key)(10 + jnp.arange(6))], 1)
+        return jax.lax.scan(step, (obs, env_state, policy.init(jax.random.key(3), None)), keys)[1]
+
+    actions, greedy = episode(params)
+    assert actions.shape == (6,)
+    np.testing.assert_array_equal(actions, greedy)
     assert policy.name == "sac"
 
 
