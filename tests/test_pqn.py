@@ -51,6 +51,25 @@ def _pqn(task="1d-static-sin", **options) -> PQN:
     return PQN(make_config("pqn", task, **{**TINY, **options}))
 
 
+# Two agents shared by the tests below, so that each compiles its programs (init, rollout,
+# training chunk) once for the file: episodes cut at 6 steps, so that 8-step rollouts hold
+# terminations and truncations.
+
+
+@pytest.fixture(scope="module")
+def static_feed_forward():
+    """`(agent, its initial state)`: feed-forward, on 1d-static-sin."""
+    pqn = _pqn("1d-static-sin", recurrent=False, max_steps=6)
+    return pqn, jax.jit(pqn.init)(jax.random.key(0))
+
+
+@pytest.fixture(scope="module")
+def dynamic_recurrent():
+    """`(agent, its initial state)`: recurrent, on 1d-dynamic."""
+    pqn = _pqn("1d-dynamic", recurrent=True, max_steps=6)
+    return pqn, jax.jit(pqn.init)(jax.random.key(0))
+
+
 # --- pure pieces -------------------------------------------------------------------------------------
 
 
@@ -116,20 +135,30 @@ def _hand_rollout() -> tuple[Transition, SimpleNamespace]:
     return batch, stopped
 
 
+def _targets_and_loss(pqn):
+    """`PQN.targets` and `PQN._loss` of the hand rollout, jitted as one program (op by op, some eighty)."""
+    batch, stopped = _hand_rollout()
+
+    @jax.jit
+    def run():
+        targets = pqn.targets(None, batch, stopped)
+        return targets, pqn._loss(None, None, batch, targets)
+
+    return run()
+
+
 def test_learner_targets_and_loss_match_hand_computation():
     """`PQN.targets` and `PQN._loss` with the network replaced by one whose Q-values are its input:
     the next values are the rollout's own shifted one row (the last from where the rollout
     stopped), a truncation bootstraps from its final observation, a step both terminated and
     truncated bootstraps nothing."""
     pqn = _pqn_whose_q_values_are_its_input()
-    batch, stopped = _hand_rollout()
-    targets = pqn.targets(None, batch, stopped)
+    targets, (loss, info) = _targets_and_loss(pqn)
     # G3 = 8 + 0.5 * 8 = 12 (the rollout's end: max Q where it stopped)
     # G2 = 6 (terminated, and truncated: its final observation's 100 is not read)
     # G1 = 4 + 0.5 * 5 = 6.5 (truncated: max Q of its final observation, not of the row's own 6)
     # G0 = 2 + 0.5 * (0.75 * 20 + 0.25 * 6.5) = 10.3125 (the next value is row 1's, 20)
     np.testing.assert_allclose(targets[:, 0], [10.3125, 6.5, 6.0, 12.0], rtol=1e-6)
-    loss, info = pqn._loss(None, None, batch, targets)
     # Taken Q-values 7, 6, 1, 10: errors -3.3125, -0.5, -5, -2; squares 10.97265625, 0.25, 25, 4;
     # half their mean: 0.5 * 40.22265625 / 4
     np.testing.assert_allclose(loss, 0.5 * 40.22265625 / 4, rtol=1e-6)
@@ -140,12 +169,10 @@ def test_with_time_limit_ends_a_truncation_ends_the_return_as_a_termination_does
     """The rollout above with `time_limit_ends`: row 1's truncation no longer reads its final
     observation's values, and row 0's trace stops there."""
     pqn = _pqn_whose_q_values_are_its_input(time_limit_ends=True)
-    batch, stopped = _hand_rollout()
-    targets = pqn.targets(None, batch, stopped)
+    targets, (loss, _) = _targets_and_loss(pqn)
     # G3 = 12 and G2 = 6 as above; G1 = 4 (ended: the final observation's 5 is not read)
     # G0 = 2 + 0.5 * (0.75 * 20 + 0.25 * 4) = 10.0
     np.testing.assert_allclose(targets[:, 0], [10.0, 4.0, 6.0, 12.0], rtol=1e-6)
-    loss, _ = pqn._loss(None, None, batch, targets)
     # Taken Q-values 7, 6, 1, 10: errors -3, 2, -5, -2; squares 9, 4, 25, 4; half their mean: 0.5 * 42 / 4
     np.testing.assert_allclose(loss, 5.25, rtol=1e-6)
 
@@ -186,51 +213,56 @@ def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():
     obs = jax.random.uniform(key_obs, (t, b, net.layout.obs_size), minval=-1, maxval=40)
     resets = jax.random.bernoulli(key_reset, 0.3, (t, b)).at[0].set(True)
     carry0 = jax.random.normal(key_init, (b, 8))  # a stale carry: step 0's reset must clear it
-    variables = net.init(jax.random.key(1), carry0, obs, resets)
+    variables = jax.jit(net.init)(jax.random.key(1), carry0, obs, resets)
     assert any("LayerNorm" in name for name in variables["params"]["ObservationEncoder_0"])
 
-    carry_scan, q_scan = net.apply(variables, carry0, obs, resets)
+    # Jitted: one program per sequence length (op by op, over a hundred small ones).
+    apply = jax.jit(net.apply)
+    carry_scan, q_scan = apply(variables, carry0, obs, resets)
     carry = carry0
     for i in range(t):
-        carry, q = net.apply(variables, carry, obs[i : i + 1], resets[i : i + 1])
+        carry, q = apply(variables, carry, obs[i : i + 1], resets[i : i + 1])
         np.testing.assert_allclose(q[0], q_scan[i], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(carry, carry_scan, rtol=1e-5, atol=1e-6)
     # A reset really forgets: after the first reset the outputs ignore the carry before it.
-    _, q_other = net.apply(variables, carry0 + 5.0, obs, resets)
+    _, q_other = apply(variables, carry0 + 5.0, obs, resets)
     after = np.asarray(resets).cumsum(axis=0) >= 1
     np.testing.assert_allclose(np.asarray(q_other)[after], np.asarray(q_scan)[after], rtol=1e-5, atol=1e-6)
     # A reset inside the sequence forgets the carry the episode before it built: world 0 restarts
     # at step 4, so changing its observations before then changes only its outputs before then.
     resets = jnp.zeros((t, b), bool).at[0].set(True).at[4, 0].set(True)
     changed = obs.at[:4, 0].add(3.0)
-    _, q_a = net.apply(variables, carry0, obs, resets)
-    _, q_b = net.apply(variables, carry0, changed, resets)
+    _, q_a = apply(variables, carry0, obs, resets)
+    _, q_b = apply(variables, carry0, changed, resets)
     np.testing.assert_allclose(q_b[4:, 0], q_a[4:, 0], rtol=1e-5, atol=1e-6)
     assert not np.allclose(q_b[:4, 0], q_a[:4, 0], atol=1e-4)
     # Without that reset the earlier observations reach the later outputs through the carry.
-    _, q_c = net.apply(variables, carry0, obs, resets.at[4, 0].set(False))
-    _, q_d = net.apply(variables, carry0, changed, resets.at[4, 0].set(False))
+    _, q_c = apply(variables, carry0, obs, resets.at[4, 0].set(False))
+    _, q_d = apply(variables, carry0, changed, resets.at[4, 0].set(False))
     assert not np.allclose(q_d[4:, 0], q_c[4:, 0], atol=1e-4)
 
 
 def test_other_learners_networks_have_no_layer_norm():
     env, params = make("1d-static-sin")
     net = ActorCritic(ObsLayout.from_env(env, params), env.num_actions, hidden_size=8, rnn_size=4)
-    variables = net.init(jax.random.key(0), net.initial_carry(1), jnp.zeros((1, 1, 7)), jnp.ones((1, 1), bool))
+    # The parameters' paths need no values: their shapes, traced without compiling anything.
+    variables = jax.eval_shape(
+        net.init, jax.random.key(0), net.initial_carry(1), jnp.zeros((1, 1, 7)), jnp.ones((1, 1), bool)
+    )
     paths = [jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(variables)[0]]
     assert paths and not any("LayerNorm" in p for p in paths), paths
 
 
-def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry():
+def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry(dynamic_recurrent):
     """The targets bootstrap from the rollout's own Q-values: they must be what the learner's
     sequence pass (from the carry at the rollout's start, with resets) computes."""
-    pqn = _pqn(recurrent=True, max_steps=5)
+    pqn, state = dynamic_recurrent
     rollout = jax.jit(pqn.rollout)
-    state, _, _ = rollout(jax.jit(pqn.init)(jax.random.key(0)), pqn.env_params)  # a non-zero carry
+    state, _, _ = rollout(state, pqn.env_params)  # a non-zero carry
     carry0 = state.worlds.carry
     _, batch, _ = rollout(state, pqn.env_params)
     assert bool(batch.reset[1:].any()) and bool(batch.truncated.any()) and bool(jnp.abs(carry0).max() > 0)
-    _, q = pqn.network.apply(state.params, carry0, batch.obs, batch.reset)
+    _, q = jax.jit(pqn.network.apply)(state.params, carry0, batch.obs, batch.reset)
     np.testing.assert_allclose(q.max(-1), batch.value, rtol=1e-5, atol=1e-6)
 
 
@@ -238,15 +270,19 @@ def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry():
 
 
 @pytest.mark.parametrize(
-    "task,recurrent",
+    "agent",
     [
-        ("1d-static-sin", False),
-        ("1d-dynamic", True),
-        pytest.param("2d-dynamic-sparse", True, marks=pytest.mark.slow),  # the conv design encoder: a long compile
+        "static_feed_forward",
+        "dynamic_recurrent",
+        pytest.param("2d-dynamic-sparse", marks=pytest.mark.slow),  # recurrent; the conv design encoder: a long compile
     ],
 )
-def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
-    pqn = _pqn(task, recurrent=recurrent, max_steps=6)
+def test_tiny_training_run_has_finite_losses_and_compiles_once(agent, request):
+    if agent == "2d-dynamic-sparse":
+        pqn = _pqn(agent, recurrent=True, max_steps=6)
+        state = jax.jit(pqn.init)(jax.random.key(0))
+    else:
+        pqn, state = request.getfixturevalue(agent)
     traces = []
 
     def chunk(state):
@@ -254,7 +290,6 @@ def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
         return pqn.train_chunk(state, pqn.env_params, 2)
 
     run = jax.jit(chunk)
-    state = jax.jit(pqn.init)(jax.random.key(0))
     state, first = run(state)
     state, metrics = run(state)
     assert len(traces) == 1 and run._cache_size() == 1
@@ -266,16 +301,17 @@ def test_tiny_training_run_has_finite_losses_and_compiles_once(task, recurrent):
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
-def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes():
+def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes(static_feed_forward):
     """Without staggering every world starts at step 0; with it each world is a random number of
     random steps (below the step limit) into an episode of the task, the same numbers for the same key."""
-    plain = jax.jit(_pqn(num_envs=64).init)(jax.random.key(0)).worlds.env_state.time
-    assert np.all(np.asarray(plain) == 0)
+    plain, state = static_feed_forward
+    assert not plain.config.stagger_starts and np.all(np.asarray(state.worlds.env_state.time) == 0)
     staggered = _pqn(num_envs=64, stagger_starts=True)
-    times = np.asarray(jax.jit(staggered.init)(jax.random.key(0)).worlds.env_state.time)
+    init = jax.jit(staggered.init)
+    times = np.asarray(init(jax.random.key(0)).worlds.env_state.time)
     limit = int(staggered.env_params.max_steps_in_episode)
     assert np.all((times >= 0) & (times < limit)) and len(np.unique(times)) > 32
-    again = np.asarray(jax.jit(staggered.init)(jax.random.key(0)).worlds.env_state.time)
+    again = np.asarray(init(jax.random.key(0)).worlds.env_state.time)
     np.testing.assert_array_equal(times, again)
 
 
@@ -313,9 +349,9 @@ def test_resume_equals_uninterrupted(tmp_path, recurrent):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-def test_greedy_policy_runs_in_the_evaluator_with_recurrent_state():
-    pqn = _pqn("1d-dynamic", recurrent=True)
-    state = jax.jit(pqn.init)(jax.random.key(0))
+def test_greedy_policy_runs_in_the_evaluator_with_recurrent_state(dynamic_recurrent):
+    pqn, state = dynamic_recurrent
+    assert pqn.config.recurrent
     env, params = make("1d-dynamic", test_design=3, max_steps=30)
     episodes = run_episodes(env, params, pqn.policy(state.params), jax.random.key(1), np.zeros(4, np.int32))
     assert episodes.iou.shape == (4,)
