@@ -163,22 +163,25 @@ def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
     # one kernel and as x mu + ((x e_in) sigma + sigma_b) e_out must agree.
     x = jax.random.normal(jax.random.key(1), (1, 1, 4))
     rngs = {"noise": jax.random.key(2)}
-    # Jitted, one program per layer and input shape (op by op, some fifty small ones).
-    apply_per_row = jax.jit(lambda x: per_row.apply(params, x, rngs=rngs))
-    np.testing.assert_allclose(
-        apply_per_row(x), jax.jit(lambda x: shared.apply(params, x, rngs=rngs))(x), rtol=1e-5, atol=1e-6
-    )
+
+    @jax.jit  # the layers' outputs below as one program (op by op, some fifty small ones)
+    def outputs(x):
+        return (
+            (per_row.apply(params, x, rngs=rngs), shared.apply(params, x, rngs=rngs)),
+            per_row.apply(params, jnp.ones((3, 4, 2, 4)), rngs=rngs),
+            (per_row.apply(params, jnp.ones((1, 4000, 4)), rngs=rngs), layer.apply(params, jnp.ones((1, 1, 4)))),
+        )
+
+    (one_row, one_row_shared), out, (draws, mean) = outputs(x)
+    np.testing.assert_allclose(one_row, one_row_shared, rtol=1e-5, atol=1e-6)
     # Identical rows (3 steps x 4 worlds, with an axis in between as the frame stack has): each
     # (step, world) draws its own noise, broadcast over the axis in between.
-    x = jnp.ones((3, 4, 2, 4))
-    out = apply_per_row(x)
     assert out.shape == (3, 4, 2, 6)
     assert len({tuple(np.round(np.asarray(r), 6)) for r in out[:, :, 0].reshape(12, 6)}) == 12
     np.testing.assert_array_equal(out[:, :, 0], out[:, :, 1])
     with pytest.raises(ValueError, match="per_row noise needs inputs"):
         per_row.apply(params, jnp.ones((4, 4)), rngs=rngs)
-    draws = apply_per_row(jnp.ones((1, 4000, 4)))
-    np.testing.assert_allclose(draws[0].mean(0), jax.jit(layer.apply)(params, jnp.ones((1, 1, 4)))[0, 0], atol=0.05)
+    np.testing.assert_allclose(draws[0].mean(0), mean[0, 0], atol=0.05)
 
 
 # --- runs ----------------------------------------------------------------------------------------------
