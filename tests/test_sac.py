@@ -241,15 +241,16 @@ def test_a_chunk_compiles_once(one_update_chunks):
 
 def test_greedy_policy_is_the_argmax_of_the_actors_logits():
     agent = _agent("2d-static-dense")
-    params = jax.jit(agent.init)(jax.random.key(1)).params
-    # Sharpen the actor so that its argmax is unambiguous.
-    params["actor"]["params"]["Dense_0"]["kernel"] *= 300.0
-    policy = agent.policy(params)
     env, env_params = agent.env, agent.env_params
     layout = agent.layout
+    policy = agent.policy(None)  # its parameters are passed to `act`
 
-    @jax.jit  # six steps of an episode as one program (op by op, some seventy)
-    def episode(params):
+    @jax.jit  # a new run's parameters and six steps of an episode as one program (op by op, some seventy)
+    def episode(key):
+        # The parameters a new run starts from (`init` reads them from `init_params` too).
+        params, _ = agent.init_params(key, jnp.zeros((1, 1, 1, layout.obs_size)))
+        # Sharpen the actor so that its argmax is unambiguous.
+        params["actor"]["params"]["Dense_0"]["kernel"] *= 300.0
         obs, env_state = env.reset(jax.random.key(2), env_params)
 
         def step(carry, keys):
@@ -262,7 +263,7 @@ def test_greedy_policy_is_the_argmax_of_the_actors_logits():
         keys = jnp.stack([jax.vmap(jax.random.key)(jnp.arange(6)), jax.vmap(jax.random.key)(10 + jnp.arange(6))], 1)
         return jax.lax.scan(step, (obs, env_state, policy.init(jax.random.key(3), None)), keys)[1]
 
-    actions, greedy = episode(params)
+    actions, greedy = episode(jax.random.key(1))
     assert actions.shape == (6,)
     np.testing.assert_array_equal(actions, greedy)
     assert policy.name == "sac"
