@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -23,6 +24,25 @@ from agents.training.driver import chunk_sizes, initial_state, read_metrics, tra
 from agents.training.registry import make_config
 
 TINY = dict(num_envs=16, rollout_steps=8, num_minibatches=2, update_epochs=1, hidden_size=8, rnn_size=8)
+
+
+# The run the checkpoint, resume and finished-run tests share (each copies it where it changes
+# anything), so that one PPO configuration compiles for them all: four chunks of one update.
+RUN = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=4 * 16 * 8, chunks=4, **TINY)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    """`(directory, final state)` of `RUN` trained uninterrupted. Read it, or copy it (`_copy_of`) to change it."""
+    directory = tmp_path_factory.mktemp("finished") / "run"
+    _, state = train(RUN, directory, progress=False)
+    return directory, state
+
+
+def _copy_of(run, tmp_path):
+    import shutil
+
+    return Path(shutil.copytree(run, tmp_path / "run", symlinks=True))
 
 
 def _leaves_equal(a, b) -> bool:
@@ -145,10 +165,9 @@ def test_without_compiling_ahead_every_program_compiles_on_the_callers_thread_wh
 
 
 def test_checkpoint_round_trip(tmp_path):
-    config = make_config("ppo", "1d-static-sin", recurrent=True, seeds=2, total_steps=128, **TINY)
     from agents.training.registry import build_algorithm
 
-    algorithm = build_algorithm(config)
+    algorithm = build_algorithm(RUN)
     state = initial_state(algorithm)
     checkpoint.save_state(tmp_path, 0, state)
     assert checkpoint.latest_chunk(tmp_path) == 0
@@ -157,10 +176,10 @@ def test_checkpoint_round_trip(tmp_path):
     assert jax.dtypes.issubdtype(restored.key.dtype, jax.dtypes.prng_key)
 
 
-def test_resume_equals_uninterrupted(tmp_path):
-    config = make_config("ppo", "1d-static-gauss", recurrent=True, seeds=2, total_steps=4 * 16 * 8, chunks=4, **TINY)
-    _, straight = train(config, tmp_path / "straight", progress=False)
-    straight_lines = read_metrics(tmp_path / "straight")
+def test_resume_equals_uninterrupted(tmp_path, finished_run):
+    config = RUN
+    straight_run, straight = finished_run
+    straight_lines = read_metrics(straight_run)
     killed = tmp_path / "killed"
     _, first = train(config, killed, progress=False, stop_after_chunks=2)
     assert int(first.update[0]) == 2
@@ -235,26 +254,24 @@ def test_a_checkpoint_that_cannot_be_read_is_named_and_the_one_before_restores(t
     assert _resume_point(tmp_path, like, print) == (0, like, [])
 
 
-def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path):
-    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
-    train(config, tmp_path / "run", progress=False)
+def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path, finished_run):
+    run = _copy_of(finished_run[0], tmp_path)
     with pytest.raises(
         ValueError,
         match=r"run is not empty \(checkpoints, config.json, metrics.jsonl\) \(if it holds a run, continue it with --resume",
     ):
-        train(config, tmp_path / "run", progress=False)
+        train(RUN, run, progress=False)
     with pytest.raises(ValueError, match="config.json is missing"):
-        train(config, tmp_path / "empty", resume=True, progress=False)
+        train(RUN, tmp_path / "empty", resume=True, progress=False)
 
 
-def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path):
-    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
-    train(config, tmp_path, progress=False)
-    saved = json.loads((tmp_path / checkpoint.CONFIG_FILE).read_text())
+def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path, finished_run):
+    run = _copy_of(finished_run[0], tmp_path)
+    saved = json.loads((run / checkpoint.CONFIG_FILE).read_text())
     saved["hidden_size"] = 2 * saved["hidden_size"]
-    (tmp_path / checkpoint.CONFIG_FILE).write_text(json.dumps(saved))
+    (run / checkpoint.CONFIG_FILE).write_text(json.dumps(saved))
     with pytest.raises(ValueError, match=r"does not hold the state its config.json describes .*the config needs"):
-        trained.load_trained(tmp_path)
+        trained.load_trained(run)
 
 
 TWO_DEVICES = textwrap.dedent(
@@ -413,16 +430,14 @@ def test_eval_and_render_read_the_training_seed_that_seed_index_names(tmp_path, 
     assert code == 2 and "give it with --checkpoint DIR" in err
 
 
-def test_checkpoint_policy_rejects_another_task(tmp_path):
-    config = make_config("ppo", "1d-static-sin", total_steps=128, chunks=1, **TINY)
-    train(config, tmp_path, progress=False)
+def test_checkpoint_policy_rejects_another_task(finished_run):
     from snac_jax.tasks import make
 
     env, _ = make("1d-static-step")
     with pytest.MonkeyPatch.context() as patch:  # refused from config.json, before any checkpoint is read
         patch.setattr(trained, "load_trained", lambda *a: pytest.fail("the checkpoint was loaded"))
-        with pytest.raises(ValueError, match="trained on '1d-static-sin'"):
-            trained.checkpoint_policy(env, tmp_path)
+        with pytest.raises(ValueError, match="trained on '1d-static-gauss'"):
+            trained.checkpoint_policy(env, finished_run[0])
 
 
 def test_a_checkpoint_with_empty_slots_restores_into_a_state_without_them(tmp_path):
