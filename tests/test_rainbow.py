@@ -330,21 +330,21 @@ def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
 def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     agent, state, _ = trained_1d
     policy = agent.policy(state.params)
-    obs, _ = jax.jit(agent.env.reset)(jax.random.key(0), agent.env_params)
-    memory = policy.init(jax.random.key(0), None)
-    act = jax.jit(policy.act)  # one program (op by op, some eighty)
-    actions = {int(act(policy.params, memory, obs, jax.random.key(k))[0]) for k in range(5)}
-    assert len(actions) == 1  # the acting key draws nothing
 
-    @jax.jit
-    def mean_and_noisy_q(params, obs, memory):
+    @jax.jit  # one program (op by op, some eighty)
+    def actions_and_q_values(params):
+        obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
+        memory = policy.init(jax.random.key(0), None)
+        actions = jnp.stack([policy.act(params, memory, obs, jax.random.key(k))[0] for k in range(5)])
         frames = agent.layout.acting_inputs(obs, memory)[None, None, None]
         carry = agent.network.initial_carry(1)
         _, logits = agent.network.apply(params, carry, frames, jnp.ones((1, 1), bool))
         _, noisy_q = agent.q_values(params, carry, frames, jnp.ones((1, 1), bool), jax.random.key(1))
-        return agent.expected(logits), noisy_q
+        return actions, agent.expected(logits), noisy_q
 
-    mean_q, noisy_q = mean_and_noisy_q(state.params, obs, memory)
+    actions, mean_q, noisy_q = actions_and_q_values(policy.params)
+    actions = set(np.asarray(actions).tolist())
+    assert len(actions) == 1  # the acting key draws nothing
     assert actions == {int(jnp.argmax(mean_q[0, 0]))}
     # While the acting network's noise does move the Q-values.
     assert not np.allclose(noisy_q, mean_q)
