@@ -3,6 +3,8 @@ config errors, and the policy the evaluator runs."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -55,7 +57,7 @@ def test_gae_matches_hand_computation_with_truncation_and_termination():
 def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry_that_saw_them(truncations, max_steps):
     config = dict(TINY, num_envs=4, rollout_steps=6, max_steps=max_steps)
     ppo = PPO(make_config("ppo", "1d-static-sin", recurrent=True, **config))
-    state = ppo.init(jax.random.key(0))
+    state = jax.jit(ppo.init)(jax.random.key(0))
     _, batch, _ = jax.jit(ppo.rollout)(state, ppo.env_params)
     t, n = batch.reward.shape
     chosen = np.random.default_rng(truncations).choice(t * n, size=truncations + 2, replace=False)
@@ -67,10 +69,11 @@ def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry
 
     got = np.asarray(jax.jit(ppo._final_values)(state.params, batch)).reshape(-1)
 
+    apply = jax.jit(ppo.network.apply)  # one program for every world's value, not one per operation
     expected = np.zeros(t * n, np.float32)
     for i in chosen[2:]:
         step, world = divmod(int(i), n)
-        _, _, value = ppo.network.apply(
+        _, _, value = apply(
             state.params,
             batch.carry_after[step, world][None],
             batch.final_obs[step, world][None, None],
@@ -113,22 +116,32 @@ def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     obs = jax.random.uniform(key_obs, (t, b, env.observation_layout.size), minval=-1, maxval=40)
     resets = jax.random.bernoulli(key_reset, 0.3, (t, b)).at[0].set(True)
     carry0 = jax.random.normal(key_init, (b, 8))  # a stale carry: step 0's reset must clear it
-    variables = net.init(jax.random.key(1), carry0, obs, resets)
+    variables = jax.jit(net.init)(jax.random.key(1), carry0, obs, resets)
+    apply = jax.jit(net.apply)  # one program for the sequence and one for a step, not one per operation
 
-    carry_scan, logits_scan, value_scan = net.apply(variables, carry0, obs, resets)
+    carry_scan, logits_scan, value_scan = apply(variables, carry0, obs, resets)
     carry = carry0
     for i in range(t):
-        carry, logits, value = net.apply(variables, carry, obs[i : i + 1], resets[i : i + 1])
+        carry, logits, value = apply(variables, carry, obs[i : i + 1], resets[i : i + 1])
         np.testing.assert_allclose(logits[0], logits_scan[i], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(value[0], value_scan[i], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(carry, carry_scan, rtol=1e-5, atol=1e-6)
 
     # A reset really forgets: the outputs after a reset do not depend on the carry before it.
-    _, logits_other, _ = net.apply(variables, carry0 + 5.0, obs, resets)
+    _, logits_other, _ = apply(variables, carry0 + 5.0, obs, resets)
     after_first_reset = np.asarray(resets).cumsum(axis=0) >= 1
     np.testing.assert_allclose(
         np.asarray(logits_other)[after_first_reset], np.asarray(logits_scan)[after_first_reset], rtol=1e-5, atol=1e-6
     )
+
+
+@functools.cache
+def tiny_training(task: str, recurrent: bool):
+    """Two seeds of a tiny training, `make_train` jitted and vmapped over them: one program per
+    configuration, compiled once for the tests that read its outputs."""
+    config = make_config("ppo", task, recurrent=recurrent, **TINY)
+    state, metrics = jax.jit(jax.vmap(make_train(config)))(jax.random.split(jax.random.key(0), 2))
+    return config, state, metrics
 
 
 @pytest.mark.parametrize(
@@ -140,19 +153,16 @@ def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     ],
 )
 def test_tiny_training_run_has_finite_losses(task, recurrent):
-    config = make_config("ppo", task, recurrent=recurrent, **TINY)
-    state, metrics = jax.jit(make_train(config))(jax.random.key(0))
-    assert metrics["loss"].shape == (config.num_updates,)
+    config, state, metrics = tiny_training(task, recurrent)
+    assert metrics["loss"].shape == (2, config.num_updates)
     for name in ("loss", "value_loss", "actor_loss", "entropy", "approx_kl"):
         assert np.all(np.isfinite(metrics[name])), name
-    assert int(state.update) == config.num_updates
+    np.testing.assert_array_equal(state.update, [config.num_updates] * 2)
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
 def test_train_is_vmappable_over_seeds_and_seeds_differ():
-    config = make_config("ppo", "1d-static-gauss", **TINY)
-    keys = jax.random.split(jax.random.key(0), 2)
-    state, metrics = jax.jit(jax.vmap(make_train(config)))(keys)
+    config, state, metrics = tiny_training("1d-static-sin", True)  # the run above: one training compiled
     assert metrics["loss"].shape == (2, config.num_updates)
     first = jax.tree.leaves(state.params)[0]
     assert not np.allclose(first[0], first[1])
