@@ -38,20 +38,25 @@ TINY = dict(
     update_epochs=1,
     hidden_size=16,
     rnn_size=16,
+    stagger_starts=False,  # no random steps before training: a smaller `init` to compile
 )
+
+
+expected_window = jax.jit(expected_design_window, static_argnums=3)
+"""`expected_design_window` jitted (the view's shape static): one program a shape, not one per operation."""
 
 
 def test_expected_window_by_hand_in_1d():
     design = jnp.array([[1.0, 2.0, 3.0, 4.0]])  # one row of four columns; a window of three
     one_row = jnp.ones(1)
-    window = expected_design_window(one_row, jnp.array([1.0, 0.0, 0.0, 0.0]), design, (1, 3), outside=-1.0)
+    window = expected_window(one_row, jnp.array([1.0, 0.0, 0.0, 0.0]), design, (1, 3), outside=-1.0)
     np.testing.assert_allclose(window, [[-1.0, 1.0, 2.0]])  # off the plan on the left: the padding value
     # Equally unsure of all four columns: padded design -1 1 2 3 4 -1, each window cell the mean
     # of four consecutive entries: (-1+1+2+3)/4, (1+2+3+4)/4, (2+3+4-1)/4.
-    window = expected_design_window(one_row, jnp.full(4, 0.25), design, (1, 3), outside=-1.0)
+    window = expected_window(one_row, jnp.full(4, 0.25), design, (1, 3), outside=-1.0)
     np.testing.assert_allclose(window, [[1.25, 2.5, 2.0]])
     # Half on column 1, half on column 3: the mean of the two windows [1 2 3] and [3 4 -1].
-    window = expected_design_window(one_row, jnp.array([0.0, 0.5, 0.0, 0.5]), design, (1, 3), -1.0)
+    window = expected_window(one_row, jnp.array([0.0, 0.5, 0.0, 0.5]), design, (1, 3), -1.0)
     np.testing.assert_allclose(window, [[2.0, 3.0, 1.0]])
 
 
@@ -60,16 +65,17 @@ def test_expected_window_is_the_belief_weighted_crop_in_2d():
     design = jax.random.randint(key_design, (2, 5, 6), 0, 4).astype(jnp.float32)  # a batch of two designs
     row_logits, col_logits = jax.random.normal(key_rows, (2, 5)), jax.random.normal(key_cols, (2, 6))
     p_row, p_col = jax.nn.softmax(row_logits), jax.nn.softmax(col_logits)
-    got = expected_design_window(p_row, p_col, design, (3, 3), outside=-0.5)
+    got = expected_window(p_row, p_col, design, (3, 3), outside=-0.5)
     want = np.zeros((2, 3, 3))
+    rows, cols = np.asarray(p_row), np.asarray(p_col)  # indexed in NumPy: no program per index
     for b in range(2):
-        padded = np.pad(np.asarray(design[b]), 1, constant_values=-0.5)
+        padded = np.pad(np.asarray(design)[b], 1, constant_values=-0.5)
         for r in range(5):
             for c in range(6):
-                want[b] += float(p_row[b, r] * p_col[b, c]) * padded[r : r + 3, c : c + 3]  # the window at (r, c)
+                want[b] += rows[b, r] * cols[b, c] * padded[r : r + 3, c : c + 3]  # the window at (r, c)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     # A wider view holds the window's expectation at its centre.
-    wide = expected_design_window(p_row, p_col, design, (7, 5), outside=-0.5)
+    wide = expected_window(p_row, p_col, design, (7, 5), outside=-0.5)
     np.testing.assert_allclose(wide[:, 2:5, 1:4], got, rtol=1e-5, atol=1e-6)
 
 
@@ -102,23 +108,24 @@ def test_padding_keeps_the_positions_whose_window_reaches_off_the_plan_there():
 
 
 def test_filter_step_by_hand():
+    step = jax.jit(filter_step)  # one program for the three steps, not one per operation
     rows, cols, window = 4, 6, (3, 3)
     at_start = np.zeros((1,) + window, bool)
     at_start[0, 0, :] = at_start[0, :, 0] = True  # at plan (0, 0) the window's top row and left column are off the plan
     start = (start_belief(rows)[None], start_belief(cols)[None])
     reset = jnp.array([True])
     right = jnp.array([[0.0, 1.0]])
-    b_row, b_col = filter_step(start, reset, jnp.array([[0.0, 0.0, 1.0, 0.0]]), right, jnp.asarray(at_start))
+    b_row, b_col = step(start, reset, jnp.array([[0.0, 0.0, 1.0, 0.0]]), right, jnp.asarray(at_start))
     np.testing.assert_allclose(
         b_col[0], start_belief(cols), atol=1e-5
     )  # a reset ignores the move: the episode's first step
     top_row = np.zeros((1,) + window, bool)
     top_row[0, 0, :] = True  # two or three cells right of the corner: only the top row is off the plan
-    b_row, b_col = filter_step((b_row, b_col), ~reset, jnp.array([[0.0, 0.0, 0.5, 0.5]]), right, jnp.asarray(top_row))
+    b_row, b_col = step((b_row, b_col), ~reset, jnp.array([[0.0, 0.0, 0.5, 0.5]]), right, jnp.asarray(top_row))
     np.testing.assert_allclose(b_row[0], [1, 0, 0, 0], atol=1e-5)
     np.testing.assert_allclose(b_col[0], [0, 0, 0.5, 0.5, 0, 0], atol=1e-5)
     # No padding anywhere: rows 0 and 3 would show it above or below, so the row belief leaves them.
-    b_row, _ = filter_step(
+    b_row, _ = step(
         (jnp.full((1, rows), 0.25), b_col), ~reset, jnp.array([[1.0, 0, 0, 0]]), right, jnp.zeros((1,) + window, bool)
     )
     np.testing.assert_allclose(b_row[0], [0, 0.5, 0.5, 0], atol=1e-5)
@@ -129,19 +136,23 @@ def random_episode_steps(env, params, worlds: int, steps: int):
     filter sees before acting: `(obs, previous_obs, reset, last_action, cells, position)`, the
     cells the last move carried the robot (0 after a reset: the episode's first step) and its
     true plan position. At the start `last_action` is "none" (`num_actions`)."""
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), worlds), params)
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    reset_all = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+
+    @jax.jit
+    def advance(t, state, params):  # one program a step, not one per operation
+        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
+        obs, after, _, terminated, truncated, _ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(jax.random.key(t), worlds), state, action, params
+        )
+        return obs, after, terminated | truncated, action, jnp.abs(after.position - state.position).sum(-1)
+
+    obs, state = reset_all(jax.random.split(jax.random.key(0), worlds), params)
     previous, reset = obs, jnp.ones(worlds, bool)
     last_action, cells = jnp.full(worlds, env.num_actions), jnp.zeros(worlds, jnp.int32)
     for t in range(steps):
         yield obs, previous, reset, last_action, cells, state.position
-        action = jax.random.randint(jax.random.key(100 + t), (worlds,), 0, env.num_actions)
-        before, previous = state.position, obs
-        obs, state, _, terminated, truncated, _ = step(
-            jax.random.split(jax.random.key(t), worlds), state, action, params
-        )
-        reset, last_action = terminated | truncated, action
-        cells = jnp.abs(state.position - before).sum(-1)
+        previous = obs
+        obs, state, reset, last_action, cells = advance(t, state, params)
 
 
 @pytest.mark.parametrize("task", ["1d-static-sin", "2d-dynamic-sparse", "3d-static-dense"])
@@ -152,14 +163,20 @@ def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     env, params = make(task, max_steps=40)
     moves = jnp.asarray(np.concatenate([move_directions(env.config), [(0, 0)]]), jnp.float32)
     worlds, (rows, cols) = 16, env.config.plan_shape
-    belief, ends = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols))), 0
-    for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 120)):
+
+    @jax.jit
+    def track(belief, obs, reset, last_action, cells):  # one program a step, not one per operation
         padding = env.observation_layout.window_cells(obs) == -1
         belief = filter_step(belief, reset, jax.nn.one_hot(cells, 4), moves[last_action], padding)
-        np.testing.assert_array_equal(jnp.argmax(belief[0], -1), position[:, 0], err_msg=f"row, step {t}")
-        np.testing.assert_array_equal(jnp.argmax(belief[1], -1), position[:, 1], err_msg=f"column, step {t}")
-        assert float(jnp.min(jnp.max(belief[0], -1))) > 0.99 and float(jnp.min(jnp.max(belief[1], -1))) > 0.99
-        ends += int(reset.sum()) if t else 0
+        return belief, [jnp.argmax(b, -1) for b in belief], [jnp.min(jnp.max(b, -1)) for b in belief]
+
+    belief, ends = (jnp.zeros((worlds, rows)), jnp.zeros((worlds, cols))), 0
+    for t, (obs, _, reset, last_action, cells, position) in enumerate(random_episode_steps(env, params, worlds, 120)):
+        belief, (peak_row, peak_col), (sure_row, sure_col) = track(belief, obs, reset, last_action, cells)
+        np.testing.assert_array_equal(peak_row, position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(peak_col, position[:, 1], err_msg=f"column, step {t}")
+        assert float(sure_row) > 0.99 and float(sure_col) > 0.99
+        ends += int(np.sum(reset)) if t else 0
     assert ends >= 2 * worlds  # episodes of at most 40 steps: every world crossed two auto-resets
 
 
@@ -171,19 +188,23 @@ def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(ta
     robot's position at every step, through auto-resets, as the acting path computes it."""
     agent = build_algorithm(make_config("pqn-belief", task, **TINY, max_steps=30))
     network, layout, worlds = agent.network, agent.layout, 16
-    run_filter = jax.jit(
-        lambda belief, logits, net_obs, reset: network.apply(
-            {}, belief, logits, net_obs, reset, method=BeliefQNetwork.run_filter
+
+    @jax.jit
+    def run_filter(belief, obs, previous, reset, last_action, cells):  # one program a step, not one per operation
+        net_obs = layout.with_previous_step(obs, previous, last_action, reset)
+        logits = 50.0 * jax.nn.one_hot(cells, 4)[None]
+        belief, (b_row, b_col) = network.apply(
+            {}, belief, logits, net_obs[None], reset[None], method=BeliefQNetwork.run_filter
         )
-    )
+        return belief, jnp.argmax(b_row[0], -1), jnp.argmax(b_col[0], -1)
+
     belief, ends = network.initial_carry(worlds)[:, network.rnn_size :], 0
     episode_steps = random_episode_steps(agent.env, agent.env_params, worlds, 70)
     for t, (obs, previous, reset, last_action, cells, position) in enumerate(episode_steps):
-        net_obs = layout.with_previous_step(obs, previous, last_action, reset)
-        belief, (b_row, b_col) = run_filter(belief, 50.0 * jax.nn.one_hot(cells, 4)[None], net_obs[None], reset[None])
-        np.testing.assert_array_equal(jnp.argmax(b_row[0], -1), position[:, 0], err_msg=f"row, step {t}")
-        np.testing.assert_array_equal(jnp.argmax(b_col[0], -1), position[:, 1], err_msg=f"column, step {t}")
-        ends += int(reset.sum()) if t else 0
+        belief, peak_row, peak_col = run_filter(belief, obs, previous, reset, last_action, cells)
+        np.testing.assert_array_equal(peak_row, position[:, 0], err_msg=f"row, step {t}")
+        np.testing.assert_array_equal(peak_col, position[:, 1], err_msg=f"column, step {t}")
+        ends += int(np.sum(reset)) if t else 0
     assert ends >= 2 * worlds  # episodes of at most 30 steps: every world crossed two auto-resets
 
 
@@ -221,6 +242,12 @@ def test_the_design_read_is_the_observations_or_the_static_tasks_own(task, dynam
         np.testing.assert_array_equal(np.asarray(agent.network.fixed_design), agent.env_params.designs[0])
 
 
+def both_gradients(td_loss, loss, *args):
+    """The gradient of `td_loss` and `loss`'s value and gradient, in one program: jitted, not one
+    program per operation, and the network's forward pass compiled once for both."""
+    return jax.grad(td_loss)(*args), jax.value_and_grad(loss, has_aux=True)(*args)
+
+
 def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observations_only():
     agent = build_algorithm(make_config("pqn-belief", "2d-dynamic-sparse", **TINY, belief_filter=False, max_steps=5))
     state = jax.jit(agent.init)(jax.random.key(0))
@@ -228,16 +255,18 @@ def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observat
     targets = jnp.zeros(batch.reward.shape)
     carry0 = state.worlds.carry
 
-    def td_loss(params):  # the Q regression alone: no position loss
+    def td_loss(params, carry0, batch, targets):  # the Q regression alone: no position loss
         (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         taken = jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0]
         return jnp.mean((taken - targets) ** 2)
 
-    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: one program, not one per op
-    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["auxiliary_heads"]))
-    assert float(jnp.abs(grads["ScannedRNN_0"]["GRUCell_0"]["hn"]["kernel"]).max()) > 0  # the check bites
-    (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
-    assert float(jnp.abs(full["params"]["auxiliary_heads"]["Dense_0"]["kernel"]).max()) > 0
+    grads, ((_, info), full) = jax.jit(both_gradients, static_argnums=(0, 1))(
+        td_loss, agent._loss, state.params, carry0, batch, targets
+    )
+    grads = grads["params"]
+    assert all(float(np.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["auxiliary_heads"]))
+    assert float(np.abs(grads["ScannedRNN_0"]["GRUCell_0"]["hn"]["kernel"]).max()) > 0  # the check bites
+    assert float(np.abs(full["params"]["auxiliary_heads"]["Dense_0"]["kernel"]).max()) > 0
     assert np.isfinite(float(info["position_loss"])) and float(info["belief_nll"]) >= 0.0
 
     policy = agent.policy(state.params)
@@ -287,20 +316,22 @@ def test_the_filters_move_head_learns_from_the_move_loss_only():
     assert agent.network.carry_size == 16 + 20 + 20  # the GRU's state, then the row and column beliefs
     state = jax.jit(agent.init)(jax.random.key(0))
     assert "auxiliary_heads" not in state.params["params"]  # no head on the GRU state: the move head is the filter's
-    _, batch, _ = jax.jit(agent.rollout)(state, agent.env_params)
+    after, batch, _ = jax.jit(agent.rollout)(state, agent.env_params)
     targets, carry0 = jnp.zeros(batch.reward.shape), state.worlds.carry
 
-    def td_loss(params):
+    def td_loss(params, carry0, batch, targets):
         (_, q), _ = agent.network.apply(params, carry0, batch.obs, batch.reset, mutable="intermediates")
         return jnp.mean((jnp.take_along_axis(q, batch.action[..., None], axis=-1)[..., 0] - targets) ** 2)
 
-    grads = jax.jit(jax.grad(td_loss))(state.params)["params"]  # jitted: one program, not one per op
-    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["move_head"]))
-    (_, info), full = jax.jit(jax.value_and_grad(agent._loss, has_aux=True))(state.params, carry0, batch, targets)
-    assert all(float(jnp.abs(g).max()) > 0.0 for g in jax.tree.leaves(full["params"]["move_head"])[:1])
+    grads, ((_, info), full) = jax.jit(both_gradients, static_argnums=(0, 1))(
+        td_loss, agent._loss, state.params, carry0, batch, targets
+    )
+    grads = grads["params"]
+    assert all(float(np.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads["move_head"]))
+    assert all(float(np.abs(g).max()) > 0.0 for g in jax.tree.leaves(full["params"]["move_head"])[:1])
     assert np.isfinite(float(info["move_loss"])) and float(info["belief_nll"]) >= 0.0
     # The belief after the rollout rides in the carry: each world's rows and columns sum to 1.
-    after = jax.jit(agent.rollout)(state, agent.env_params)[0].worlds.carry
+    after = after.worlds.carry
     np.testing.assert_allclose(after[:, 16:36].sum(-1), 1.0, rtol=1e-5)
     np.testing.assert_allclose(after[:, 36:].sum(-1), 1.0, rtol=1e-5)
 
