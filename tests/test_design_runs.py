@@ -6,6 +6,7 @@ environment."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import hypothesis.strategies as st
 import jax
@@ -35,8 +36,8 @@ def test_each_run_is_encoded_once_and_every_step_reads_its_runs_features():
         seen.append(d.shape)
         return jnp.stack([d.sum((-1, -2)), d.max((-1, -2))], axis=-1)
 
-    out = networks.encode_design_runs(encode, jnp.asarray(designs), max_runs=3)
-    assert seen == [(3, 2, 1, 2)]  # three designs a column, not six
+    out = jax.jit(networks.encode_design_runs, static_argnums=(0, 2))(encode, jnp.asarray(designs), 3)
+    assert seen == [(3, 2, 1, 2)]  # three designs a column, not six (traced once: one program, not one per op)
     expected = np.stack([designs.sum((-1, -2)), designs.max((-1, -2))], axis=-1)
     np.testing.assert_array_equal(np.asarray(out), expected)
     # By hand: column 0 reads runs 1, 5, 1 (sum 3 * value), column 1 its one design throughout.
@@ -46,7 +47,8 @@ def test_each_run_is_encoded_once_and_every_step_reads_its_runs_features():
 
 def test_a_bound_that_is_too_small_reads_nan_rather_than_another_runs_design():
     designs = jnp.asarray(_designs([[(1, 2), (5, 3), (1, 1)], [(7, 6)]]))
-    out = np.asarray(networks.encode_design_runs(lambda d: d.sum((-1, -2))[..., None], designs, max_runs=2))
+    encode = lambda d: d.sum((-1, -2))[..., None]
+    out = np.asarray(jax.jit(networks.encode_design_runs, static_argnums=(0, 2))(encode, designs, 2))
     assert np.isnan(out[5, 0]).all() and np.isfinite(out[:5, 0]).all() and np.isfinite(out[:, 1]).all()
 
 
@@ -59,7 +61,8 @@ def test_the_gradient_through_the_runs_equals_the_per_step_gradient():
         return (networks.encode_design_runs(encode, designs, max_runs) * weights[..., None]).sum()
 
     w = jnp.array([[0.3, -0.2], [0.1, 0.4], [1.0, 2.0], [0.5, -1.0]])
-    np.testing.assert_allclose(jax.grad(loss)(w, 3), jax.grad(loss)(w, 6), rtol=1e-5)  # summed in another order
+    grad = jax.jit(jax.grad(loss), static_argnums=1)  # one program per bound, not one per operation
+    np.testing.assert_allclose(grad(w, 3), grad(w, 6), rtol=1e-5)  # summed in another order
 
 
 @pytest.mark.parametrize(
@@ -98,11 +101,12 @@ def test_robots_that_drop_at_every_step_end_no_episode_sooner_than_the_bound(rob
         design_max_bricks=pick(params.design_max_bricks),
         design_volume=pick(params.design_volume),
     )
+    step_env = jax.jit(env.step_env)  # one program a bank, not one per operation
     for p in (params, smallest):
         _, state = env.reset(jax.random.key(0), p)
         actions = {agent: 4 for agent in env.agents}
         for step in range(1, 2 * bound + 2):
-            _, state, _, dones, _ = env.step_env(jax.random.key(step), state, actions, p)
+            _, state, _, dones, _ = step_env(jax.random.key(step), state, actions, p)
             if bool(dones["__all__"]):
                 break
         assert step >= bound
@@ -135,16 +139,11 @@ def test_the_obstacle_bound_is_reached_by_a_robot_that_walls_itself_in():
     assert episode_min_steps(env, params) == 3
 
 
-@settings(max_examples=8, deadline=None)
-@given(
-    task=st.sampled_from(["1d-dynamic", "2d-dynamic-sparse", "3d-dynamic-dense"]),
-    max_steps=st.integers(1, 9),
-    seed=st.integers(0, 2**16),
-)
-def test_random_rollouts_never_hold_more_design_runs_than_the_bound(task, max_steps, seed):
-    env, params = make(task, max_steps=max_steps)
-    layout = ObsLayout.from_env(env, params)
-    worlds, steps = 16, 24
+@functools.partial(jax.jit, static_argnames=("env", "worlds", "steps"))
+def _random_rollout(env, params, seed, worlds, steps):
+    """Each step's observations of `worlds` worlds taking random actions, with auto-reset. Jitted
+    with the params an argument (the step limit is in them): one program a task, whatever the
+    limit and seed, not one per example."""
     keys = jax.random.split(jax.random.key(seed), worlds)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
 
@@ -157,7 +156,20 @@ def test_random_rollouts_never_hold_more_design_runs_than_the_bound(task, max_st
         )
         return (obs2, state2), obs
 
-    _, observed = jax.lax.scan(step, (obs, state), jax.random.split(jax.random.key(seed + 1), steps))
+    return jax.lax.scan(step, (obs, state), jax.random.split(jax.random.key(seed + 1), steps))[1]
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    task=st.sampled_from(["1d-dynamic", "2d-dynamic-sparse", "3d-dynamic-dense"]),
+    max_steps=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_random_rollouts_never_hold_more_design_runs_than_the_bound(task, max_steps, seed):
+    env, params = make(task, max_steps=max_steps)
+    layout = ObsLayout.from_env(env, params)
+    worlds, steps = 16, 24
+    observed = _random_rollout(env, params, seed, worlds, steps)
     design = np.asarray(observed[..., layout.env.design])
     runs = 1 + (design[1:] != design[:-1]).any(-1).sum(0)
     for window in (2, 5, steps):
@@ -260,16 +272,17 @@ def test_the_cache_encodes_only_the_worlds_whose_design_changed():
     calls = []
     encode = _encode_counting(calls)
     expected = lambda d: np.stack([np.asarray(d).sum((-1, -2)), np.asarray(d).max((-1, -2))], axis=-1)
-    features = networks.refresh_design_features(encode, designs, jnp.full_like(designs, jnp.nan), jnp.zeros((40, 2)))
+    refresh = jax.jit(networks.refresh_design_features, static_argnums=0)  # one program, not one per op
+    features = refresh(encode, designs, jnp.full_like(designs, jnp.nan), jnp.zeros((40, 2)))
     np.testing.assert_array_equal(np.asarray(features), expected(designs))
     assert calls == [3] * 14
     calls.clear()
     new = designs.at[jnp.array([5, 31])].add(1000.0)
-    refreshed = networks.refresh_design_features(encode, new, designs, features)
+    refreshed = refresh(encode, new, designs, features)
     np.testing.assert_array_equal(np.asarray(refreshed), expected(new))
     assert calls == [3]
     calls.clear()
-    assert np.array_equal(np.asarray(networks.refresh_design_features(encode, new, new, refreshed)), expected(new))
+    assert np.array_equal(np.asarray(refresh(encode, new, new, refreshed)), expected(new))
     assert calls == []
 
 
@@ -280,30 +293,38 @@ def test_a_rollouts_first_cache_holds_every_worlds_features_from_one_pass(monkey
     env, params = make("2d-dynamic-sparse")
     layout = ObsLayout.from_env(env, params)
     network = networks.QNetwork(layout=layout, num_actions=env.num_actions, hidden_size=8)
-    obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 6), params)
+    obs, _ = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), 6), params)
     frames = obs[None, :, None, :].astype(jnp.float32)  # (T=1, B=6, k=1, O)
     carry, resets = network.initial_carry(6), jnp.ones((1, 6), bool)
-    variables = network.init(jax.random.key(1), carry, frames, resets)
+    variables = jax.jit(network.init)(jax.random.key(1), carry, frames, resets)
     changed = []
     refresh = networks.refresh_design_features
+
+    def count_changed(designs, seen):  # run at each execution of the (jitted) refresh
+        changed.append(int(np.any(np.asarray(designs != seen).reshape(len(designs), -1), axis=1).sum()))
+
     monkeypatch.setattr(
         networks,
         "refresh_design_features",
         lambda encode, designs, seen, features: (
-            changed.append(int(np.any(np.asarray(designs != seen).reshape(len(designs), -1), axis=1).sum())),
+            jax.debug.callback(count_changed, designs, seen),
             refresh(encode, designs, seen, features),
         )[1],
     )
-    cache = networks.first_design_cache(network, variables, carry, frames, resets)
+    # Jitted, each one program rather than one per operation.
+    apply = jax.jit(network.apply)
+    first_cache = jax.jit(lambda *inputs: networks.first_design_cache(network, *inputs))
+    with_cache = jax.jit(lambda *inputs: networks.apply_with_design_cache(network, *inputs))
+    cache = first_cache(variables, carry, frames, resets)
     assert changed == []  # one pass, not the refresh's chunks
-    direct = network.apply(variables, carry, frames, resets)[1]
-    cached, cache = networks.apply_with_design_cache(network, variables, cache, carry, frames, resets)
+    direct = apply(variables, carry, frames, resets)[1]
+    cached, cache = with_cache(variables, cache, carry, frames, resets)
     np.testing.assert_allclose(np.asarray(cached[1]), np.asarray(direct), rtol=1e-5, atol=1e-6)
     assert changed == [0]
     design = layout.env.design
     other = frames.at[0, 2, 0, design].set(1.0 - frames[0, 2, 0, design])
-    cached, _ = networks.apply_with_design_cache(network, variables, cache, carry, other, resets)
+    cached, _ = with_cache(variables, cache, carry, other, resets)
     np.testing.assert_allclose(
-        np.asarray(cached[1]), np.asarray(network.apply(variables, carry, other, resets)[1]), rtol=1e-5, atol=1e-6
+        np.asarray(cached[1]), np.asarray(apply(variables, carry, other, resets)[1]), rtol=1e-5, atol=1e-6
     )
     assert changed == [0, 1]
