@@ -136,9 +136,22 @@ def _placed(team, positions, **world):
     return state.replace(world=state.world.replace(position=jnp.asarray(positions, jnp.int32), **world))
 
 
-def _step(team, state, actions, strides):
+@partial(jax.jit, static_argnums=0)
+def _stepped(team, state, actions, strides):
     agents = team.agents
     return team.step_with_strides(state, dict(zip(agents, actions)), dict(zip(agents, strides)))
+
+
+def _step(team, state, actions, strides):
+    """`team.step_with_strides` with one action and stride per robot, jitted: one program per team
+    configuration, not one per operation."""
+    return _stepped(team, state, jnp.asarray(actions, jnp.int32), jnp.asarray(strides, jnp.int32))
+
+
+@partial(jax.jit, static_argnums=0)
+def _observed(team, state):
+    """`team.get_obs(state)`, jitted: one program per team configuration, not one per operation."""
+    return team.get_obs(state)
 
 
 LEFT, RIGHT, DOWN, UP, DROP_2D = 0, 1, 2, 3, 4
@@ -231,8 +244,8 @@ def test_each_window_shows_the_other_robots_as_minus_three():
     state = state.replace(
         world=state.world.replace(landmarks=jnp.zeros_like(state.world.landmarks).at[5 + 3, 7 + 3].set(True))
     )
-    obs = team.get_obs(state)
-    windows = {a: np.asarray(obs[a][:49]).reshape(7, 7) for a in team.agents}
+    obs = _observed(team, state)
+    windows = {a: np.asarray(obs[a])[:49].reshape(7, 7) for a in team.agents}
     assert windows["agent_0"][3, 5] == -3 and windows["agent_0"][5, 2] == -3 and windows["agent_0"][3, 3] == 0
     assert windows["agent_0"][3, 5] == -3  # robot 1 stands on a landmark: others see the robot
     assert windows["agent_1"][3, 1] == -3 and windows["agent_1"][3, 3] == -2  # its own cell shows as before
@@ -547,8 +560,9 @@ def test_vmap_over_worlds_equals_each_world_alone():
     obs, states = jax.jit(jax.vmap(team.reset))(keys)
     actions = {a: jax.random.randint(jax.random.key(i), (2048,), 0, 5) for i, a in enumerate(team.agents)}
     out = jax.jit(jax.vmap(team.step))(keys, states, actions)
+    pick_world = jax.jit(lambda tree, world: jax.tree.map(lambda x: x[world], tree))  # not a program per leaf
     for world in (0, 1234):
-        pick = lambda tree: jax.tree.map(lambda x: x[world], tree)
+        pick = lambda tree: pick_world(tree, world)
         alone = team.step(keys[world], pick(states), pick(actions))
         for got, expected in zip(jax.tree.leaves(pick(out)), jax.tree.leaves(alone)):
             np.testing.assert_array_equal(got, expected)
@@ -626,20 +640,22 @@ def test_a_robot_of_the_team_localises_past_another_robot_in_view():
     for r, c in [(8, 7), (12, 10), (9, 12), (11, 6)]:  # a few bricks: one stride matches
         grid[r + 3, c + 3] = 1
     before = _placed(team, [[10, 8], [10, 11]], grid=jnp.asarray(grid))
-    obs_before = stack(team, team.get_obs(before))
+    obs_before = np.asarray(stack(team, _observed(team, before)))
     after = _step(team, before, [RIGHT, DOWN], [1, 1])[1]
     np.testing.assert_array_equal(after.positions, [[10, 9], [11, 11]])
-    obs_after = stack(team, team.get_obs(after))
+    obs_after = np.asarray(stack(team, _observed(team, after)))
     window_before = obs_before[0, :49].reshape(7, 7)
     assert float(window_before[3, 6]) == multi.ROBOT_VALUE and float(obs_after[0, 4 * 7 + 5]) == multi.ROBOT_VALUE
 
     def estimate(policy):
-        state = policy.init(jax.random.key(0), before.world.design).replace(
-            estimate=jnp.asarray([10, 8], jnp.int32),
-            last_action=jnp.asarray(RIGHT, jnp.int32),
-            last_window=window_before,
-        )
-        return tuple(np.asarray(policy.act(policy.params, state, obs_after[0], jax.random.key(1))[1].estimate))
+        @jax.jit  # one program per policy, not one per operation
+        def act(design, window, obs):
+            state = policy.init(jax.random.key(0), design).replace(
+                estimate=jnp.asarray([10, 8], jnp.int32), last_action=jnp.asarray(RIGHT, jnp.int32), last_window=window
+            )
+            return policy.act(policy.params, state, obs, jax.random.key(1))[1].estimate
+
+        return tuple(np.asarray(act(before.world.design, window_before, obs_after[0])))
 
     assert estimate(handcrafted_policy(team.single, team=True)) == (10, 9)
     assert estimate(handcrafted_policy(team.single)) == (10, 8)
@@ -669,18 +685,20 @@ def test_a_robot_of_the_team_counts_the_median_stride_across_a_featureless_stret
     before = _placed(team, [[16, 8], [19, 19]], grid=jnp.asarray(grid))
     after = _step(team, before, [RIGHT, UP], [3, 1])[1]
     window_before, obs_after = (
-        stack(team, team.get_obs(before))[0, :49].reshape(7, 7),
-        stack(team, team.get_obs(after))[0],
+        np.asarray(stack(team, _observed(team, before)))[0, :49].reshape(7, 7),
+        np.asarray(stack(team, _observed(team, after)))[0],
     )
-    assert np.all(np.asarray(window_before) == 0) and np.all(np.asarray(obs_after[:49]) == 0)
+    assert np.all(window_before == 0) and np.all(obs_after[:49] == 0)
 
     def estimate(policy):
-        state = policy.init(jax.random.key(0), before.world.design).replace(
-            estimate=jnp.asarray([16, 8], jnp.int32),
-            last_action=jnp.asarray(RIGHT, jnp.int32),
-            last_window=window_before,
-        )
-        return tuple(np.asarray(policy.act(policy.params, state, obs_after, jax.random.key(1))[1].estimate))
+        @jax.jit  # one program per policy, not one per operation
+        def act(design, window, obs):
+            state = policy.init(jax.random.key(0), design).replace(
+                estimate=jnp.asarray([16, 8], jnp.int32), last_action=jnp.asarray(RIGHT, jnp.int32), last_window=window
+            )
+            return policy.act(policy.params, state, obs, jax.random.key(1))[1].estimate
+
+        return tuple(np.asarray(act(before.world.design, window_before, obs_after)))
 
     assert estimate(handcrafted_policy(team.single, team=True)) == (16, 8 + team_counts)
     assert estimate(handcrafted_policy(team.single)) == (16, 9)
