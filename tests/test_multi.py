@@ -525,7 +525,7 @@ def test_step_takes_jaxmarls_reset_state_and_params_by_keyword_or_position():
     acts = {"agent_0": 1, "agent_1": 0}
     obs, reset, _, dones, _ = team.step(jax.random.key(1), state, acts, chosen)
     assert bool(dones["__all__"]) and _positions(reset) == [[3, 4], [5, 6]]
-    for agent, expected in team.get_obs(chosen).items():
+    for agent, expected in _observed(team, chosen).items():
         np.testing.assert_array_equal(obs[agent], expected)
     longer = multi.make("2d-static-dense", num_robots=2, max_steps=5).default_params
     by_keyword = team.step(jax.random.key(1), state, acts, params=longer)
@@ -621,7 +621,7 @@ def test_each_robot_builds_its_share_of_a_hand_written_design():
     np.testing.assert_allclose(again.params, [1 / 3] * 3)
     episode = jax.jit(lambda k: multi.run_episode(team, policy, k, 0, params))(jax.random.key(0))
     assert float(episode.iou) == 1.0 and int(episode.bricks_used) == 2 and int(episode.length) == 60
-    states = policy.init(jax.random.key(0), jnp.asarray(design[0]))
+    states = jax.jit(policy.init)(jax.random.key(0), jnp.asarray(design[0]))  # one program, not one per op
     own = np.asarray(states.design)[:, 3:-3, 3:-3]
     assert own[0, 2, 3] == 1 and own[0, 17, 16] == 0 and own[1, 17, 16] == 1 and own[1, 2, 3] == 0
     np.testing.assert_array_equal(states.estimate, [[0, 0], [19, 19]])
