@@ -23,6 +23,12 @@ OLD = _design((0, 0), (0, 1), (1, 1))
 NEW = _design((0, 1), (0, 2), (1, 2), (2, 2))
 
 
+def _jitted(env):
+    """`env`'s `reset_to_design` and `step_with_stride`, jitted: one program each, not one per
+    operation (the action and stride are traced, so the known-value checks are `step`'s)."""
+    return jax.jit(env.reset_to_design), jax.jit(env.step_with_stride)
+
+
 def _hand_iou(built_cells, design):
     built = _design(*built_cells) > 0
     return np.sum(built & (design > 0)) / np.sum(built | (design > 0))
@@ -31,13 +37,14 @@ def _hand_iou(built_cells, design):
 def test_a_change_mid_episode_follows_the_new_design_from_its_step():
     env, _ = make("2d-dynamic-dense", design_change=(3, 3), design_bank_size=2)
     params = make_params(np.stack([OLD, NEW]), 2, max_steps=600)  # a bank of two hand-made designs
-    _, state = env.reset_to_design(jax.random.key(0), params, 0)
+    reset_to_design, step_with_stride = _jitted(env)
+    _, state = reset_to_design(jax.random.key(0), params, 0)
     assert int(state.change_step) == 3  # a..b = 3..3
     np.testing.assert_array_equal(state.next_design, NEW)  # the bank's only other design
     layout = env.observation_layout
 
     def step(state, action):
-        obs, state, reward, terminated, info = env.step_with_stride(state, action, 1, params)
+        obs, state, reward, terminated, info = step_with_stride(state, action, 1, params)
         return np.asarray(obs), state, float(reward), float(info["final_iou"])
 
     obs, state, reward, iou = step(state, DROP)  # brick on (0, 0): in OLD
@@ -127,9 +134,14 @@ def test_the_evaluation_schedule_is_fixed_and_pairs_test_design_i_with_i_plus_1(
     assert steps == [100, 122, 144, 166, 188, 211, 233, 255, 277, 300]  # the list in SPEC §15
     stack = np.stack([designs.fixed_design(n) for n in test_design_names("2d-dynamic-dense")])
     params = make_params(stack, 2, max_steps=600)
+
+    @jax.jit  # one program, not one per operation
+    def scheduled_reset(key, params, i):
+        _, state = env.reset_to_design(key, params, i)
+        return design_change.schedule(env.config, params, state, i)
+
     for i in (0, 9):
-        _, state = env.reset_to_design(jax.random.key(i), params, i)
-        state = design_change.schedule(env.config, params, state, i)
+        state = scheduled_reset(jax.random.key(i), params, i)
         assert int(state.change_step) == steps[i]
         np.testing.assert_array_equal(state.next_design, stack[(i + 1) % 10])
 
@@ -192,10 +204,11 @@ def test_the_caption_marks_the_change_step():
 
     env, _ = make("2d-dynamic-dense", design_change=(3, 3), design_bank_size=2)
     params = make_params(np.stack([OLD, NEW]), 2, max_steps=600)
-    _, state = env.reset_to_design(jax.random.key(0), params, 0)
+    reset_to_design, step_with_stride = _jitted(env)
+    _, state = reset_to_design(jax.random.key(0), params, 0)
     assert "design changes at step 3" in caption_lines(env, state)[0]
     for _ in range(3):
-        state = env.step_with_stride(state, RIGHT, 1, params)[1]
+        state = step_with_stride(state, RIGHT, 1, params)[1]
     assert "design changed at step 3" in caption_lines(env, state)[0]
     assert env.render(state, params).ndim == 3  # draws the design in force
 
