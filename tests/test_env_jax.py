@@ -33,6 +33,7 @@ def test_vmap_over_1024_envs_matches_single_env_runs(task):
     env, params = make(task, design_bank_size=256) if "dynamic" in task else make(task)
     keys = jax.random.split(jax.random.key(1), 1024)
     batched = jax.vmap(random_episode, in_axes=(0, None, None, None))(keys, env, params, 40)
+    batched = jax.device_get(batched)  # indexed in NumPy below: not one dispatch per leaf and world
     for i in range(1024):
         single = random_episode(keys[i], env, params, 40)
         jax.tree.map(lambda x, y: np.testing.assert_array_equal(x[i], y), batched, single)
@@ -78,8 +79,9 @@ def test_auto_reset_returns_reset_state_and_final_observation():
     assert not np.array_equal(info["final_observation"][t], obs[t])
     assert int(prev_state.time[t + 1]) == 0 and int(prev_state.bricks_used[t + 1]) == 0
     # final_observation is the observation of the state the episode ended in.
-    ended = jax.tree.map(lambda x: x[t], prev_state)
-    final_obs, final_state, *_ = env.step_with_stride(ended, action[t], info["stride"][t], params)
+    ended = jax.tree.map(lambda x: x[t], jax.device_get(prev_state))
+    step_with_stride = jax.jit(env.step_with_stride)  # one program, not one per operation
+    final_obs, final_state, *_ = step_with_stride(ended, action[t], info["stride"][t], params)
     np.testing.assert_array_equal(info["final_observation"][t], final_obs)
     assert float(info["final_iou"][t]) == pytest.approx(float(final_state.overlap / final_state.union))
 
@@ -89,12 +91,12 @@ def test_step_keeping_final_state_is_step_plus_the_state_before_the_auto_reset()
     key = jax.random.key(5)
     _, (_, action, _, terminated, truncated, _, prev_state) = random_episode(key, env, params, 300)
     t = int(np.flatnonzero(np.asarray(terminated | truncated))[0])
-    ended = jax.tree.map(lambda x: x[t], prev_state)
+    ended = jax.tree.map(lambda x: x[t], jax.device_get(prev_state))
     step_key = jax.random.key(11)
     *outputs, final_state = env.step_keeping_final_state(step_key, ended, action[t], params)
     jax.tree.map(np.testing.assert_array_equal, tuple(outputs), env.step(step_key, ended, action[t], params))
     assert int(outputs[1].time) == 0  # the returned state is the reset one...
-    _, stepped, *_ = env.step_env(step_key, ended, action[t], params)
+    _, stepped, *_ = jax.jit(env.step_env)(step_key, ended, action[t], params)  # one program, not one per op
     jax.tree.map(np.testing.assert_array_equal, final_state, stepped)  # ...the seventh output the ended one
     assert int(final_state.time) > 0
 
@@ -139,10 +141,14 @@ def test_observation_layout_reads_back_each_part(task, overrides):
     _, state = env.reset(jax.random.key(3), params)
     for action in (1, 0, env.num_actions - 1):
         _, state, *_ = env.step(jax.random.key(action), state, action, params)
-    obs = np.asarray(env.get_obs(state, params))
+    # Jitted: one program for both, not one per operation.
+    obs, window = jax.jit(
+        lambda state, params: (env.get_obs(state, params), snac_jax.observation.window(env.config, state))
+    )(state, params)
+    obs = np.asarray(obs)
     layout = env.observation_layout
     assert obs.shape == (layout.size,)
-    np.testing.assert_array_equal(layout.window_cells(obs), np.asarray(snac_jax.observation.window(env.config, state)))
+    np.testing.assert_array_equal(layout.window_cells(obs), np.asarray(window))
     assert obs[layout.bricks_used] == int(state.bricks_used) and obs[layout.time] == int(state.time)
     if env.config.dynamic:
         np.testing.assert_array_equal(layout.design_cells(obs), np.asarray(state.design))
