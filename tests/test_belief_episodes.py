@@ -107,11 +107,13 @@ def _untrained(**options):
     policy = agent.policy(None)
     obs, _ = agent.env.reset(jax.random.key(0), agent.env_params)
     start = policy.init(None, None)
-    net_obs = agent.layout.acting_inputs(obs, start)
-    params = agent.network.init(
-        jax.random.key(1), start["carry"][None], net_obs[None, None], start["reset"][None, None]
-    )
-    return agent, policy._replace(params=params)
+
+    @jax.jit  # one program, not one per operation of the network's initialisation
+    def init(key, obs, start):
+        net_obs = agent.layout.acting_inputs(obs, start)
+        return agent.network.init(key, start["carry"][None], net_obs[None, None], start["reset"][None, None])
+
+    return agent, policy._replace(params=init(jax.random.key(1), obs, start))
 
 
 def test_the_held_belief_is_the_one_the_q_head_reads():
