@@ -223,7 +223,7 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
     """Two updates on episodes of 5 steps (several inside each rollout or sequence) train the same
     parameters, to float tolerance, as the design encoded at every step; the learners whose
     sequences are longer than one step encode fewer designs than steps."""
-    task = "2d-dynamic-sparse"
+    task = "1d-dynamic"
     calls = []
     encode_runs = networks.encode_design_runs
 
