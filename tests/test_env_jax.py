@@ -10,10 +10,14 @@ from snac_jax import TASKS, make
 from snac_jax.env import SNACEnv
 from tests.helpers import random_episode
 
+BANK = 64
+"""The dynamic tasks' bank size in every test here: each task's bank generator compiles once for
+the file, not once per size."""
+
 
 @pytest.mark.parametrize("task", TASKS)
 def test_same_key_same_episode_and_other_key_differs(task):
-    env, params = make(task, design_bank_size=64) if "dynamic" in task else make(task)
+    env, params = make(task, design_bank_size=BANK) if "dynamic" in task else make(task)
     a = random_episode(jax.random.key(7), env, params, 200)
     b = random_episode(jax.random.key(7), env, params, 200)
     c = random_episode(jax.random.key(8), env, params, 200)
@@ -30,7 +34,7 @@ def test_same_key_same_episode_and_other_key_differs(task):
     ],
 )
 def test_vmap_over_1024_envs_matches_single_env_runs(task):
-    env, params = make(task, design_bank_size=256) if "dynamic" in task else make(task)
+    env, params = make(task, design_bank_size=BANK) if "dynamic" in task else make(task)
     keys = jax.random.split(jax.random.key(1), 1024)
     batched = jax.vmap(random_episode, in_axes=(0, None, None, None))(keys, env, params, 40)
     batched = jax.device_get(batched)  # indexed in NumPy below: not one dispatch per leaf and world
@@ -111,7 +115,7 @@ def test_truncation_at_step_limit_and_termination_flags():
 
 @pytest.mark.parametrize("task", TASKS)
 def test_spaces_match_observations(task):
-    env, params = make(task, design_bank_size=16) if "dynamic" in task else make(task)
+    env, params = make(task, design_bank_size=BANK) if "dynamic" in task else make(task)
     obs, state = env.reset(jax.random.key(0), params)
     space = env.observation_space(params)
     assert obs.shape == space.shape == (env.observation_layout.size,)
