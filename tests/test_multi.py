@@ -72,7 +72,8 @@ def test_one_robot_equals_the_single_robot_env(task):
     overrides = {"max_steps": SHORT, **_small(task)}
     single, params = make(task, **overrides)
     team = multi.make(task, num_robots=1, **overrides)
-    (obs_s, state_s), (obs_m, state_m), out_s, out_m = _both(jax.random.key(3), single, params, team, 3 * SHORT)
+    both = jax.device_get(_both(jax.random.key(3), single, params, team, 3 * SHORT))  # sliced in NumPy below
+    (obs_s, state_s), (obs_m, state_m), out_s, out_m = both
     np.testing.assert_array_equal(obs_m["agent_0"], obs_s)
     np.testing.assert_array_equal(state_m.world.position[:, 0], state_s.position)
     obs, state, reward, terminated, truncated, info = out_s
@@ -395,8 +396,10 @@ def test_every_robot_observes_as_the_numpy_team_engine(task, num_robots, overrid
     # that its start is in the plan, so that they soon meet; the later ones start from the corners.
     cluster = [(9, 9), (10, 10), (9, 10), (10, 9)][:num_robots] if team.config.dim > 1 else [(0, 13), (0, 16)]
     first, (obs, robot_rewards, team_reward, terminated, truncated, strides, final_obs, designs, marks) = (
-        _team_episodes(
-            jax.random.key(7), team, jnp.asarray(actions, jnp.int32), jnp.asarray(cluster, jnp.int32), num_steps
+        jax.device_get(  # indexed step by step below: in NumPy, not a dispatch per index
+            _team_episodes(
+                jax.random.key(7), team, jnp.asarray(actions, jnp.int32), jnp.asarray(cluster, jnp.int32), num_steps
+            )
         )
     )
     _, start = team.reset(jax.random.key(1))
