@@ -134,11 +134,6 @@ def raw_text(files: dict) -> str:
     return "{\n" + ",\n".join(parts) + "\n}\n"
 
 
-def record_path(results_dir: str | Path, preset: str, algorithm: str, name: str) -> Path:
-    """Where the record keeps `preset`'s cell `<algorithm>/<name>`."""
-    return Path(results_dir) / "table" / preset / algorithm / (name + RAW_SUFFIX)
-
-
 def refuse_links(root: Path, path: Path) -> None:
     """`ValueError` when `path`, or a folder between `root` and it, is a symbolic link."""
     parts = path.relative_to(root).parts
