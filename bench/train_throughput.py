@@ -9,7 +9,9 @@ returns, replay and updates), per task and network, with its tuned defaults
 
 `--variant` adds a row per set of settings over the tuned ones, timed in the same run as the
 tuned row: what a setting costs is read as the ratio of two rows, not against another day's
-number.
+number. `--design-runs both` does the same for how a sequence's design runs are encoded: a
+dynamic task's row again with the accelerators' one bounded pass in place of the CPU's loop
+(`agents.common.networks.runs_in_a_loop`).
 
 Each configuration is compiled first (compile time reported apart), then timed `--repeats` times
 over `--updates` updates (the median is reported), beside a baseline timed in the same run: the
@@ -62,6 +64,13 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=None, help="default: the tuned value per task")
     parser.add_argument("--devices", type=int, default=1, help="CPU devices (default 1, as `snac train` uses)")
     parser.add_argument("--out", default=None, help="also write the table to this Markdown file (replaced)")
+    parser.add_argument(
+        "--design-runs",
+        choices=("default", "both"),
+        default="default",
+        help="both: time each dynamic task also with a sequence's design runs encoded in one bounded pass "
+        "(the accelerators' way) in place of the CPU's loop, as a row more in the same run",
+    )
     for option in ("hidden-size", "rnn-size", "update-epochs", "num-minibatches", "rollout-steps"):
         parser.add_argument("--" + option, type=int, default=None, help="default: the tuned value per task")
     args = parser.parse_args()
@@ -87,10 +96,12 @@ def main() -> None:
         parser.error(str(error))
     import jax
 
+    from agents.common import networks as network_pieces
     from agents.common.networks import param_count
     from agents.training.driver import initial_state
     from agents.training.registry import build_algorithm, config_class, make_config
     from bench import flops
+    from snac_jax.tasks import task_spec
 
     networks = {"yes": [True], "no": [False], "both": [False, True]}[args.recurrent]
     lines = []
@@ -110,7 +121,7 @@ def main() -> None:
     emit(
         "| task | network | worlds | learning per update | params | compile s | "
         "env-steps/s with learning | acting only (same run) | learning's share of the time | "
-        "network GFLOP/s (counted; ≤: a rare branch counted as taken) | matmul GFLOP/s (core width, same run) | load avg |"
+        "network GFLOP/s (counted; ≈: a cond's costliest branch, a while loop's body once) | matmul GFLOP/s (core width, same run) | load avg |"
     )
     emit("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []  # every configuration made (and so checked) before the first is compiled
@@ -130,10 +141,16 @@ def main() -> None:
         )
         overrides = {name: value for name, value in overrides.items() if name in fields}
         try:
-            rows.append((task, settings, make_config(args.algorithm, task, **overrides, **settings)))
+            config = make_config(args.algorithm, task, **overrides, **settings)
         except ValueError as error:
             parser.error(f"{task}: {error}")
-    for task, settings, config in rows:
+        rows.append((task, settings, config, False))
+        if args.design_runs == "both" and task_spec(task).dynamic:
+            rows.append((task, settings, config, True))
+    in_a_loop = network_pieces.runs_in_a_loop
+    for task, settings, config, bounded in rows:
+        # read when the network is traced: the compile and the count below
+        network_pieces.runs_in_a_loop = (lambda: False) if bounded else in_a_loop
         algorithm = build_algorithm(config)
         mesh = devices.env_mesh(args.devices, config.num_envs)
         state = initial_state(algorithm, mesh)
@@ -171,7 +188,8 @@ def main() -> None:
         network_gflops = rate * chunk_flops.total / (state.update.shape[0] * config.steps_per_update) / 1e9
         matmul_gflops = _matmul_gflops(_minibatch_rows(config), _core_width(config), args.repeats)
         kind = _network_text(config) + "".join(f"; {name}={value}" for name, value in settings.items())
-        bound = "" if chunk_flops.exact else "≤ "  # a rare branch (e.g. the truncation bootstrap) counted as taken
+        kind += "; design runs in one bounded pass" if bounded else ""
+        bound = "" if chunk_flops.exact else "≈ "  # a rare branch counted as taken, a loop's body once
         emit(
             f"| {task} | {kind} | {config.num_envs} | {_learning_text(config)} | {params:,} | {compile_s:.1f} | "
             f"{rate:,.0f} | {acting:,.0f} | {1 - rate / acting:.0%} | {bound}{_gflops_text(network_gflops)} | "

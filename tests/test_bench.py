@@ -141,7 +141,7 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_pat
     # update are noise-dominated on a loaded machine (a timed unit test; the bench's own medians judge speed).
     assert with_learning > 0 and acting_only > 0
     params = int(cells[4].replace(",", ""))
-    network_gflops, matmul_gflops = float(cells[9].removeprefix("≤ ")), float(cells[10])
+    network_gflops, matmul_gflops = float(cells[9].removeprefix("≈ ")), float(cells[10])
     # The FLOPs counted from the traced chunk, per env step, are about what two epochs of a dense
     # network of this size do: an acting forward pass plus two forward-and-backward passes
     # (2 FLOPs a weight each; PQN's targets add a forward pass, the recurrent core its gates).
@@ -154,6 +154,33 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_pat
     assert (tmp_path / "rates.md").read_text().splitlines()[-1] == row
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
+
+
+@pytest.mark.slow  # compiles PPO's training twice
+def test_training_throughput_bench_times_the_bounded_design_pass_beside_the_loop():
+    """`--design-runs both`: a dynamic task's row again with the design runs in one bounded pass,
+    the same network (its parameter count), each row's rate measured; a static task has one row."""
+    script = ROOT / "bench" / "train_throughput.py"
+    tiny = ["--updates", "1", "--repeats", "1", "--num-envs", "4", "--rollout-steps", "8", "--hidden-size", "8"]
+    done = subprocess.run(
+        [sys.executable, str(script), "--algorithm", "ppo", "--tasks", "1d-dynamic", "1d-static-step"]
+        + tiny
+        + ["--rnn-size", "8", "--design-runs", "both"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [
+        [c.strip() for c in line.strip("|").split("|")] for line in done.stdout.splitlines() if line.startswith("| 1d-")
+    ]
+    assert [(row[0], row[1]) for row in rows] == [
+        ("1d-dynamic", "GRU 8, hidden 8"),
+        ("1d-dynamic", "GRU 8, hidden 8; design runs in one bounded pass"),
+        ("1d-static-step", "GRU 8, hidden 8"),
+    ]
+    assert rows[0][4] == rows[1][4] and all(float(row[6].replace(",", "")) > 0 for row in rows)
 
 
 @pytest.mark.slow  # compiles pqn-belief's training twice

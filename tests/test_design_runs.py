@@ -221,15 +221,21 @@ LEARNERS = [pytest.param(a, marks=() if a == "ppo" else pytest.mark.slow) for a 
 @pytest.mark.parametrize("algorithm", LEARNERS)
 def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorithm, monkeypatch):
     """Two updates on episodes of 5 steps (several inside each rollout or sequence) train the same
-    parameters, to float tolerance, as the design encoded at every step; the learners whose
-    sequences are longer than one step encode fewer designs than steps."""
+    parameters, to float tolerance, with the design encoded once per run, by the CPU's loop
+    (`encode_each_run`) and by the accelerators' bounded pass (`encode_design_runs`), as encoded
+    at every step; the learners whose sequences are longer than one step encode fewer designs
+    than steps."""
     task = "1d-dynamic"
-    calls = []
-    encode_runs = networks.encode_design_runs
+    looped, bounded = [], []
+    each_run, runs = networks.encode_each_run, networks.encode_design_runs
 
-    def spy(encode, designs, max_runs):
-        calls.append((designs.shape[0], max_runs))
-        return encode_runs(encode, designs, max_runs)
+    def each_run_spy(apply, params, designs, chunk):
+        looped.append(designs.shape[0])
+        return each_run(apply, params, designs, chunk)
+
+    def runs_spy(encode, designs, max_runs):
+        bounded.append((designs.shape[0], max_runs))
+        return runs(encode, designs, max_runs)
 
     refreshed = []
     refresh = networks.refresh_design_features
@@ -238,21 +244,82 @@ def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorith
         refreshed.append(designs.shape)
         return refresh(encode, designs, seen, features)
 
-    monkeypatch.setattr(networks, "encode_design_runs", spy)
+    monkeypatch.setattr(networks, "encode_each_run", each_run_spy)
+    monkeypatch.setattr(networks, "encode_design_runs", runs_spy)
     monkeypatch.setattr(networks, "refresh_design_features", refresh_spy)
-    once = _chunk_params(algorithm, task)
-    engaged = any(max_runs < steps for steps, max_runs in calls)
+    monkeypatch.setattr(networks, "runs_in_a_loop", lambda: True)
+    in_a_loop = _chunk_params(algorithm, task)
+    monkeypatch.setattr(networks, "runs_in_a_loop", lambda: False)
+    in_one_pass = _chunk_params(algorithm, task)
+    engaged = any(max_runs < steps for steps, max_runs in bounded)
     monkeypatch.setattr(ObsLayout, "max_design_runs", lambda self, steps: steps)
     monkeypatch.setattr(networks, "refresh_design_features", lambda encode, designs, seen, features: encode(designs))
     every_step = _chunk_params(algorithm, task)
-    for a, b in zip(jax.tree.leaves(once), jax.tree.leaves(every_step)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
-    if not calls:  # a network that reads the design otherwise (pqn-belief's expected window alone)
-        assert not _reads_the_design(once)
+    for params in (in_a_loop, in_one_pass):
+        for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(every_step)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+    if not bounded:  # a network that reads the design otherwise (pqn-belief's expected window alone)
+        assert not looped and not _reads_the_design(in_a_loop)
         return
-    assert engaged, calls  # every learner trains on sequences (replayed windows too) longer than the bound
+    assert looped, "its sequences encode the design at every step on a CPU"
+    assert engaged, bounded  # every learner trains on sequences (replayed windows too) longer than the bound
     # and acts with each world's design features kept between steps (`networks.apply_with_design_cache`)
     assert refreshed, "its rollout encodes every world's design at every step"
+
+
+def test_the_loop_encodes_each_run_once_in_passes_of_its_chunk():
+    """Column 0 holds three runs, column 1 one: four runs, two a pass, so two passes of two
+    designs; every step reads its own run's features (by hand, as the bounded pass's test)."""
+    designs = jnp.asarray(_designs([[(1, 2), (5, 3), (1, 1)], [(7, 6)]]))
+    calls = []
+    encode = _encode_counting(calls)
+    out = jax.jit(networks.encode_each_run, static_argnums=(0, 3))(lambda _, d: encode(d), {}, designs, 2)
+    assert calls == [2, 2]
+    assert np.asarray(out)[:, 0, 0].tolist() == [3, 3, 15, 15, 15, 3]
+    assert np.asarray(out)[:, 1, 0].tolist() == [21] * 6
+    assert np.asarray(out)[:, 0, 1].tolist() == [2, 2, 10, 10, 10, 2]
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    lengths=st.lists(st.lists(st.integers(1, 4), min_size=1, max_size=8), min_size=1, max_size=4),
+    chunk=st.integers(1, 5),
+)
+def test_the_loop_is_exact_however_many_runs_with_the_per_step_gradient(lengths, chunk):
+    """Any runs (every step a run of its own included, far past any bound), any chunk: the
+    features are the per-step encoding's and the gradient the per-step gradient, also vmapped
+    over two parameter sets as over seeds."""
+    steps = min(sum(column) for column in lengths)
+    # each column's runs cut to the shortest column's steps, its values distinct between runs
+    runs = [[(10 * c + i + 1, n) for i, n in enumerate(column)] for c, column in enumerate(lengths)]
+    designs = jnp.asarray(np.concatenate([_designs([column])[:steps] for column in runs], axis=1))
+    weights = jnp.asarray(np.random.default_rng(steps).normal(size=designs.shape[:2] + (2,)), jnp.float32)
+    apply = _tanh_apply
+
+    def loss(params, loop):
+        if loop:
+            features = networks.encode_each_run(apply, params, designs, chunk)
+        else:
+            features = apply(params, designs.reshape((-1,) + designs.shape[2:])).reshape(designs.shape[:2] + (2,))
+        return (features * weights).sum()
+
+    grads = _loop_and_step_gradients(loss)
+    params = {"w": jnp.array([[0.3, -0.2], [0.1, 0.4]]), "s": jnp.array([1.0, 2.0])}
+    both = jax.tree.map(lambda x: jnp.stack([x, -1.5 * x]), params)
+    for a, b in zip(*(jax.tree.leaves(g) for g in grads(both))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
+    looped = networks.encode_each_run(apply, params, designs, chunk)
+    per_step = apply(params, designs.reshape((-1,) + designs.shape[2:])).reshape(looped.shape)
+    np.testing.assert_allclose(np.asarray(looped), np.asarray(per_step), rtol=1e-6)
+
+
+def _tanh_apply(params, designs):
+    return jnp.tanh(designs.reshape(designs.shape[0], 2) @ params["w"]) * params["s"]
+
+
+def _loop_and_step_gradients(loss):
+    """Both gradients of `loss(params, loop)`, vmapped over a leading parameter axis, jitted."""
+    return jax.jit(lambda both: [jax.vmap(jax.grad(lambda p: loss(p, loop)))(both) for loop in (True, False)])
 
 
 def _encode_counting(calls):

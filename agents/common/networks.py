@@ -116,6 +116,103 @@ def encode_design_runs(encode: Callable[[jax.Array], jax.Array], designs: jax.Ar
     return jnp.where((run < max_runs)[..., None], out, jnp.nan)
 
 
+def runs_in_a_loop() -> bool:
+    """Whether a sequence's design runs are encoded by `encode_each_run` (a loop of passes until
+    every run is encoded, exact whatever their number) rather than `encode_design_runs` (one
+    pass over a static bound of runs per column). On a CPU a pass costs in proportion to its
+    size and the bound is far above the usual count (22 runs per 64 steps in 3D, where a policy's
+    episodes hold one or two), so the loop; on an accelerator a loop of passes is a serial chain
+    of kernels, and one bounded pass costs little more than a small one."""
+    return jax.default_backend() == "cpu"
+
+
+def run_chunk(columns: int) -> int:
+    """Runs `encode_each_run` encodes per pass: a quarter of the columns, so that the usual
+    sequence (about one run per column) takes a few passes and little padding."""
+    return max(1, -(-columns // 4))
+
+
+def _run_starts(designs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """For time-major `designs (T, B, *plan)` flattened to `T * B` entries: whether each entry
+    starts a run of one design in its column, and the entry that starts the run it belongs to."""
+    steps, columns = designs.shape[:2]
+    flat = designs.reshape(steps, columns, -1)
+    changed = jnp.any(flat[1:] != flat[:-1], axis=-1)  # (T - 1, B)
+    starts = jnp.concatenate([jnp.ones((1, columns), bool), changed], axis=0)
+    first_step = jax.lax.cummax(jnp.where(starts, jnp.arange(steps)[:, None], 0), axis=0)
+    owner = first_step * columns + jnp.arange(columns)
+    return starts.reshape(-1), owner.reshape(-1)
+
+
+def _over_run_starts(starts: jax.Array, chunk: int, body: Callable, init):
+    """`body(index, carry)` over the run starts, `chunk` indices at a time, until none is left;
+    an index past the end (`starts.size`) pads the last pass."""
+    size = starts.shape[0]
+
+    def one_pass(state):
+        todo, carry = state
+        index = jnp.nonzero(todo, size=chunk, fill_value=size)[0]
+        return todo.at[index].set(False, mode="drop"), body(index, carry)
+
+    return jax.lax.while_loop(lambda state: jnp.any(state[0]), one_pass, (starts, init))[1]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 3))
+def encode_each_run(apply: Callable, params, designs: jax.Array, chunk: int) -> jax.Array:
+    """`apply(params, designs (n, *plan)) -> (n, F)` of time-major `designs (T, B, *plan)` ->
+    `(T, B, F)`, encoding each run of one design in a column once, `chunk` runs per pass of a
+    loop that stops when none is left, so exact however many runs a sequence holds.
+
+    Why a custom gradient: a loop whose trip count depends on the data has no reverse-mode
+    derivative in JAX. The gradient is the per-step one summed over each run's steps (float
+    tolerance), pulled back through `apply` once per run in a second loop of passes."""
+    return _encode_each_run(apply, params, designs, chunk)[0]
+
+
+def _encode_each_run(apply, params, designs, chunk):
+    steps, columns = designs.shape[:2]
+    flat = designs.reshape((steps * columns,) + designs.shape[2:])
+    starts, owner = _run_starts(designs)
+    size = flat.shape[0]
+    out = jax.eval_shape(apply, params, flat[:1])
+
+    def encode(index, features):
+        return features.at[index].set(apply(params, flat[jnp.minimum(index, size - 1)]), mode="drop")
+
+    features = _over_run_starts(starts, chunk, encode, jnp.zeros((size,) + out.shape[1:], out.dtype))
+    return features[owner].reshape((steps, columns) + out.shape[1:]), (params, designs)
+
+
+def _encode_each_run_backward(apply, chunk, residuals, cotangent):
+    params, designs = residuals
+    steps, columns = designs.shape[:2]
+    flat = designs.reshape((steps * columns,) + designs.shape[2:])
+    starts, owner = _run_starts(designs)
+    size = flat.shape[0]
+    per_run = jnp.zeros((size,) + cotangent.shape[2:], cotangent.dtype)
+    per_run = per_run.at[owner].add(cotangent.reshape((size,) + cotangent.shape[2:]))
+
+    def pull_back(index, grads):
+        _, vjp = jax.vjp(lambda p: apply(p, flat[jnp.minimum(index, size - 1)]), params)
+        (more,) = vjp(per_run.at[index].get(mode="fill", fill_value=0))  # padding: no cotangent
+        return jax.tree.map(jnp.add, grads, more)
+
+    grads = _over_run_starts(starts, chunk, pull_back, jax.tree.map(jnp.zeros_like, params))
+    no_design_gradient = (
+        jnp.zeros_like(designs)
+        if jnp.issubdtype(designs.dtype, jnp.inexact)
+        else np.zeros(designs.shape, jax.dtypes.float0)
+    )
+    return grads, no_design_gradient
+
+
+encode_each_run.defvjp(_encode_each_run, _encode_each_run_backward)
+
+
+def _apply_design_encoder(features: int, params, designs: jax.Array) -> jax.Array:
+    return DesignEncoder(features).apply({"params": params}, designs)
+
+
 DESIGN_CACHE = "design_cache"  # the flax collection of the last design each world showed, and its features
 
 
@@ -219,8 +316,9 @@ class ObservationEncoder(nn.Module):
 
     def design_features(self, design: jax.Array) -> jax.Array:
         """`DesignEncoder` features of `design (*lead, *plan)`: once per run of one design along
-        the time axis where the inputs are a sequence `(T, B, *plan)` (`encode_design_runs`, its
-        bound from the layout); for one step `(1, B, *plan)` or one frame `(1, B, 1, *plan)`
+        the time axis where the inputs are a sequence `(T, B, *plan)` (on a CPU in a loop of
+        passes, `encode_each_run`; else in one pass bounded by the layout, `encode_design_runs`;
+        see `runs_in_a_loop`); for one step `(1, B, *plan)` or one frame `(1, B, 1, *plan)`
         applied with the `DESIGN_CACHE` collection mutable (`apply_with_design_cache`, acting),
         only for the worlds whose design differs from the cached one; at every entry otherwise
         (stacked frames, whose zeroed history changes more often than episodes do)."""
@@ -240,7 +338,12 @@ class ObservationEncoder(nn.Module):
             return cached.value.reshape(lead + (self.hidden_size,))
         if one_frame:
             sequence = design.reshape((lead[0], -1) + design.shape[-2:])  # (T, B, *plan)
-            features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))
+            if runs_in_a_loop() and not self.is_initializing() and lead[0] > 1:
+                params = self.variables["params"][encoder.name]
+                apply = functools.partial(_apply_design_encoder, self.hidden_size)
+                features = encode_each_run(apply, params, sequence, run_chunk(sequence.shape[1]))
+            else:
+                features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))
             return features.reshape(lead + (self.hidden_size,))
         return encoder(design)
 
