@@ -280,46 +280,51 @@ def test_the_loop_encodes_each_run_once_in_passes_of_its_chunk():
     assert np.asarray(out)[:, 0, 1].tolist() == [2, 2, 10, 10, 10, 2]
 
 
+STEPS, COLUMNS = 8, 4  # one shape for every example: one program per chunk, not one per example
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _loop_and_step(chunk, designs, weights, params):
+    """Features and gradients (vmapped over a leading parameter axis, as over seeds) of the loop
+    and of the per-step encoding."""
+
+    def features(p, loop):
+        if loop:
+            return networks.encode_each_run(_tanh_apply, p, designs, chunk)
+        flat = _tanh_apply(p, designs.reshape((-1,) + designs.shape[2:]))
+        return flat.reshape(designs.shape[:2] + (2,))
+
+    grads = [jax.vmap(jax.grad(lambda p: (features(p, loop) * weights).sum()))(params) for loop in (True, False)]
+    first = jax.tree.map(lambda x: x[0], params)
+    return [features(first, loop) for loop in (True, False)], grads
+
+
 @settings(max_examples=20, deadline=None)
 @given(
-    lengths=st.lists(st.lists(st.integers(1, 4), min_size=1, max_size=8), min_size=1, max_size=4),
-    chunk=st.integers(1, 5),
+    starts=st.lists(
+        st.lists(st.booleans(), min_size=STEPS - 1, max_size=STEPS - 1), min_size=COLUMNS, max_size=COLUMNS
+    ),
+    chunk=st.sampled_from([1, 3, 16]),
 )
-def test_the_loop_is_exact_however_many_runs_with_the_per_step_gradient(lengths, chunk):
-    """Any runs (every step a run of its own included, far past any bound), any chunk: the
-    features are the per-step encoding's and the gradient the per-step gradient, also vmapped
-    over two parameter sets as over seeds."""
-    steps = min(sum(column) for column in lengths)
-    # each column's runs cut to the shortest column's steps, its values distinct between runs
-    runs = [[(10 * c + i + 1, n) for i, n in enumerate(column)] for c, column in enumerate(lengths)]
-    designs = jnp.asarray(np.concatenate([_designs([column])[:steps] for column in runs], axis=1))
-    weights = jnp.asarray(np.random.default_rng(steps).normal(size=designs.shape[:2] + (2,)), jnp.float32)
-    apply = _tanh_apply
-
-    def loss(params, loop):
-        if loop:
-            features = networks.encode_each_run(apply, params, designs, chunk)
-        else:
-            features = apply(params, designs.reshape((-1,) + designs.shape[2:])).reshape(designs.shape[:2] + (2,))
-        return (features * weights).sum()
-
-    grads = _loop_and_step_gradients(loss)
+def test_the_loop_is_exact_however_many_runs_with_the_per_step_gradient(starts, chunk):
+    """Any runs (every step a run of its own included, far past any bound), a chunk of one run
+    to more than all: the features are the per-step encoding's and the gradient the per-step
+    gradient, also vmapped over two parameter sets as over seeds."""
+    # each column's run index along its steps, its values distinct between columns and runs
+    runs = np.cumsum(np.concatenate([np.ones((COLUMNS, 1), bool), np.array(starts)], axis=1), axis=1).T
+    values = (runs + 10 * np.arange(COLUMNS)).astype(np.float32)  # (T, B)
+    designs = jnp.asarray(np.stack([values, 2 * values], axis=-1)[:, :, None, :])
+    weights = jnp.asarray(np.random.default_rng(int(runs.sum())).normal(size=(STEPS, COLUMNS, 2)), jnp.float32)
     params = {"w": jnp.array([[0.3, -0.2], [0.1, 0.4]]), "s": jnp.array([1.0, 2.0])}
     both = jax.tree.map(lambda x: jnp.stack([x, -1.5 * x]), params)
-    for a, b in zip(*(jax.tree.leaves(g) for g in grads(both))):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
-    looped = networks.encode_each_run(apply, params, designs, chunk)
-    per_step = apply(params, designs.reshape((-1,) + designs.shape[2:])).reshape(looped.shape)
+    (looped, per_step), (loop_grads, step_grads) = _loop_and_step(chunk, designs, weights, both)
     np.testing.assert_allclose(np.asarray(looped), np.asarray(per_step), rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(loop_grads), jax.tree.leaves(step_grads)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
 
 
 def _tanh_apply(params, designs):
     return jnp.tanh(designs.reshape(designs.shape[0], 2) @ params["w"]) * params["s"]
-
-
-def _loop_and_step_gradients(loss):
-    """Both gradients of `loss(params, loop)`, vmapped over a leading parameter axis, jitted."""
-    return jax.jit(lambda both: [jax.vmap(jax.grad(lambda p: loss(p, loop)))(both) for loop in (True, False)])
 
 
 def _encode_counting(calls):
