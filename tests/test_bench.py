@@ -1,6 +1,7 @@
 """`bench/throughput.py` runs and writes its JSON rows, table and plots."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -154,6 +155,26 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_pat
     assert (tmp_path / "rates.md").read_text().splitlines()[-1] == row
     bad = subprocess.run([sys.executable, str(script), "--repeats", "0"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
+
+
+def test_design_runs_ab_refuses_a_task_without_a_design_in_one_line():
+    script = ROOT / "bench" / "design_runs_ab.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--task", "2d-static-dense"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert done.returncode == 2 and "holds no design to encode; allowed: 1d-dynamic" in done.stderr.splitlines()[-1]
+
+
+@pytest.mark.slow  # compiles PPO's training twice
+def test_design_runs_ab_times_both_ways_interleaved():
+    script = ROOT / "bench" / "design_runs_ab.py"
+    args = ["--algorithm", "ppo", "--task", "1d-dynamic", "--updates", "1", "--repeats", "1", "--chunk", "quarter"]
+    done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    line = done.stdout.strip().splitlines()[-1]
+    assert line.startswith("ppo on 1d-dynamic, loop of quarter a pass") and "bounded pass" in line
+    rates = re.search(r"interleaved: loop ([\d,]+), bounded pass ([\d,]+);", line)
+    assert rates and all(float(rate.replace(",", "")) > 0 for rate in rates.groups()), line
 
 
 @pytest.mark.slow  # compiles PPO's training twice
