@@ -129,9 +129,9 @@ def runs_in_a_loop() -> bool:
 def run_chunk(columns: int) -> int:
     """Runs `encode_each_run` encodes per pass: as many as the sequence has columns, so that the
     usual sequence (one run per column, some with a second where an episode ended inside it)
-    takes two passes. Measured against a quarter of the columns a pass, interleaved in one
-    process on the 2-core CPU (bench/results/train_throughput.md): PQN's 3D learning as fast,
-    PPO's (16 minibatch steps an update, each with its passes) 1.08x faster instead of 0.9x."""
+    takes two passes: fewer passes than a quarter of the columns each, which a learner with many
+    minibatch steps an update (PPO's 16) pays for (`bench/design_runs_ab.py`, measured in
+    bench/results/train_throughput.md)."""
     return columns
 
 
