@@ -177,25 +177,22 @@ def test_design_runs_ab_times_both_ways_interleaved():
     assert rates and all(float(rate.replace(",", "")) > 0 for rate in rates.groups()), line
 
 
+def _throughput_rows(script, args, prefix):
+    """The table rows starting with `prefix` that `script` prints with `args`, each as its cells."""
+    done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    return [[c.strip() for c in line.strip("|").split("|")] for line in lines if line.startswith(prefix)]
+
+
 @pytest.mark.slow  # compiles PPO's training twice
 def test_training_throughput_bench_times_the_bounded_design_pass_beside_the_loop():
     """`--design-runs both`: a dynamic task's row again with the design runs in one bounded pass,
     the same network (its parameter count), each row's rate measured; a static task has one row."""
     script = ROOT / "bench" / "train_throughput.py"
     tiny = ["--updates", "1", "--repeats", "1", "--num-envs", "4", "--rollout-steps", "8", "--hidden-size", "8"]
-    done = subprocess.run(
-        [sys.executable, str(script), "--algorithm", "ppo", "--tasks", "1d-dynamic", "1d-static-step"]
-        + tiny
-        + ["--rnn-size", "8", "--design-runs", "both"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    rows = [
-        [c.strip() for c in line.strip("|").split("|")] for line in done.stdout.splitlines() if line.startswith("| 1d-")
-    ]
+    args = ["--algorithm", "ppo", "--tasks", "1d-dynamic", "1d-static-step", *tiny, "--rnn-size", "8"]
+    rows = _throughput_rows(script, [*args, "--design-runs", "both"], "| 1d-")
     assert [(row[0], row[1]) for row in rows] == [
         ("1d-dynamic", "GRU 8, hidden 8"),
         ("1d-dynamic", "GRU 8, hidden 8; design runs in one bounded pass"),
@@ -209,40 +206,27 @@ def test_training_throughput_bench_times_each_variant_beside_the_tuned_row():
     """A setting's cost is read off two rows of one run: the tuned row and the variant's, whose
     network cell names the settings it changed (and whose parameter count they change)."""
     script = ROOT / "bench" / "train_throughput.py"
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(script),
-            "--algorithm",
-            "pqn-belief",
-            "--tasks",
-            "2d-dynamic-sparse",
-            "--updates",
-            "1",
-            "--repeats",
-            "1",
-            "--num-envs",
-            "4",
-            "--rollout-steps",
-            "4",
-            "--hidden-size",
-            "8",
-            "--rnn-size",
-            "8",
-            "--variant",
-            "view_radius=3,design_encoder=false",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    rows = [
-        [c.strip() for c in line.strip("|").split("|")]
-        for line in done.stdout.splitlines()
-        if line.startswith("| 2d-dynamic-sparse")
+    args = [
+        "--algorithm",
+        "pqn-belief",
+        "--tasks",
+        "2d-dynamic-sparse",
+        "--updates",
+        "1",
+        "--repeats",
+        "1",
+        "--num-envs",
+        "4",
+        "--rollout-steps",
+        "4",
+        "--hidden-size",
+        "8",
+        "--rnn-size",
+        "8",
+        "--variant",
+        "view_radius=3,design_encoder=false",
     ]
+    rows = _throughput_rows(script, args, "| 2d-dynamic-sparse")
     assert [row[1] for row in rows] == ["GRU 8, hidden 8", "GRU 8, hidden 8; view_radius=3; design_encoder=False"]
     assert rows[0][4] != rows[1][4]  # the tuned row (view 7, no encoder) and the variant are different networks
     for variant, message in (

@@ -102,12 +102,9 @@ def encode_design_runs(encode: Callable[[jax.Array], jax.Array], designs: jax.Ar
     each run's one encoding. A column with more runs than `max_runs` (a wrong bound) reads NaN,
     so the loss, and the driver's divergence flag, say so rather than train on another design.
     """
-    steps, columns = designs.shape[:2]
-    if max_runs >= steps:
+    if max_runs >= designs.shape[0]:
         return encode(designs)
-    flat = designs.reshape(steps, columns, -1)
-    changed = jnp.any(flat[1:] != flat[:-1], axis=-1)  # (T - 1, B)
-    starts = jnp.concatenate([jnp.ones((1, columns), bool), changed], axis=0)
+    starts, _ = _run_starts(designs)
     run = jnp.cumsum(starts, axis=0) - 1  # (T, B): the run each step belongs to
     first = jax.vmap(lambda s: jnp.nonzero(s, size=max_runs, fill_value=0)[0], in_axes=1, out_axes=1)(starts)
     run_designs = jnp.take_along_axis(designs, first.reshape(first.shape + (1,) * (designs.ndim - 2)), axis=0)
@@ -136,15 +133,15 @@ def run_chunk(columns: int) -> int:
 
 
 def _run_starts(designs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """For time-major `designs (T, B, *plan)` flattened to `T * B` entries: whether each entry
-    starts a run of one design in its column, and the entry that starts the run it belongs to."""
+    """For time-major `designs (T, B, *plan)`, both `(T, B)`: whether each step starts a run of
+    one design in its column, and the entry of `designs` flattened to `T * B` that starts the
+    run it belongs to."""
     steps, columns = designs.shape[:2]
     flat = designs.reshape(steps, columns, -1)
     changed = jnp.any(flat[1:] != flat[:-1], axis=-1)  # (T - 1, B)
     starts = jnp.concatenate([jnp.ones((1, columns), bool), changed], axis=0)
     first_step = jax.lax.cummax(jnp.where(starts, jnp.arange(steps)[:, None], 0), axis=0)
-    owner = first_step * columns + jnp.arange(columns)
-    return starts.reshape(-1), owner.reshape(-1)
+    return starts, first_step * columns + jnp.arange(columns)
 
 
 def _over_run_starts(starts: jax.Array, chunk: int, body: Callable, init):
@@ -175,7 +172,7 @@ def encode_each_run(apply: Callable, params, designs: jax.Array, chunk: int) -> 
 def _encode_each_run(apply, params, designs, chunk):
     steps, columns = designs.shape[:2]
     flat = designs.reshape((steps * columns,) + designs.shape[2:])
-    starts, owner = _run_starts(designs)
+    starts, owner = (x.reshape(-1) for x in _run_starts(designs))
     size = flat.shape[0]
     out = jax.eval_shape(apply, params, flat[:1])
 
@@ -183,14 +180,12 @@ def _encode_each_run(apply, params, designs, chunk):
         return features.at[index].set(apply(params, flat[jnp.minimum(index, size - 1)]), mode="drop")
 
     features = _over_run_starts(starts, chunk, encode, jnp.zeros((size,) + out.shape[1:], out.dtype))
-    return features[owner].reshape((steps, columns) + out.shape[1:]), (params, designs)
+    residuals = (params, designs, flat, starts, owner)  # the backward pass's runs, found once
+    return features[owner].reshape((steps, columns) + out.shape[1:]), residuals
 
 
 def _encode_each_run_backward(apply, chunk, residuals, cotangent):
-    params, designs = residuals
-    steps, columns = designs.shape[:2]
-    flat = designs.reshape((steps * columns,) + designs.shape[2:])
-    starts, owner = _run_starts(designs)
+    params, designs, flat, starts, owner = residuals
     size = flat.shape[0]
     per_run = jnp.zeros((size,) + cotangent.shape[2:], cotangent.dtype)
     per_run = per_run.at[owner].add(cotangent.reshape((size,) + cotangent.shape[2:]))
