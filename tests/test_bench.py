@@ -166,14 +166,17 @@ def test_design_runs_ab_refuses_a_task_without_a_design_in_one_line():
 
 
 @pytest.mark.slow  # compiles PPO's training twice
-def test_design_runs_ab_times_both_ways_interleaved():
+@pytest.mark.parametrize(
+    "compare,ways", [("loop", ("loop", "bounded pass")), ("first-layer", ("once per run", "every step"))]
+)
+def test_design_runs_ab_times_both_ways_interleaved(compare, ways):
     script = ROOT / "bench" / "design_runs_ab.py"
-    args = ["--algorithm", "ppo", "--task", "1d-dynamic", "--updates", "1", "--repeats", "1", "--chunk", "quarter"]
+    args = ["--algorithm", "ppo", "--task", "1d-dynamic", "--updates", "1", "--repeats", "1", "--compare", compare]
     done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     line = done.stdout.strip().splitlines()[-1]
-    assert line.startswith("ppo on 1d-dynamic, loop of quarter a pass") and "bounded pass" in line
-    rates = re.search(r"interleaved: loop ([\d,]+), bounded pass ([\d,]+);", line)
+    assert line.startswith("ppo on 1d-dynamic, ") and f"; {ways[0]} / {ways[1]} " in line, line
+    rates = re.search(rf"interleaved: {ways[0]} ([\d,]+), {ways[1]} ([\d,]+);", line)
     assert rates and all(float(rate.replace(",", "")) > 0 for rate in rates.groups()), line
 
 

@@ -400,3 +400,45 @@ def test_a_rollouts_first_cache_holds_every_worlds_features_from_one_pass(monkey
         np.asarray(cached[1]), np.asarray(apply(variables, carry, other, resets)[1]), rtol=1e-5, atol=1e-6
     )
     assert changed == [0, 1]
+
+
+@pytest.mark.parametrize("way", ["loop", "bounded pass", "acting"])
+def test_the_first_layers_design_share_once_per_run_equals_the_layer_over_every_step(way, monkeypatch):
+    """`ObservationEncoder` computes its first layer's product with the design features once per
+    run (`design_features` given the layer's rows for them) over a sequence, by the loop and by
+    the bounded pass, and once per episode when acting with the cache: its outputs (and over a
+    sequence its gradients) are those of the same layer over every step's concatenated inputs, to
+    float tolerance, on random episodes of 3 to 4 steps."""
+    env, params = make("2d-dynamic-sparse", max_steps=4)
+    layout = ObsLayout.from_env(env, params)
+    obs = _random_rollout(env, params, 7, 3, 12)  # (T, B, O)
+    network = networks.ObservationEncoder(layout, hidden_size=8, layer_norm=True)
+    variables = jax.jit(network.init)(jax.random.key(0), obs)
+    kernels = []
+    features = networks.ObservationEncoder.design_features
+
+    def features_spy(self, design, kernel=None):
+        kernels.append(kernel)
+        return features(self, design, kernel)
+
+    monkeypatch.setattr(networks.ObservationEncoder, "design_features", features_spy)
+    monkeypatch.setattr(networks, "runs_in_a_loop", lambda: way == "loop")
+
+    def outputs(variables):  # traced anew by each jit below: a new lambda each time
+        if way == "acting":  # two steps, the second refreshing the worlds whose episode changed
+            cache = networks.first_design_cache(network, variables, obs[:1])
+            first, cache = networks.apply_with_design_cache(network, variables, cache, obs[:1])
+            return [first, networks.apply_with_design_cache(network, variables, cache, obs[1:2])[0]]
+        grad = jax.grad(lambda v: jnp.sin(network.apply(v, obs)).sum())(variables)
+        return [network.apply(variables, obs), grad]
+
+    once_per_run = jax.jit(lambda v: outputs(v))(variables)
+    assert kernels and all(k is not None for k in kernels)  # the split layer, every call
+    monkeypatch.setattr(networks.ObservationEncoder, "_design_once_per_run", lambda self, design: False)
+    calls = len(kernels)
+    every_step = jax.jit(lambda v: outputs(v) if way != "acting" else [network.apply(v, obs[:2])])(variables)
+    assert kernels[calls:] and all(k is None for k in kernels[calls:])
+    if way == "acting":
+        once_per_run = [jnp.concatenate(once_per_run)]
+    for a, b in zip(jax.tree.leaves(once_per_run), jax.tree.leaves(every_step)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)

@@ -208,7 +208,10 @@ encode_each_run.defvjp(_encode_each_run, _encode_each_run_backward)
 
 
 def _apply_design_encoder(features: int, params, designs: jax.Array) -> jax.Array:
-    return DesignEncoder(features).apply({"params": params}, designs)
+    """`DesignEncoder` features of `designs`, times `params["kernel"]` where one is given (the
+    first hidden layer's rows for them: `ObservationEncoder.__call__`)."""
+    encoded = DesignEncoder(features).apply({"params": params["encoder"]}, designs)
+    return encoded if params["kernel"] is None else encoded @ params["kernel"]
 
 
 DESIGN_CACHE = "design_cache"  # the flax collection of the last design each world showed, and its features
@@ -280,7 +283,12 @@ def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
 
 
 class ObservationEncoder(nn.Module):
-    """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding."""
+    """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding.
+
+    A dynamic task's design features enter only the first layer, and are constant over a run of
+    one design, so their product with that layer's rows is computed once per run (per episode
+    when acting) and added to the rest of the layer: the same parameters as one dense layer over
+    the concatenated inputs, without the design's share of its cost at every step."""
 
     layout: ObsLayout
     hidden_size: int  # the design encoder's features, and the MLP's widths unless `layers`
@@ -305,15 +313,36 @@ class ObservationEncoder(nn.Module):
                 parts["previous_window_classes"].reshape(lead + (-1,)),
                 parts["last_action"],
             ]
-        if "design" in parts and self.read_design:
-            features.append(self.design_features(parts["design"]))
-        x = jnp.concatenate(features, axis=-1)
-        for width in self.layers or (self.hidden_size,) * 2:
+        widths = self.layers or (self.hidden_size,) * 2
+        design = parts["design"] if "design" in parts and self.read_design else None
+        if design is not None and layer is dense and self._design_once_per_run(design):
+            # The first layer of [step features, design features] is step features @ its first
+            # rows + design features @ the rest; the second term is constant over a run of one
+            # design, so it is computed once per run with the design's features (the same layer
+            # and parameters, summed in another order).
+            x = jnp.concatenate(features, axis=-1)
+            first = layer(widths[0], np.sqrt(2))
+            kernel, bias = (self.variables["params"][first.name][k] for k in ("kernel", "bias"))
+            x = x @ kernel[: x.shape[-1]] + bias + self.design_features(design, kernel[x.shape[-1] :])
+            x, widths = hidden_activation(x, self.layer_norm), widths[1:]
+        else:
+            if design is not None:
+                features.append(self.design_features(design))
+            x = jnp.concatenate(features, axis=-1)
+        for width in widths:
             x = hidden_activation(layer(width, np.sqrt(2))(x), self.layer_norm)
         return x
 
-    def design_features(self, design: jax.Array) -> jax.Array:
-        """`DesignEncoder` features of `design (*lead, *plan)`: once per run of one design along
+    def _design_once_per_run(self, design: jax.Array) -> bool:
+        """Whether `design_features` reads `design` once per run (a sequence, or acting with
+        the cache; not stacked frames), with the parameters made (not initializing)."""
+        lead = design.shape[:-2]
+        one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
+        return one_frame and not self.is_initializing()
+
+    def design_features(self, design: jax.Array, kernel: jax.Array | None = None) -> jax.Array:
+        """`DesignEncoder` features of `design (*lead, *plan)` (times `kernel` where given): once
+        per run of one design along
         the time axis where the inputs are a sequence `(T, B, *plan)` (on a CPU in a loop of
         passes, `encode_each_run`; else in one pass bounded by the layout, `encode_design_runs`;
         see `runs_in_a_loop`); for one step `(1, B, *plan)` or one frame `(1, B, 1, *plan)`
@@ -321,29 +350,31 @@ class ObservationEncoder(nn.Module):
         only for the worlds whose design differs from the cached one; at every entry otherwise
         (stacked frames, whose zeroed history changes more often than episodes do)."""
         encoder = DesignEncoder(self.hidden_size)
+        encode = encoder if kernel is None else lambda designs: encoder(designs) @ kernel
+        width = self.hidden_size if kernel is None else kernel.shape[-1]
         lead = design.shape[:-2]
         one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
         if one_frame and lead[0] == 1 and self.is_mutable_collection(DESIGN_CACHE) and not self.is_initializing():
             current = design.reshape((lead[1],) + design.shape[-2:])
             fresh = not self.has_variable(DESIGN_CACHE, "design")  # `first_design_cache`: one pass
             seen = self.variable(DESIGN_CACHE, "design", jnp.full, current.shape, jnp.nan, current.dtype)
-            cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, (lead[1], self.hidden_size), jnp.float32)
+            cached = self.variable(DESIGN_CACHE, "features", jnp.zeros, (lead[1], width), jnp.float32)
             if fresh:
-                cached.value = encoder(current)
+                cached.value = encode(current)
             else:
-                cached.value = refresh_design_features(encoder, current, seen.value, cached.value)
+                cached.value = refresh_design_features(encode, current, seen.value, cached.value)
             seen.value = current
-            return cached.value.reshape(lead + (self.hidden_size,))
+            return cached.value.reshape(lead + (width,))
         if one_frame:
             sequence = design.reshape((lead[0], -1) + design.shape[-2:])  # (T, B, *plan)
             if runs_in_a_loop() and not self.is_initializing() and lead[0] > 1:
-                params = self.variables["params"][encoder.name]
+                params = {"encoder": self.variables["params"][encoder.name], "kernel": kernel}
                 apply = functools.partial(_apply_design_encoder, self.hidden_size)
                 features = encode_each_run(apply, params, sequence, run_chunk(sequence.shape[1]))
             else:
-                features = encode_design_runs(encoder, sequence, self.layout.max_design_runs(lead[0]))
-            return features.reshape(lead + (self.hidden_size,))
-        return encoder(design)
+                features = encode_design_runs(encode, sequence, self.layout.max_design_runs(lead[0]))
+            return features.reshape(lead + features.shape[-1:])
+        return encode(design)
 
 
 class ScannedRNN(nn.Module):
