@@ -214,7 +214,7 @@ def _apply_design_encoder(features: int, params, designs: jax.Array) -> jax.Arra
     return encoded if params["kernel"] is None else encoded @ params["kernel"]
 
 
-DESIGN_CACHE = "design_cache"  # the flax collection of the last design each world showed, and its features
+DESIGN_CACHE = "design_cache"  # the flax collection of the last design each world showed, and its first-layer share
 
 
 def design_refresh_chunk(worlds: int) -> int:
@@ -259,8 +259,8 @@ def refresh_design_features(
 
 def apply_with_design_cache(network: nn.Module, variables, cache, *inputs, **kwargs):
     """`network.apply(variables, *inputs, **kwargs)` for one acting step, with the design
-    features of the worlds whose design did not change taken from `cache`
-    (`refresh_design_features`); returns `(outputs, cache)`. Start each rollout from
+    features (their share of the first layer, `ObservationEncoder`) of the worlds whose design
+    did not change taken from `cache` (`refresh_design_features`); returns `(outputs, cache)`. Start each rollout from
     `first_design_cache`, since the parameters, and so the features, change between rollouts. A
     network without a design encoder gives `{}`. An empty `cache` (`{}`) is filled: every
     world's design encoded in one pass."""
