@@ -72,8 +72,8 @@ class DesignEncoder(nn.Module):
     """Features of a dynamic task's design: a dense layer over a row of column heights, a small
     strided conv over a 2D/3D plan.
 
-    Why dense in 1D: the encoder runs on every step the learner trains on, and a 1D conv over
-    the 30 columns made training much slower for no clear gain in score (bench/results/ppo.md)."""
+    Why dense in 1D: a 1D conv over the 30 columns made training much slower for no clear gain
+    in score (bench/results/ppo.md)."""
 
     features: int
 
