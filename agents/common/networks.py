@@ -282,6 +282,12 @@ def hidden_activation(x: jax.Array, layer_norm: bool) -> jax.Array:
     return nn.relu(nn.LayerNorm()(x) if layer_norm else x)
 
 
+def _one_frame(lead: tuple[int, ...]) -> bool:
+    """Whether inputs with leading axes `lead` hold one frame a step, `(T, B)` or `(T, B, 1)`,
+    rather than stacks of several frames."""
+    return len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
+
+
 class ObservationEncoder(nn.Module):
     """Scaled and one-hot window + counters (+ design features, + position) -> an MLP embedding.
 
@@ -336,9 +342,7 @@ class ObservationEncoder(nn.Module):
     def _design_once_per_run(self, design: jax.Array) -> bool:
         """Whether `design_features` reads `design` once per run (a sequence, or acting with
         the cache; not stacked frames), with the parameters made (not initializing)."""
-        lead = design.shape[:-2]
-        one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
-        return one_frame and not self.is_initializing()
+        return _one_frame(design.shape[:-2]) and not self.is_initializing()
 
     def design_features(self, design: jax.Array, kernel: jax.Array | None = None) -> jax.Array:
         """`DesignEncoder` features of `design (*lead, *plan)` (times `kernel` where given): once
@@ -353,7 +357,7 @@ class ObservationEncoder(nn.Module):
         encode = encoder if kernel is None else lambda designs: encoder(designs) @ kernel
         width = self.hidden_size if kernel is None else kernel.shape[-1]
         lead = design.shape[:-2]
-        one_frame = len(lead) == 2 or (len(lead) == 3 and lead[2] == 1)
+        one_frame = _one_frame(lead)
         if one_frame and lead[0] == 1 and self.is_mutable_collection(DESIGN_CACHE) and not self.is_initializing():
             current = design.reshape((lead[1],) + design.shape[-2:])
             fresh = not self.has_variable(DESIGN_CACHE, "design")  # `first_design_cache`: one pass
