@@ -60,6 +60,7 @@ def test_expected_window_by_hand_in_1d():
     np.testing.assert_allclose(window, [[2.0, 3.0, 1.0]])
 
 
+@pytest.mark.slow
 def test_expected_window_is_the_belief_weighted_crop_in_2d():
     key_design, key_rows, key_cols = jax.random.split(jax.random.key(0), 3)
     design = jax.random.randint(key_design, (2, 5, 6), 0, 4).astype(jnp.float32)  # a batch of two designs
@@ -155,6 +156,7 @@ def random_episode_steps(env, params, worlds: int, steps: int):
         obs, state, reset, last_action, cells = advance(t, state, params)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["1d-static-sin", "2d-dynamic-sparse", "3d-static-dense"])
 def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     """With the true cells moved as its move distribution, the filter's belief is the robot's
@@ -180,6 +182,7 @@ def test_the_filter_tracks_real_episodes_when_told_the_cells_moved(task):
     assert ends >= 2 * worlds  # episodes of at most 40 steps: every world crossed two auto-resets
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["2d-static-sparse", "3d-dynamic-dense"])
 def test_the_networks_filter_tracks_real_episodes_when_its_move_head_is_right(task):
     """The network's own wiring of the filter (the action's direction from the observation's
@@ -248,6 +251,7 @@ def both_gradients(td_loss, loss, *args):
     return jax.grad(td_loss)(*args), jax.value_and_grad(loss, has_aux=True)(*args)
 
 
+@pytest.mark.slow
 def test_the_belief_learns_from_the_position_loss_only_and_acting_reads_observations_only():
     agent = build_algorithm(make_config("pqn-belief", "2d-dynamic-sparse", **TINY, belief_filter=False, max_steps=5))
     state = jax.jit(agent.init)(jax.random.key(0))
@@ -307,6 +311,7 @@ def test_each_belief_needs_the_loss_that_trains_it():
     assert not make_config("pqn-belief", "1d-dynamic", belief_filter=False, move_coef=0.0).belief_filter
 
 
+@pytest.mark.slow
 def test_the_filters_move_head_learns_from_the_move_loss_only():
     agent = build_algorithm(
         make_config(

@@ -116,6 +116,7 @@ def _untrained(**options):
     return agent, policy._replace(params=init(jax.random.key(1), obs, start))
 
 
+@pytest.mark.slow
 def test_the_held_belief_is_the_one_the_q_head_reads():
     """Along an episode of the greedy policy: the filter's held belief is the product of the row
     and column beliefs it carries after acting, whose row and column sums are the marginals the
@@ -165,6 +166,7 @@ def _flat_belief(params, step, obs):
     return jnp.full((20, 20), 1.0 / 400)  # the task's 20 x 20 plan
 
 
+@pytest.mark.slow
 def test_record_plays_the_evaluators_episodes_and_keeps_a_belief_per_state():
     """A policy that draws its actions from the evaluator's per-step keys: the recorded episodes
     end where `run_episodes`' do (IoU, length, bricks), which they would not with another key
@@ -296,6 +298,7 @@ def test_endings_are_told_apart_by_bricks_then_steps_then_stuck():
     assert endings == {"bricks spent": 2, "step limit": 1, "stuck": 1}
 
 
+@pytest.mark.slow
 def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
     from agents.training.config import save_config
     from agents.training.registry import make_config
@@ -314,6 +317,7 @@ def test_a_run_of_another_algorithm_is_refused_in_one_line(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_missing_run_a_run_without_checkpoints_and_bad_choices_are_refused_in_one_line(tmp_path, capsys):
     from agents.training import sweep
     from agents.training.config import save_config

@@ -74,6 +74,7 @@ def test_tiny_run_writes_rows_table_and_plots(tmp_path):
     ]
 
 
+@pytest.mark.slow
 def test_the_output_directory_is_required_and_the_only_one():
     for args in ([], ["--json", "rows.json", "--out", "x"]):
         done = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=ROOT)
@@ -81,6 +82,7 @@ def test_the_output_directory_is_required_and_the_only_one():
     assert not (ROOT / "rows.json").exists() and not (ROOT / "x").exists()
 
 
+@pytest.mark.slow
 def test_bad_arguments_are_rejected(tmp_path):
     for args in (["--repeats", "2"], ["--num-envs", "0"], ["--devices", "x"], ["--reset", "vmap"]):
         done = subprocess.run(
@@ -157,6 +159,7 @@ def test_training_throughput_bench_prints_median_and_baseline(algorithm, tmp_pat
     assert bad.returncode == 2 and "--repeats must be >= 1" in bad.stderr
 
 
+@pytest.mark.slow
 def test_design_runs_ab_refuses_a_task_without_a_design_in_one_line():
     script = ROOT / "bench" / "design_runs_ab.py"
     done = subprocess.run(

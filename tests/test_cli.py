@@ -39,6 +39,7 @@ def test_rollout_refuses_steps_past_a_scans_int32_length(capsys):
     assert "Traceback" not in err and "OverflowError" not in err
 
 
+@pytest.mark.slow
 def test_installed_entry_point_runs():
     snac = Path(sys.executable).parent / "snac"  # the console script pip installed
     result = subprocess.run(

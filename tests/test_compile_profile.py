@@ -29,6 +29,7 @@ def test_compiles_nothing():
 """
 
 
+@pytest.mark.slow
 def test_each_test_gets_its_own_programs_and_the_summary_reads_them(tmp_path):
     (tmp_path / "test_tiny.py").write_text(TINY)
     out = tmp_path / "profile"

@@ -34,6 +34,7 @@ def _hand_iou(built_cells, design):
     return np.sum(built & (design > 0)) / np.sum(built | (design > 0))
 
 
+@pytest.mark.slow
 def test_a_change_mid_episode_follows_the_new_design_from_its_step():
     env, _ = make("2d-dynamic-dense", design_change=(3, 3), design_bank_size=2)
     params = make_params(np.stack([OLD, NEW]), 2, max_steps=600)  # a bank of two hand-made designs
@@ -66,6 +67,7 @@ def test_a_change_mid_episode_follows_the_new_design_from_its_step():
     assert reward == 0.0 and int(state.time) == 7 and iou == pytest.approx(2 / 5)
 
 
+@pytest.mark.slow
 def test_the_change_step_is_uniform_in_a_b_and_the_next_design_is_another_bank_design():
     # A bank of 8, the size the other tests here use: its generator compiles once for the file.
     env, params = make("2d-dynamic-dense", design_change=(10, 14), design_bank_size=8)
@@ -86,6 +88,7 @@ def test_the_change_step_is_uniform_in_a_b_and_the_next_design_is_another_bank_d
     np.testing.assert_array_equal(again.next_design, same.next_design)
 
 
+@pytest.mark.slow
 def test_training_never_changes_to_a_test_design():
     env, params = make("2d-dynamic-sparse", design_change=(1, 5), design_bank_size=256)
     _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(3), 1024), params)
@@ -95,6 +98,7 @@ def test_training_never_changes_to_a_test_design():
         assert not np.any(np.all(following == test, axis=1)), name
 
 
+@pytest.mark.slow
 def test_random_play_under_jit_and_vmap_keeps_the_iou_and_the_observation_on_the_design_in_force():
     env, params = make("2d-dynamic-dense", design_change=(5, 20), design_bank_size=8, max_steps=40)
     episode = jax.jit(jax.vmap(lambda k: random_episode(k, env, params, 120)))
@@ -113,6 +117,7 @@ def test_random_play_under_jit_and_vmap_keeps_the_iou_and_the_observation_on_the
     np.testing.assert_array_equal(shown[kept], np.asarray(state.design)[:, 1:][kept])
 
 
+@pytest.mark.slow
 def test_compiles_once_per_configuration():
     # (a, b) values no other test uses, so the cache holds neither configuration yet.
     env_a, params = make("2d-dynamic-sparse", design_change=(31, 37), design_bank_size=4)
@@ -164,6 +169,7 @@ def _build_one_cell(row, col):
     return Policy(init, act, None, "one-cell")
 
 
+@pytest.mark.slow
 def test_evaluation_scores_each_test_design_against_the_one_it_changes_to():
     from snac_jax.evaluation import evaluate_task
 
@@ -185,6 +191,7 @@ def test_evaluation_scores_each_test_design_against_the_one_it_changes_to():
     np.testing.assert_allclose(means, expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_handcrafted_policy_re_plans_on_the_changed_design():
     import dataclasses
 
@@ -214,6 +221,7 @@ def test_the_caption_marks_the_change_step():
     assert env.render(state, params).ndim == 3  # draws the design in force
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("reset", ["loop", "select"])
 def test_step_batch_equals_vmapped_step_with_both_extensions(reset):
     env, params = make("2d-dynamic-dense", design_change=(2, 4), landmark_action=2, design_bank_size=8, max_steps=6)

@@ -84,6 +84,7 @@ def test_a_teams_bound_divides_the_budget_among_its_robots():
     assert [episode_min_steps(env, params, robots) for robots in (1, 2, 4)] == [51, 26, 13]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robots", [1, 4])
 def test_robots_that_drop_at_every_step_end_no_episode_sooner_than_the_bound(robots):
     """Every robot dropping on its own cell each step spends the team's budget fastest (2D: the
@@ -126,6 +127,7 @@ def test_a_design_change_is_a_second_run_inside_the_bound():
     assert 2 < runs <= layout.max_design_runs(12)
 
 
+@pytest.mark.slow
 def test_the_obstacle_bound_is_reached_by_a_robot_that_walls_itself_in():
     """From the corner start, drops on c+1 and r+1 (actions 5 and 6) leave no free neighbour; the
     third action ends the episode: 3 steps, the bound `episode_min_steps` gives in 3D."""
@@ -159,6 +161,7 @@ def _random_rollout(env, params, seed, worlds, steps):
     return jax.lax.scan(step, (obs, state), jax.random.split(jax.random.key(seed + 1), steps))[1]
 
 
+@pytest.mark.slow
 @settings(max_examples=8, deadline=None)
 @given(
     task=st.sampled_from(["1d-dynamic", "2d-dynamic-sparse", "3d-dynamic-dense"]),
@@ -218,6 +221,7 @@ def _reads_the_design(params) -> bool:
 LEARNERS = [pytest.param(a, marks=() if a == "ppo" else pytest.mark.slow) for a in sorted(ALGORITHMS)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algorithm", LEARNERS)
 def test_each_learner_trains_the_same_with_the_design_read_once_per_run(algorithm, monkeypatch):
     """Two updates on episodes of 5 steps (several inside each rollout or sequence) train the same
@@ -299,6 +303,7 @@ def _loop_and_step(chunk, designs, weights, params):
     return [features(first, loop) for loop in (True, False)], grads
 
 
+@pytest.mark.slow
 @settings(max_examples=20, deadline=None)
 @given(
     starts=st.lists(
@@ -358,6 +363,7 @@ def test_the_cache_encodes_only_the_worlds_whose_design_changed():
     assert calls == []
 
 
+@pytest.mark.slow
 def test_a_rollouts_first_cache_holds_every_worlds_features_from_one_pass(monkeypatch):
     """`first_design_cache` encodes the first step's designs in one pass, and acting from it gives
     the outputs of the network that encodes every design; the step after it re-encodes no world
@@ -402,6 +408,7 @@ def test_a_rollouts_first_cache_holds_every_worlds_features_from_one_pass(monkey
     assert changed == [0, 1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("way", ["loop", "bounded pass", "acting"])
 def test_the_first_layers_design_share_once_per_run_equals_the_layer_over_every_step(way, monkeypatch):
     """`ObservationEncoder` computes its first layer's product with the design features once per

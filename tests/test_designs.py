@@ -62,6 +62,7 @@ def test_1d_sine_generator_reproduces_test_curves(index):
     np.testing.assert_array_equal(curve.reshape(-1), DATA[f"1d-dynamic-test{index}"]["design"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["2d-dynamic-dense", "2d-dynamic-sparse", "3d-dynamic-dense", "3d-dynamic-sparse"])
 def test_sampled_triangles_obey_size_rules(task):
     env, params = make(task, design_bank_size=512, design_seed=3)
@@ -81,6 +82,7 @@ def test_sampled_triangles_obey_size_rules(task):
     assert len({b.tobytes() for b in bank}) > 400  # a bank of distinct designs, not one repeated
 
 
+@pytest.mark.slow
 def test_sparse_triangles_are_outlines_and_dense_are_filled():
     _, sparse = make("2d-dynamic-sparse", design_bank_size=64)
     _, dense = make("2d-dynamic-dense", design_bank_size=64)
@@ -130,6 +132,7 @@ def test_training_banks_exclude_every_test_design(task):
         )
 
 
+@pytest.mark.slow
 def test_an_excluded_draw_is_redrawn_and_the_others_kept():
     keys = jax.random.split(jax.random.key(3), 4)
     plain = np.asarray(jax.vmap(lambda k: sample_design(k, 1, None))(keys))

@@ -187,6 +187,7 @@ def _check_windows_keep_episodes_apart(agent, state, key):
     return batch
 
 
+@pytest.mark.slow
 def test_sampled_sequences_never_mix_episodes_without_a_reset_flag(her_1d):
     agent, state = her_1d
     for i in range(3):
@@ -196,12 +197,14 @@ def test_sampled_sequences_never_mix_episodes_without_a_reset_flag(her_1d):
         np.testing.assert_array_equal(batch.episode[:, 1:] - batch.episode[:, :-1], batch.reset[:, 1:].astype(int))
 
 
+@pytest.mark.slow
 def test_sequences_of_a_plain_drqn_buffer_keep_episodes_apart(drqn_run):
     agent, state, _ = drqn_run
     assert bool(state.buffer.is_full)
     _check_windows_keep_episodes_apart(agent, state, jax.random.key(7))
 
 
+@pytest.mark.slow
 def test_burn_in_steps_carry_no_gradient(her_1d):
     agent, state = her_1d
     batch, obs, rewards, mask = jax.jit(agent.sample)(state, jax.random.key(3))
@@ -316,6 +319,7 @@ def test_hindsight_rewards_equal_replaying_against_the_final_grid(her_1d):
     _check_relabelled_rewards_equal_replay(agent, state, jax.random.key(11))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", [pytest.param("2d-static-dense", marks=pytest.mark.slow), "1d-dynamic"])
 def test_hindsight_relabelling_in_2d_and_on_dynamic_designs(task):
     agent = _agent(
@@ -393,6 +397,7 @@ def _tiny_drqn_her_2d_dynamic():
     return agent, state, metrics
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "run",
     [

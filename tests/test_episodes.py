@@ -117,6 +117,7 @@ def random_3d():
     return env, params, keys, jax.device_get(_to_end(env, params, keys))
 
 
+@pytest.mark.slow
 def test_vmapped_episodes_end_on_their_own_and_equal_single_runs(random_3d):
     env, params, keys, finals = random_3d
     lengths = np.asarray(finals.state.time)

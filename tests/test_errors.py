@@ -52,6 +52,7 @@ def test_static_tasks_have_no_test_designs():
         test_design_names("2d-static-dense")
 
 
+@pytest.mark.slow
 def test_every_task_builds_with_defaults():
     for task in TASKS:
         env, params = make(task, design_bank_size=4) if "dynamic" in task else make(task)

@@ -10,6 +10,7 @@ from snac_jax.atomic import atomic_write_json as write_json_atomic
 from snac_jax.cli import main
 
 
+@pytest.mark.slow
 def test_eval_prints_table_beside_the_paper_and_writes_json(tmp_path, capsys):
     out = tmp_path / "results" / "handcrafted.json"
     code = main(
@@ -133,6 +134,7 @@ def _protocol_fields(entry: dict) -> dict:
     return {k: v for k, v in entry.items() if k not in ("wall_s", "overrides")}
 
 
+@pytest.mark.slow
 def test_switches_build_the_evaluated_tasks(tmp_path, capsys):
     """`--switches stride_probs=1/0/0` scores the tasks `evaluate_task` scores with that override,
     not the task as defined."""
@@ -205,6 +207,7 @@ def test_bad_switches_and_robots_are_one_line_errors_before_anything_runs(argv, 
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_team_of_one_is_the_single_robot(tmp_path, capsys):
     """In 1D the handcrafted policy draws no randomness, and one robot is the single-robot env
     (SPEC §13), so `--robots 1` scores the same episodes as the single robot. Two robots share

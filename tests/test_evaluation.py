@@ -88,6 +88,7 @@ def test_dynamic_tasks_use_the_ten_test_designs():
     assert all(v["episodes"] == 2 and v["mean"] == 0.0 for v in result.per_design.values())
 
 
+@pytest.mark.slow
 def test_test_design_params_hold_the_ten_test_designs():
     env, params = make("3d-dynamic-dense", design_bank_size=2)
     test = evaluation.test_design_params("3d-dynamic-dense", params)

@@ -72,6 +72,7 @@ def test_train_without_its_extra_names_the_extra_in_one_line():
     assert listing.returncode == 0 and "rollout" in listing.stdout and "train" in listing.stdout
 
 
+@pytest.mark.slow
 def test_play_without_pygame_names_the_play_extra():
     result = _snac_without(["pygame"], ["play", "--task", "1d-static-sin"])
     assert result.returncode == 2, result.stderr[-2000:]
@@ -81,6 +82,7 @@ def test_play_without_pygame_names_the_play_extra():
     )
 
 
+@pytest.mark.slow
 def test_a_missing_module_that_no_extra_provides_is_a_bug_with_its_traceback():
     result = _snac_without(["agents.learners.ppo"], ["train", "ppo"])
     assert result.returncode == 1 and "Traceback" in result.stderr

@@ -24,6 +24,7 @@ PAPER_RESULTS = ROOT / "snac_jax" / "data" / "paper_results.json"
 # --- the step limits ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_every_task_takes_its_step_limit_from_step_limits():
     for task in tasks.TASKS:
         spec = tasks.task_spec(task)

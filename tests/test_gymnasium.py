@@ -31,11 +31,13 @@ def test_every_task_is_registered():
         assert spec.max_episode_steps is None  # the env truncates at its own step limit
 
 
+@pytest.mark.slow
 def test_import_snac_jax_leaves_gymnasium_module_out():
     code = "import sys, snac_jax; snac_jax.make('1d-static-sin'); assert 'snac_jax.gymnasium' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("env_id", "overrides"),
     [
@@ -163,6 +165,7 @@ def test_make_vec_is_the_batched_vector_env():
     envs.close()
 
 
+@pytest.mark.slow
 def test_vector_env_seeding_is_reproducible():
     def run(seed):
         envs = gymnasium.make_vec("SNAC/2d-dynamic-sparse-v0", num_envs=16, design_bank_size=64, max_steps=10)
@@ -179,6 +182,7 @@ def test_vector_env_seeding_is_reproducible():
     assert not np.array_equal(first[0], other[0])  # the designs drawn at reset differ
 
 
+@pytest.mark.slow
 def test_vector_env_steps_the_same_worlds_whichever_reset_strategy():
     def run(reset):
         envs = gymnasium.make_vec(

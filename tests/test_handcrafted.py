@@ -52,6 +52,7 @@ def _estimate_errors(task, variant="no-map", episodes=1, steps=None, **overrides
     return errors
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "task, variant, overrides",
     [
@@ -122,6 +123,7 @@ def test_a_drop_keeps_the_estimate_even_next_to_a_wall():
     assert tuple(np.asarray(policy_state.estimate)) == (6, 9)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "task, policy_name, overrides",
     [
@@ -145,6 +147,7 @@ def test_actions_stay_inside_the_action_set(task, policy_name, overrides):
     assert np.any(actions >= first_drop)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["1d-static-sin", "2d-static-dense", "3d-static-sparse"])
 def test_vmap_gives_the_same_actions_as_unbatched(task):
     env, params = make(task)

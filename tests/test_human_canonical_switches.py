@@ -54,6 +54,7 @@ def _game(switches, record_path):
     return session.records[0]
 
 
+@pytest.mark.slow
 def test_a_record_in_another_spelling_loads_verifies_and_shares_the_canonical_row(tmp_path):
     """A record written by a game that kept the switches as typed: it loads and replays as it is,
     and its games join the row of the same switches in canonical text."""

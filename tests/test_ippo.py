@@ -62,6 +62,7 @@ def test_team_objective_matches_hand_computation():
     np.testing.assert_allclose(total, actor + vf * value_loss - ent * entropy, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_every_robot_reads_its_index_and_the_worlds_keep_their_axis_first():
     ippo = IPPO(make_config("ippo", "2d-static-dense", robots=3, total_steps=4 * 8, **TINY))
     state = ippo.init(jax.random.key(0))
@@ -76,6 +77,7 @@ def test_every_robot_reads_its_index_and_the_worlds_keep_their_axis_first():
     assert not np.allclose(logits[0, 0, 0], logits[0, 0, 1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robots", [pytest.param(1, marks=pytest.mark.slow), 2])
 def test_training_counts_episodes_per_world_and_learns_finite(robots):
     # A step limit of 6 ends every world's episode inside a rollout of 8 steps.

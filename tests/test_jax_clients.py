@@ -136,6 +136,7 @@ def make_train(env, env_params):
     return train
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("task", "overrides"),
     [
@@ -159,6 +160,7 @@ def test_purejaxrl_shaped_ppo_runs(task, overrides):
     assert np.all(obs >= np.asarray(space.low)) and np.all(obs <= np.asarray(space.high))
 
 
+@pytest.mark.slow
 def test_params_passed_as_traced_arguments_and_vmapped_seeds():
     """rejax-style: the env params are an argument of the jitted function (traced), and the
     train function is vmapped over seeds (PureJaxRL's `jit(vmap(train))`)."""
@@ -185,6 +187,7 @@ def _standalone_example():
     return module
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("task", "env_kwargs"),
     [

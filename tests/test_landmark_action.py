@@ -120,6 +120,7 @@ def test_fixed_landmarks_and_placements_share_one_mask():
     assert int(np.sum(state.landmarks)) == 4
 
 
+@pytest.mark.slow
 def test_random_play_under_jit_and_vmap_keeps_the_rules():
     env, params = make("2d-dynamic-sparse", landmark_action=3, design_bank_size=8, max_steps=60)
     episode = jax.jit(jax.vmap(lambda k: random_episode(k, env, params, 150)))

@@ -67,6 +67,7 @@ FAMILIES = (
 """One task of each dimension, static and dynamic, in the default run; every task with `-m slow`."""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", [t if t in FAMILIES else pytest.param(t, marks=pytest.mark.slow) for t in TASKS])
 def test_one_robot_equals_the_single_robot_env(task):
     overrides = {"max_steps": SHORT, **_small(task)}
@@ -364,6 +365,7 @@ TEAM_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "task, num_robots, overrides",
     TEAM_CASES,
@@ -430,6 +432,7 @@ def test_every_robot_observes_as_the_numpy_team_engine(task, num_robots, overrid
 # --- the API -------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_dict_keys_dones_all_and_spaces():
     team = multi.make("3d-static-dense", num_robots=4)
     assert team.agents == ["agent_0", "agent_1", "agent_2", "agent_3"] and team.num_agents == 4
@@ -505,6 +508,7 @@ def test_spaces_are_built_inside_jit_with_several_robots():
     assert float(low.min()) == multi.ROBOT_VALUE
 
 
+@pytest.mark.slow
 def test_actions_of_shape_one_are_one_action():
     """A baseline's per-agent action of shape (1,) steps as the same action of shape ()."""
     team = multi.make("2d-static-dense", num_robots=2)
@@ -542,6 +546,7 @@ def test_step_takes_jaxmarls_reset_state_and_params_by_keyword_or_position():
         team.step(jax.random.key(1), state, acts, {"agent_0": 0})
 
 
+@pytest.mark.slow
 def test_import_snac_jax_reaches_multi_without_importing_it_first():
     """`snac_jax.multi.make` after a bare `import snac_jax`, which itself imports neither JAX nor
     the multi-robot package (they load on first use)."""
@@ -557,6 +562,7 @@ def test_import_snac_jax_reaches_multi_without_importing_it_first():
     assert done.stdout.strip() == "MultiSNACEnv ['agent_0', 'agent_1']"
 
 
+@pytest.mark.slow
 def test_vmap_over_worlds_equals_each_world_alone():
     team = multi.make("2d-dynamic-dense", num_robots=2, design_bank_size=8)
     keys = jax.random.split(jax.random.key(0), 2048)
@@ -608,6 +614,7 @@ def test_plan_shares_are_the_spec_table():
         np.testing.assert_array_equal(shares.sum(axis=0), 1)  # disjoint, and they cover the plan
 
 
+@pytest.mark.slow
 def test_each_robot_builds_its_share_of_a_hand_written_design():
     """Two design cells, one in each robot's share, no stride noise: each robot walks to its own
     cell and builds it; neither builds the other's (each was given only its share)."""
@@ -707,6 +714,7 @@ def test_a_robot_of_the_team_counts_the_median_stride_across_a_featureless_stret
     assert estimate(handcrafted_policy(team.single)) == (16, 9)
 
 
+@pytest.mark.slow
 def test_one_robot_of_the_split_is_the_single_robot_policy_unchanged():
     """What one robot of the split scores is a reference row (bench/results/multi.md): these are
     its episodes as main scored them before the team's localiser changed (IoU, length)."""
@@ -728,6 +736,7 @@ def test_one_robot_of_the_split_is_the_single_robot_policy_unchanged():
 # --- whole episodes: the recording and the protocol's finish ------------------------------------
 
 
+@pytest.mark.slow
 def test_a_recorded_episode_is_the_episode_run_episode_scores():
     """`record_team_episode` and `run_episode` share one step and one key schedule: from the same
     key on a static task (one design, so `reset` and `reset_to_design(0)` agree) the random team,

@@ -19,6 +19,7 @@ def _bench():
     return module
 
 
+@pytest.mark.slow
 def test_tiny_run_writes_rows_and_one_robot_is_the_single_robot(tmp_path, capsys):
     """1D: the handcrafted policy draws no randomness and one robot is the single-robot env step
     for step (SPEC §13), so N = 1 scores the single robot's IoUs on the same keys. (In 2D the

@@ -11,6 +11,7 @@ import pytest
 from agents.common.networks import DesignEncoder, StridedConv
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [(5, 20, 20, 1), (3, 10, 10, 16), (2, 7, 9, 2), (2, 1, 6, 1), (1, 2, 2, 3)])
 def test_strided_conv_equals_flax_conv_with_the_same_parameters(shape):
     x = jax.random.normal(jax.random.key(1), shape)
@@ -21,6 +22,7 @@ def test_strided_conv_equals_flax_conv_with_the_same_parameters(shape):
     np.testing.assert_allclose(mine.apply(params, x), reference, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_design_encoder_keeps_the_parameter_tree_of_flax_convs():
     """The same names and shapes as when the encoder used `nn.Conv`: older checkpoints load."""
     params = DesignEncoder(64).init(jax.random.key(0), np.zeros((2, 20, 20), np.float32))["params"]
@@ -32,6 +34,7 @@ def test_design_encoder_keeps_the_parameter_tree_of_flax_convs():
     }
 
 
+@pytest.mark.slow
 def test_strided_conv_inside_a_scan_matches_outside():
     """The reason for the class: it runs inside the learners' `lax.scan` loops; same numbers there."""
     x = jax.random.normal(jax.random.key(2), (4, 12, 12, 1))

@@ -19,6 +19,7 @@ def test_the_notebooks_are_there():
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 # The quickstart in the default suite; the others (a training, the protocol) in `pytest -m slow`.
 @pytest.mark.parametrize(

@@ -71,6 +71,7 @@ CASES = [(task, {}) for task in TASKS] + [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task,overrides", CASES, ids=[f"{t}-{'-'.join(o) or 'default'}" for t, o in CASES])
 def test_numpy_engine_follows_jax_env_step_for_step(task, overrides):
     """Random actions (half of them drops, to reach the brick limit), strides drawn by the JAX env,

@@ -281,6 +281,7 @@ def _honest_on_varied_episodes(run, log, shapes):
 # --- the tests -------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,task", CASES)
 def test_the_greedy_policy_ignores_the_state_it_cannot_observe(name, task):
     agent, policy, shapes = _learner(name, task)
@@ -288,6 +289,7 @@ def test_the_greedy_policy_ignores_the_state_it_cannot_observe(name, task):
     _honest_on_varied_episodes(_evaluator(agent, policy, log), log, shapes)
 
 
+@pytest.mark.slow
 def test_the_team_policy_ignores_the_state_it_cannot_observe():
     agent, policy, shapes = _learner("ippo", "2d-dynamic-sparse")
     team, design, log = agent.team_env, agent.env_params.designs[0], {}
@@ -342,6 +344,7 @@ class LyingTeamButDesign(LyingTeam):
         )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "task, robots", [("2d-dynamic-dense", 2), pytest.param("2d-static-dense", 4, marks=pytest.mark.slow)]
 )

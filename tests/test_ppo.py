@@ -53,6 +53,7 @@ def test_gae_matches_hand_computation_with_truncation_and_termination():
 
 
 # Fewer truncations than the 4 worlds; more, which a step limit of 3 allows (two a world in 6 steps).
+@pytest.mark.slow
 @pytest.mark.parametrize("truncations, max_steps", [(3, 750), (7, 3)])
 def test_truncation_bootstrap_values_score_the_final_observations_with_the_carry_that_saw_them(truncations, max_steps):
     config = dict(TINY, num_envs=4, rollout_steps=6, max_steps=max_steps)
@@ -108,6 +109,7 @@ def test_network_inputs_one_hot_heights_and_the_previous_step():
     assert ObsLayout.from_env(env, params).obs_size == 7
 
 
+@pytest.mark.slow
 def test_scanned_recurrent_network_equals_step_by_step_with_resets():
     env, params = make("1d-static-step")
     net = ActorCritic(ObsLayout.from_env(env, params), env.num_actions, hidden_size=16, rnn_size=8)
@@ -144,6 +146,7 @@ def tiny_training(task: str, recurrent: bool):
     return config, state, metrics
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "task,recurrent",
     [
@@ -173,6 +176,7 @@ def test_train_is_vmappable_over_seeds_and_seeds_differ():
 SHORT_EPISODE_BAR = 0.85 * 40 / 600
 
 
+@pytest.mark.slow
 def test_ppo_learns_on_a_short_episode_task():
     """A learning-threshold check: with 40-step episodes on the 1D step design, a few hundred
     thousand steps must come close to the best IoU 40 steps allow (SHORT_EPISODE_BAR)."""
@@ -205,6 +209,7 @@ def test_ppo_learns_on_a_short_episode_task():
     assert after > SHORT_EPISODE_BAR and after > before, (before, after)
 
 
+@pytest.mark.slow
 def test_policy_runs_in_the_evaluator_with_recurrent_state():
     config = make_config("ppo", "1d-dynamic", recurrent=True, **TINY)
     ppo = PPO(config)

@@ -27,6 +27,7 @@ def example():
     return module
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("task", "env_kwargs"),
     [
@@ -45,6 +46,7 @@ def test_the_recurrent_example_trains_and_scores_its_greedy_policy(example, task
     assert 0.0 <= iou <= 1.0
 
 
+@pytest.mark.slow
 def test_the_gru_forgets_at_an_episodes_start(example):
     """Where `start` is set the carry given is ignored; elsewhere it changes the outputs."""
     network = example.ActorCriticRNN(num_actions=5, hidden=8)

@@ -203,6 +203,7 @@ def test_a_world_truncates_at_most_once_per_step_limit():
     assert [layout.max_truncations(steps) for steps in (1, 5, 6, 64)] == [1, 1, 2, 13]
 
 
+@pytest.mark.slow
 def test_layer_norm_q_network_scan_equals_step_by_step_with_resets():
     env, params = make("1d-static-step")
     net = LayerNormQNetwork(
@@ -253,6 +254,7 @@ def test_other_learners_networks_have_no_layer_norm():
     assert paths and not any("LayerNorm" in p for p in paths), paths
 
 
+@pytest.mark.slow
 def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry(dynamic_recurrent):
     """The targets bootstrap from the rollout's own Q-values: they must be what the learner's
     sequence pass (from the carry at the rollout's start, with resets) computes."""
@@ -269,6 +271,7 @@ def test_rollout_q_values_equal_a_pass_over_the_sequence_from_the_start_carry(dy
 # --- training ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "agent",
     [
@@ -301,6 +304,7 @@ def test_tiny_training_run_has_finite_losses_and_compiles_once(agent, request):
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))
 
 
+@pytest.mark.slow
 def test_staggered_starts_put_the_worlds_at_different_points_of_their_episodes(static_feed_forward):
     """Without staggering every world starts at step 0; with it each world is a random number of
     random steps (below the step limit) into an episode of the task, the same numbers for the same key."""
@@ -349,6 +353,7 @@ def test_resume_equals_uninterrupted(tmp_path, recurrent):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+@pytest.mark.slow
 def test_greedy_policy_runs_in_the_evaluator_with_recurrent_state(dynamic_recurrent):
     pqn, state = dynamic_recurrent
     assert pqn.config.recurrent
@@ -439,6 +444,7 @@ def test_cli_trains_pqn_with_two_seeds_and_evaluates_each_without_a_paper_row(tm
     check_each_seed_evaluates_from_the_checkpoint(result.stdout, out, "1d-static-step", env)
 
 
+@pytest.mark.slow
 def test_make_train_is_one_jittable_function_vmappable_over_seeds():
     """`make_train(config)` gives the whole run as `train(key)`, as PPO's does: jitted and
     vmapped over two seeds, every update runs, and the seeds train apart."""

@@ -156,6 +156,7 @@ def _poison(params, names):
     }
 
 
+@pytest.mark.slow
 def test_the_greedy_policy_reads_observations_only():
     agent = build_algorithm(make_config("ppo-privileged", "2d-dynamic-sparse", **PPO_TINY, map_coef=0.1, move_coef=0.1))
     params = jax.jit(agent.init)(jax.random.key(0)).params
@@ -177,6 +178,7 @@ def test_the_greedy_policy_reads_observations_only():
     assert np.all(np.isnan(after_poisoned_memory["carry"]))  # poison where acting does read shows
 
 
+@pytest.mark.slow
 def test_pqn_aux_heads_learn_from_the_true_position_and_are_not_on_the_acting_path():
     agent = build_algorithm(make_config("pqn-aux", "2d-static-dense", **PQN_TINY, max_steps=5))
     state = jax.jit(agent.init)(jax.random.key(0))

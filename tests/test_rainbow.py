@@ -133,6 +133,7 @@ def test_importance_weights_of_the_prioritised_buffer_for_hand_set_priorities():
     np.testing.assert_allclose(importance_weights(jnp.array([0.0, 0.1, 0.4]), 1.0), [0.0, 1.0, 0.25])
 
 
+@pytest.mark.slow
 def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
     layer = NoisyDense(6, sigma0=0.5)
     x = jnp.ones((2, 4))  # two identical rows
@@ -154,6 +155,7 @@ def test_noisy_layer_mean_is_deterministic_and_noise_changes_outputs():
     np.testing.assert_allclose(draws.mean(0)[0], mean[0], atol=0.05)
 
 
+@pytest.mark.slow
 def test_noise_per_world_is_the_factorised_kernel_applied_row_by_row():
     layer = NoisyDense(6, sigma0=0.5)
     params = {"params": jax.jit(layer.init)(jax.random.key(0), jnp.ones((1, 1, 4)))["params"]}
@@ -315,6 +317,7 @@ def trained_1d():
     return agent, state, jax.device_get(metrics)
 
 
+@pytest.mark.slow
 def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
     agent, state, metrics = trained_1d
     assert np.all(np.isfinite(metrics["loss"])) and np.all(metrics["loss"] > 0)
@@ -327,6 +330,7 @@ def test_rainbow_trains_with_finite_losses_and_updates_priorities(trained_1d):
     assert len(np.unique(leaves[leaves > 0])) > 1 and float(tree.max_recorded_priority) != 1.0
 
 
+@pytest.mark.slow
 def test_greedy_policy_is_the_noise_free_mean_network(trained_1d):
     agent, state, _ = trained_1d
     policy = agent.policy(state.params)
@@ -395,6 +399,7 @@ def test_two_seeds_through_the_driver_compile_once(tmp_path, monkeypatch):
     assert all(np.all(np.isfinite(r["loss"])) for r in records)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "options",
     [

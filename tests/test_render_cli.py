@@ -172,6 +172,7 @@ def test_a_team_checkpoint_is_drawn_as_its_team(tmp_path, capsys):
     assert not np.all(iio.imread(single, index=None) == np.array(ROBOT_COLOURS[1], np.uint8), axis=-1).any()
 
 
+@pytest.mark.slow
 def test_a_registered_policy_is_drawn_as_a_team_of_robots(tmp_path, capsys):
     """`snac render --policy handcrafted --robots 3` draws the handcrafted split's team: robot 2's
     colour, which neither a single robot nor a team of two holds, is in every frame; `--robots`

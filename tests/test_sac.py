@@ -201,6 +201,7 @@ def one_update_chunks():
     return agent, chunk, traces, jax.jit(agent.init)(jax.random.key(0))
 
 
+@pytest.mark.slow
 def test_sac_trains_a_few_updates_with_finite_losses_and_polyak_targets(one_update_chunks):
     agent, chunk, _, state = one_update_chunks
     critics = state.params["critic"]["params"]["VmapActionHead_0"]["Dense_0"]["kernel"]

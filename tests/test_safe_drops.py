@@ -72,6 +72,7 @@ def tiny(safe_drops: bool) -> PQN:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("safe_drops", [True, False])
 def test_random_exploration_never_walls_the_robot_in_with_safe_drops(safe_drops):
     # Every action random: at the start corner two neighbours are padding, so two drops wall the
@@ -107,6 +108,7 @@ def with_drop_down_first(params):
     return {"params": {**params["params"], "Dense_0": {**head, "bias": head["bias"].at[6].add(1e3)}}}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "learner, config", [(PQN, PQNConfig), pytest.param(PQNAux, PQNAuxConfig, marks=pytest.mark.slow)]
 )

@@ -85,6 +85,7 @@ def test_a_sweep_of_two_values_and_two_seeds_equals_the_separate_runs(sweep_run)
     assert len(whole[-1]["iou"]) == 4  # arms x seeds, arm-major, in the run's own metrics
 
 
+@pytest.mark.slow
 def test_a_stopped_sweep_resumes_to_the_uninterrupted_result(sweep_run, tmp_path):
     _, config, swept = sweep_run
     driver.train(config, tmp_path / "cut", progress=False, swept=swept, stop_after_chunks=1)
@@ -139,6 +140,7 @@ def test_a_float_the_learner_reads_outside_the_trace_is_refused_before_training(
     check_traceable(_config(), parse_sweep(["learning_rate=1e-3,2e-3", "gamma=0.9,0.99"], _config()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "argv,phrase",
     [

@@ -17,6 +17,7 @@ def _run(task, seed=0, steps=STEPS, **overrides):
     return env, params, jax.tree.map(np.asarray, random_episode(jax.random.key(seed), env, params, steps))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["1d-static-step", "2d-dynamic-dense", "3d-static-sparse"])
 def test_gps_appends_the_true_position_and_changes_nothing_else(task):
     bank = {"design_bank_size": 16} if "dynamic" in task else {}
@@ -67,6 +68,7 @@ def test_is_stuck_is_the_rule_the_transition_ends_episodes_on():
     np.testing.assert_array_equal(terminated, stuck)  # a state before a step is never out of bricks
 
 
+@pytest.mark.slow
 def test_no_obstacles_in_3d_lets_the_robot_stand_on_bricks_and_never_sticks():
     env, _, (_, (obs, act, rew, term, trunc, info, state)) = _run(
         "3d-static-dense", seed=2, steps=3000, obstacles=False
@@ -116,6 +118,7 @@ def test_without_landmarks_no_cell_is_a_landmark():
     assert not np.any(obs == LANDMARK_VALUE)
 
 
+@pytest.mark.slow
 def test_3d_reward_scheme_changes_rewards_only():
     kw = dict(task="3d-static-dense", seed=5, steps=1500, obstacles=False)
     _, _, (_, (obs, act, rew, term, trunc, info, state)) = _run(**kw)

@@ -55,6 +55,7 @@ def test_the_committed_readme_table_is_the_one_table_json_gives():
     )
 
 
+@pytest.mark.slow
 def test_cli_writes_the_readme_only_with_report(tmp_path, capsys):
     from snac_jax.cli import main
 

@@ -164,6 +164,7 @@ def test_without_compiling_ahead_every_program_compiles_on_the_callers_thread_wh
     assert threads == [(2, threading.current_thread().name), (1, threading.current_thread().name)]
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip(tmp_path):
     from agents.training.registry import build_algorithm
 
@@ -176,6 +177,7 @@ def test_checkpoint_round_trip(tmp_path):
     assert jax.dtypes.issubdtype(restored.key.dtype, jax.dtypes.prng_key)
 
 
+@pytest.mark.slow
 def test_resume_equals_uninterrupted(tmp_path, finished_run):
     config = RUN
     straight_run, straight = finished_run
@@ -265,6 +267,7 @@ def test_new_run_refuses_an_existing_run_and_resume_needs_one(tmp_path, finished
         train(RUN, tmp_path / "empty", resume=True, progress=False)
 
 
+@pytest.mark.slow
 def test_checkpoint_that_does_not_match_its_config_is_a_clear_error(tmp_path, finished_run):
     run = _copy_of(finished_run[0], tmp_path)
     saved = json.loads((run / checkpoint.CONFIG_FILE).read_text())
@@ -329,6 +332,7 @@ def test_two_device_run_matches_one_device_shapes_and_learns(tmp_path):
     assert two["iou_after"] > 0.85 * 40 / 600 and two["iou_after"] > two["iou_before"], two
 
 
+@pytest.mark.slow
 def test_cli_train_writes_the_run_directory_and_eval_loads_it(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
@@ -781,6 +785,7 @@ def test_a_run_with_switches_is_scored_and_drawn_with_them(tmp_path, capsys):
         trained.checkpoint_policy(env, run)
 
 
+@pytest.mark.slow
 def test_a_run_trained_without_stride_noise_is_refused_in_a_noisy_world(tmp_path):
     """The −uncertainty switch changes `EnvParams` only, not `EnvConfig`: a policy trained with
     strides of one cell must not be scored, silently, in the default world of strides 1-3. The
@@ -903,6 +908,7 @@ def test_a_run_scored_with_its_own_step_limit_is_shown_without_the_papers_row(tm
     assert row.split("|")[7:10] == [" — ", " — ", " — "]  # paper mean, paper min, delta
 
 
+@pytest.mark.slow
 def test_a_bit_flipped_checkpoint_is_one_line_of_damage_without_orbaxs_noise(tmp_path):
     """Bytes flipped in a checkpoint's metadata store: the damage is named in one note and the one
     before restores, without orbax's "Metadata file does not exist" warnings (printed on every

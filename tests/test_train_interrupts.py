@@ -80,6 +80,7 @@ def _strict_json_lines(path: Path) -> list[dict]:
 # --- Ctrl-C --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_snac_train_is_one_line_naming_the_resume_command(tmp_path, monkeypatch, capsys, ctrl_c_raises):
     """Ctrl-C as chunk 1's checkpoint is written: that checkpoint is completed first (orbax's save
     also deletes the oldest checkpoint, which an interrupt would leave half-deleted), the run

@@ -31,6 +31,7 @@ def _purejaxrl_rollout(env, params, num_envs=16, num_steps=200):
     return run(jax.random.key(0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["1d-static-sin", "3d-dynamic-dense"])
 def test_log_and_flatten_wrappers(task):
     base, params = make(task, design_bank_size=16) if "dynamic" in task else make(task, max_steps=50)
